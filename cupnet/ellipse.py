@@ -1,0 +1,272 @@
+"""Ellipses: conic <-> parameters, a differentiable direct ellipse-specific fit, distances.
+
+Parameters follow CONVENTIONS.md: ``(cx, cy, a, b, alpha)`` with the centre in pixels,
+semi-axes ``a >= b`` in pixels and ``alpha`` in ``[0, 180)`` degrees, the angle of the major
+axis from +u towards +v. A conic is the symmetric ``(..., 3, 3)`` matrix ``C`` with
+``(u, v, 1) C (u, v, 1)^T = 0`` on the curve.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from cupnet.geometry import normalize_conic
+
+MIN_POINTS = 5
+# Relative ridge added to the reduced scatter matrix so its Cholesky factor exists when the
+# points lie exactly on an ellipse (singular scatter); it moves the solution by ~1e-12.
+_RIDGE = 1e-12
+# Smallest ratio of the point cloud's two principal spreads before it counts as a line.
+_COLLINEAR_RATIO = 1e-10
+
+
+class EllipseFitError(ValueError):
+    """An ellipse fit that cannot give an ellipse; the message names the cause."""
+
+
+def coefficients_to_conic(coeffs: Tensor) -> Tensor:
+    """``(..., 6)`` coefficients ``(A, B, C, D, E, F)`` of ``Ax^2+Bxy+Cy^2+Dx+Ey+F`` -> ``(..., 3, 3)``."""
+    a, b, c, d, e, f = coeffs.unbind(-1)
+    rows = [
+        torch.stack([a, b / 2, d / 2], -1),
+        torch.stack([b / 2, c, e / 2], -1),
+        torch.stack([d / 2, e / 2, f], -1),
+    ]
+    return torch.stack(rows, -2)
+
+
+def conic_to_coefficients(conic: Tensor) -> Tensor:
+    """``(..., 3, 3)`` conic -> ``(..., 6)`` coefficients ``(A, B, C, D, E, F)``."""
+    return torch.stack(
+        [conic[..., 0, 0], 2 * conic[..., 0, 1], conic[..., 1, 1], 2 * conic[..., 0, 2],
+         2 * conic[..., 1, 2], conic[..., 2, 2]], -1)
+
+
+def conic_to_params(conic: Tensor) -> Tensor:
+    """Ellipse parameters of a conic.
+
+    Args:
+        conic: ``(..., 3, 3)`` ellipse conics (any scale and sign).
+    Returns:
+        ``(..., 5)``: ``(cx, cy, a, b, alpha)`` pixels, pixels, pixels, pixels, degrees.
+        Not an ellipse (hyperbola, parabola, imaginary): NaN; check with :func:`is_ellipse`.
+    """
+    quad = conic[..., :2, :2]
+    lin = conic[..., :2, 2]
+    centre = torch.linalg.solve(quad, -lin.unsqueeze(-1)).squeeze(-1)
+    # Value of the conic at the centre: the centred form is x^T quad x + f_c = 0.
+    f_c = conic[..., 2, 2] + (lin * centre).sum(-1)
+    p = quad[..., 0, 0] / -f_c
+    r = quad[..., 1, 1] / -f_c
+    q = quad[..., 0, 1] / -f_c
+    mean = (p + r) / 2
+    # Closed-form 2x2 eigenvalues: no eigh, so a circle (equal eigenvalues) stays finite.
+    half_gap = torch.sqrt((((p - r) / 2) ** 2 + q**2).clamp_min(1e-300))
+    lam_small, lam_big = mean - half_gap, mean + half_gap
+    a = torch.rsqrt(lam_small)
+    b = torch.rsqrt(lam_big)
+    # atan2(2q, p - r) = 2 * (direction of the larger eigenvalue = minor axis); +90 deg -> major.
+    alpha = torch.rad2deg(0.5 * torch.atan2(-2 * q, r - p)) % 180.0
+    return torch.stack([centre[..., 0], centre[..., 1], a, b, alpha], -1)
+
+
+def params_to_conic(params: Tensor) -> Tensor:
+    """``(..., 5)`` ``(cx, cy, a, b, alpha_deg)`` -> unit-norm ``(..., 3, 3)`` conic."""
+    cx, cy, a, b, alpha = params.unbind(-1)
+    ang = torch.deg2rad(alpha)
+    c, s = torch.cos(ang), torch.sin(ang)
+    ia, ib = 1 / a**2, 1 / b**2
+    qa = c * c * ia + s * s * ib
+    qb = s * c * (ia - ib)
+    qc = s * s * ia + c * c * ib
+    qd = -(qa * cx + qb * cy)
+    qe = -(qb * cx + qc * cy)
+    qf = qa * cx * cx + 2 * qb * cx * cy + qc * cy * cy - 1
+    rows = [torch.stack([qa, qb, qd], -1), torch.stack([qb, qc, qe], -1),
+            torch.stack([qd, qe, qf], -1)]
+    return normalize_conic(torch.stack(rows, -2))
+
+
+def is_ellipse(conic: Tensor) -> Tensor:
+    """``(..., 3, 3)`` -> ``(...)`` bool: a real, non-degenerate ellipse."""
+    quad_det = conic[..., 0, 0] * conic[..., 1, 1] - conic[..., 0, 1] ** 2
+    det = torch.linalg.det(conic)
+    trace = conic[..., 0, 0] + conic[..., 1, 1]
+    # Real ellipse: positive-definite quadratic part, and det of opposite sign to the trace.
+    return (quad_det > 0) & (det * trace < 0) & torch.isfinite(det)
+
+
+def ellipse_points(params: Tensor, t: Tensor) -> Tensor:
+    """Points on ellipses: ``(..., 5)`` params, ``(N,)`` angles (rad) -> ``(..., N, 2)`` pixels."""
+    cx, cy, a, b, alpha = (x[..., None] for x in params.unbind(-1))
+    ang = torch.deg2rad(alpha)
+    x, y = a * torch.cos(t), b * torch.sin(t)
+    return torch.stack([cx + x * torch.cos(ang) - y * torch.sin(ang),
+                        cy + x * torch.sin(ang) + y * torch.cos(ang)], -1)
+
+
+def algebraic_residual(conic: Tensor, points: Tensor) -> Tensor:
+    """``p~^T C p~`` for ``(B, 3, 3)`` conics and ``(B, N, 2)`` points -> ``(B, N)``."""
+    hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
+    return torch.einsum("bni,bij,bnj->bn", hom, conic, hom)
+
+
+def sampson_distance(conic: Tensor, points: Tensor) -> Tensor:
+    """Signed first-order geometric distance of points to conics (pixels).
+
+    Args:
+        conic: ``(B, 3, 3)``.
+        points: ``(B, N, 2)`` pixels.
+    Returns:
+        ``(B, N)``: ``p~^T C p~ / (2 |grad|)``, negative inside for conics scaled by
+        :func:`cupnet.geometry.normalize_conic`.
+    """
+    hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
+    grad = torch.einsum("bij,bnj->bni", conic[..., :2, :], hom)
+    value = (grad * points).sum(-1) + torch.einsum("bi,bni->bn", conic[..., 2, :], hom)
+    return value / (2 * torch.linalg.vector_norm(grad, dim=-1))
+
+
+@dataclass
+class EllipseFit:
+    """Result of :func:`fit_ellipse` for a batch of ``B`` point sets.
+
+    Attributes:
+        conic: ``(B, 3, 3)`` unit-norm conics in pixels (identity-like placeholder where invalid).
+        params: ``(B, 5)`` ``(cx, cy, a, b, alpha_deg)``; NaN where invalid.
+        valid: ``(B,)`` bool.
+        status: ``B`` strings, ``"ok"`` or the reason the fit failed.
+    """
+
+    conic: Tensor
+    params: Tensor
+    valid: Tensor
+    status: list[str]
+
+
+def _fit_problems(points: Tensor, weights: Tensor) -> list[str]:
+    """Per-item reason a fit cannot succeed ('ok' where it can). points (B,N,2), weights (B,N)."""
+    active = weights > 0
+    finite = torch.isfinite(points).all(-1)
+    counts = active.sum(-1)
+    bad_value = (active & ~finite).any(-1) | ~torch.isfinite(weights).all(-1) | (weights < 0).any(-1)
+    # Spread of the active points: a line (or one point) has a vanishing minor spread.
+    w = torch.where(active & finite, weights, torch.zeros_like(weights))
+    p = torch.where((active & finite)[..., None], points, torch.zeros_like(points))
+    total = w.sum(-1).clamp_min(1e-300)
+    mean = (w[..., None] * p).sum(-2) / total[..., None]
+    d = p - mean[:, None]
+    cov = torch.einsum("bn,bni,bnj->bij", w, d, d) / total[:, None, None]
+    evals = torch.linalg.eigvalsh(cov)
+    flat = evals[:, 0] <= _COLLINEAR_RATIO * evals[:, 1].clamp_min(1e-300)
+    reasons = []
+    for i in range(points.shape[0]):
+        if bad_value[i]:
+            reasons.append("non-finite or negative landmark coordinates or weights")
+        elif counts[i] < MIN_POINTS:
+            reasons.append(f"too few points: {int(counts[i])} < {MIN_POINTS}")
+        elif flat[i]:
+            reasons.append("points are collinear or coincide")
+        else:
+            reasons.append("ok")
+    return reasons
+
+
+def fit_ellipse(
+    points: Tensor,
+    weights: Tensor | None = None,
+    *,
+    on_error: Literal["raise", "flag"] = "raise",
+) -> EllipseFit:
+    """Direct least-squares ellipse-specific fit (Fitzgibbon 1999, Halir-Flusser 1998 form).
+
+    Minimises the weighted algebraic distance ``sum_i w_i (x_i^T a)^2`` subject to the ellipse
+    constraint ``4AC - B^2 = 1``, on points normalised to zero weighted mean and unit RMS
+    spread (the fit is similarity-covariant, so this changes only the conditioning). The
+    constrained problem is solved as a symmetric eigenproblem
+    ``L^-1 C1 L^-T`` (``L`` the Cholesky factor of the reduced scatter matrix), whose single
+    positive eigenvalue gives the ellipse, so the fit is differentiable with respect to the
+    points and the weights through ``torch.linalg.eigh``.
+
+    Args:
+        points: ``(B, N, 2)`` or ``(N, 2)`` pixels.
+        weights: ``(B, N)`` or ``(N,)`` non-negative; zero drops a point (ragged sets).
+        on_error: ``"raise"`` raises :class:`EllipseFitError` naming the first bad item;
+            ``"flag"`` returns ``valid=False`` and the reason in ``status`` instead.
+    Returns:
+        :class:`EllipseFit` (batched even for an unbatched input).
+    """
+    if points.ndim == 2:
+        points = points[None]
+        weights = None if weights is None else weights[None]
+    if points.ndim != 3 or points.shape[-1] != 2:
+        raise EllipseFitError(f"points must have shape (B, N, 2) or (N, 2), got {tuple(points.shape)}")
+    if weights is None:
+        weights = torch.ones(points.shape[:2], dtype=points.dtype, device=points.device)
+    status = _fit_problems(points.detach(), weights.detach())
+    bad = [i for i, s in enumerate(status) if s != "ok"]
+    if bad and on_error == "raise":
+        raise EllipseFitError(f"ellipse fit of item {bad[0]}: {status[bad[0]]}")
+    valid = torch.tensor([s == "ok" for s in status], device=points.device)
+
+    # Invalid items get a unit circle so the batch stays finite; their results are masked.
+    if bad:
+        t = torch.linspace(0, 2 * math.pi, points.shape[1] + 1, dtype=points.dtype,
+                           device=points.device)[:-1]
+        circle = torch.stack([torch.cos(t), torch.sin(t)], -1).expand_as(points)
+        points = torch.where(valid[:, None, None], points, circle)
+        weights = torch.where(valid[:, None], weights, torch.ones_like(weights))
+    active = weights > 0
+    points = torch.where(active[..., None], points, torch.zeros_like(points))
+
+    w = weights / weights.sum(-1, keepdim=True)
+    mean = (w[..., None] * points).sum(-2)
+    centred = points - mean[:, None]
+    scale = torch.sqrt((w * (centred**2).sum(-1)).sum(-1) / 2)
+    x, y = (centred / scale[:, None, None]).unbind(-1)
+    quad = torch.stack([x * x, x * y, y * y], -1)
+    lin = torch.stack([x, y, torch.ones_like(x)], -1)
+    s1 = torch.einsum("bn,bni,bnj->bij", w, quad, quad)
+    s2 = torch.einsum("bn,bni,bnj->bij", w, quad, lin)
+    s3 = torch.einsum("bn,bni,bnj->bij", w, lin, lin)
+    lin_from_quad = -torch.linalg.solve(s3, s2.transpose(-1, -2))  # (B, 3, 3)
+    reduced = s1 + s2 @ lin_from_quad
+    reduced = 0.5 * (reduced + reduced.transpose(-1, -2))
+    trace = reduced.diagonal(dim1=-2, dim2=-1).sum(-1)
+    eye = torch.eye(3, dtype=points.dtype, device=points.device)
+    chol = torch.linalg.cholesky(reduced + (_RIDGE * trace)[:, None, None] * eye)
+    constraint = torch.tensor([[0.0, 0.0, 2.0], [0.0, -1.0, 0.0], [2.0, 0.0, 0.0]],
+                              dtype=points.dtype, device=points.device)
+    half = torch.linalg.solve_triangular(chol, constraint.expand_as(chol), upper=False)
+    sym = torch.linalg.solve_triangular(chol, half.transpose(-1, -2), upper=False)
+    sym = 0.5 * (sym + sym.transpose(-1, -2))
+    _, vecs = torch.linalg.eigh(sym)
+    top = vecs[..., -1:]  # the single positive eigenvalue is the largest
+    quad_coef = torch.linalg.solve_triangular(chol.transpose(-1, -2), top, upper=True)
+    lin_coef = lin_from_quad @ quad_coef
+    coeffs = torch.cat([quad_coef, lin_coef], -2).squeeze(-1)
+    conic_norm = coefficients_to_conic(coeffs)
+    # Back to pixels: x_n = (p - mean) / scale, i.e. (x_n, 1) = N (p, 1).
+    zero, one = torch.zeros_like(scale), torch.ones_like(scale)
+    to_norm = torch.stack([
+        torch.stack([1 / scale, zero, -mean[:, 0] / scale], -1),
+        torch.stack([zero, 1 / scale, -mean[:, 1] / scale], -1),
+        torch.stack([zero, zero, one], -1)], -2)
+    conic = normalize_conic(to_norm.transpose(-1, -2) @ conic_norm @ to_norm)
+
+    ellipse = is_ellipse(conic).detach()
+    for i in range(len(status)):
+        if status[i] == "ok" and not bool(ellipse[i]):
+            status[i] = "fit is not an ellipse (degenerate conic)"
+    valid = torch.tensor([s == "ok" for s in status], device=points.device)
+    if not valid.all() and on_error == "raise":
+        first = int((~valid).nonzero()[0])
+        raise EllipseFitError(f"ellipse fit of item {first}: {status[first]}")
+    params = conic_to_params(conic)
+    params = torch.where(valid[:, None], params, torch.full_like(params, math.nan))
+    return EllipseFit(conic=conic, params=params, valid=valid, status=status)
