@@ -1,0 +1,415 @@
+"""CupNet: image + geometry -> cup poses, as one differentiable ``nn.Module``.
+
+Two stages, both small segmentation-models-pytorch U-Nets predicting the cup opening (the
+filled rim ellipse) as an area-coverage map:
+
+1. the *locator* sees the whole image letterboxed to ``locator_size`` pixels; connected
+   components of its map give 0, 1 or 2 cups and a rough ellipse for each;
+2. the *refiner* segments a square crop around each cup, framed so the rim's major axis
+   spans ``crop_fill`` of the ``crop_size`` crop (a second pass re-frames the crop on the
+   first pass's ellipse). Soft landmarks (:func:`cupnet.landmarks.ray_landmarks`) are mapped
+   back to original-image pixels through the crop's exact affine, then the weighted ellipse
+   fit and the pose solver (:func:`cupnet.pose.solve_pose`) give the pose, so a pose loss
+   backpropagates into the refiner.
+
+Images may have any size; every resampling is an exactly known affine (:mod:`cupnet.crops`).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import cv2
+import numpy as np
+import segmentation_models_pytorch as smp
+import torch
+from kornia.geometry.transform import warp_affine
+from torch import Tensor, nn
+
+from cupnet.crops import letterbox_affine, resample_batch, square_crop_affine, to_image
+from cupnet.geometry import Geometry
+from cupnet.landmarks import ray_landmarks, soft_moments
+from cupnet.pose import PoseSolution, solve_pose
+
+ASSETS = Path(__file__).resolve().parent / "assets"
+DEFAULT_CHECKPOINT = ASSETS / "cupnet_default.safetensors"
+
+
+@dataclass
+class CupNetConfig:
+    """Architecture and inference settings (stored as JSON beside a checkpoint).
+
+    Attributes:
+        encoder: smp encoder name of both U-Nets (never downloaded: ``encoder_weights=None``).
+        decoder_channels: U-Net decoder widths, deepest first.
+        encoder_weights: optional path of an encoder state dict (safetensors or torch) loaded
+            into both encoders, e.g. an ImageNet checkpoint the user has locally.
+        locator_size: letterbox side (px) of stage 1.
+        crop_size: crop side (px) of stage 2.
+        crop_fill: rim major diameter / crop side.
+        n_rays: soft landmarks per cup.
+        ray_samples: samples per ray.
+        max_cups: cups per image at most.
+        detect_threshold: probability threshold of the locator's components.
+        min_cup_area: smallest component (locator px) that counts as a cup.
+        refine_passes: stage-2 passes at inference (each re-frames on the last ellipse).
+    """
+
+    encoder: str = "timm-mobilenetv3_small_100"
+    decoder_channels: tuple[int, ...] = (64, 32, 16, 16, 8)
+    encoder_weights: str | None = None
+    locator_size: int = 128
+    crop_size: int = 128
+    crop_fill: float = 0.78
+    n_rays: int = 64
+    ray_samples: int = 128
+    max_cups: int = 2
+    detect_threshold: float = 0.5
+    min_cup_area: float = 4.0
+    refine_passes: int = 2
+
+    @classmethod
+    def from_dict(cls, values: dict) -> CupNetConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown CupNet config keys: {sorted(unknown)}")
+        values = dict(values)
+        if "decoder_channels" in values:
+            values["decoder_channels"] = tuple(values["decoder_channels"])
+        return cls(**values)
+
+
+@dataclass
+class CupDetection:
+    """One detected cup (public units).
+
+    Attributes:
+        pose: ``(5,)`` (theta_deg, phi_deg, k_mm, l_mm, h_mm); NaN where ``status`` is an error.
+        alt_pose: ``(5,)`` the second in-range pose where ``ambiguous``, else None.
+        ambiguous: both poses of the ellipse lie in range.
+        ellipse: ``(5,)`` (cx, cy, a, b, alpha_deg) original-image pixels.
+        landmarks: ``(N, 2)`` original-image pixels (u, v).
+        weights: ``(N,)`` landmark weights in [0, 1].
+        residual_px: RMS distance of the landmarks to the solved rim.
+        mask: ``(H, W)`` opening probability in original-image pixels, or None.
+        status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"``.
+        score: mean locator probability of the cup's component.
+    """
+
+    pose: np.ndarray
+    alt_pose: np.ndarray | None
+    ambiguous: bool
+    ellipse: np.ndarray
+    landmarks: np.ndarray
+    weights: np.ndarray
+    residual_px: float
+    mask: np.ndarray | None = None
+    status: str = "ok"
+    score: float = 1.0
+
+
+@dataclass
+class CupNetOutput:
+    """Differentiable outputs of :meth:`CupNet.forward` for ``K`` cups of ``B`` images.
+
+    Attributes:
+        locator_logits: ``(B, 1, S, S)`` letterboxed opening logits.
+        letterbox: ``(B, 2, 3)`` letterbox-to-image affines.
+        crop_logits: ``(K, 1, s, s)`` opening logits of each cup's crop.
+        crop_to_image: ``(K, 2, 3)`` crop-to-image affines.
+        cup_index: ``(K, 2)`` (image, cup slot) of each crop.
+        landmarks: ``(K, N, 2)`` original-image pixels; ``weights``: ``(K, N)``.
+        solution: pose solver output for the ``K`` cups (float64, public units).
+    """
+
+    locator_logits: Tensor
+    letterbox: Tensor
+    crop_logits: Tensor
+    crop_to_image: Tensor
+    cup_index: Tensor
+    landmarks: Tensor
+    weights: Tensor
+    solution: PoseSolution
+    extras: dict = field(default_factory=dict)
+
+
+def _unet(config: CupNetConfig) -> smp.Unet:
+    return smp.Unet(config.encoder, encoder_weights=None, in_channels=1, classes=1,
+                    encoder_depth=len(config.decoder_channels),
+                    decoder_channels=tuple(config.decoder_channels))
+
+
+def _standardise(views: Tensor) -> Tensor:
+    """Per-view zero mean, unit variance: robust to exposure and windowing. ``(K, 1, h, w)``."""
+    mean = views.mean((-2, -1), keepdim=True)
+    std = views.std((-2, -1), keepdim=True)
+    return (views - mean) / (std + 1e-3)
+
+
+def _as_image_list(images: Tensor | list, dtype: torch.dtype) -> list[Tensor]:
+    """``(B, 1, H, W)`` tensor or a list of ``(H, W)`` / ``(1, H, W)`` arrays -> ``(1, H, W)``s
+    of ``dtype``."""
+    items = list(images) if not isinstance(images, Tensor) or images.ndim == 4 else [images]
+    out = []
+    for i, image in enumerate(items):
+        t = torch.as_tensor(np.asarray(image) if not isinstance(image, Tensor) else image)
+        t = t.to(dtype)
+        if t.ndim == 2:
+            t = t[None]
+        if t.ndim != 3 or t.shape[0] != 1:
+            raise ValueError(f"image {i}: expected (1, H, W) or (H, W), got {tuple(t.shape)}")
+        if not torch.isfinite(t).all():
+            raise ValueError(f"image {i}: contains NaN or infinite values")
+        out.append(t)
+    return out
+
+
+def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
+    """``(B, 4)`` float64 rows (sdd, spacing, u0, v0) of a batch geometry."""
+    return torch.stack([t.expand(batch) if t.ndim == 0 else t.reshape(batch)
+                        for t in geometry.tensors(torch.float64)], -1)
+
+
+class CupNet(nn.Module):
+    """Two-stage cup-opening segmentation, soft landmarks, ellipse fit and pose solver."""
+
+    def __init__(self, config: CupNetConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or CupNetConfig()
+        self.locator = _unet(self.config)
+        self.refiner = _unet(self.config)
+        if self.config.encoder_weights:
+            state = _read_state_dict(Path(self.config.encoder_weights))
+            for net in (self.locator, self.refiner):
+                net.encoder.load_state_dict(state, strict=False)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return next(self.parameters()).dtype
+
+    # -- stage 1 ---------------------------------------------------------------------------
+    def letterbox(self, images: list[Tensor]) -> tuple[Tensor, Tensor]:
+        """Letterboxed views ``(B, 1, S, S)`` and their crop-to-image affines ``(B, 2, 3)``."""
+        size = self.config.locator_size
+        affines = torch.stack([letterbox_affine(im.shape[-2], im.shape[-1], size)
+                               for im in images]).to(images[0])
+        return resample_batch(images, affines, size), affines
+
+    def locate(self, images: list[Tensor]) -> tuple[Tensor, Tensor]:
+        """Stage 1: letterboxed opening logits ``(B, 1, S, S)`` and affines ``(B, 2, 3)``."""
+        views, affines = self.letterbox(images)
+        return self.locator(_standardise(views)), affines
+
+    def boxes_from_locator(self, logits: Tensor, letterbox: Tensor) -> tuple[Tensor, Tensor]:
+        """Cup crops from the locator's components: boxes ``(B, C, 3)`` (cx, cy, side) image px
+        (NaN where no cup) and scores ``(B, C)``, largest components first."""
+        cfg = self.config
+        prob = torch.sigmoid(logits.detach()).cpu().double().numpy()[:, 0]
+        boxes = torch.full((len(prob), cfg.max_cups, 3), math.nan, dtype=torch.float64)
+        scores = torch.zeros(len(prob), cfg.max_cups, dtype=torch.float64)
+        for i, p in enumerate(prob):
+            count, labels = cv2.connectedComponents((p > cfg.detect_threshold).astype(np.uint8))
+            found = []
+            for label in range(1, count):
+                w = np.where(labels == label, p, 0.0)
+                if w.sum() < cfg.min_cup_area:
+                    continue
+                _, centre, cov = soft_moments(torch.from_numpy(w)[None, None])
+                major = 2 * math.sqrt(float(torch.linalg.eigvalsh(cov[0])[-1]))
+                found.append((float(w.sum()), centre[0], major, float(p[labels == label].mean())))
+            found.sort(key=lambda f: -f[0])
+            for c, (_, centre, major, score) in enumerate(found[:cfg.max_cups]):
+                affine = letterbox[i].double().cpu()
+                centre_img = to_image(centre[None], affine)[0]
+                step = float(affine[0, 0])
+                side = 2 * major * step / cfg.crop_fill
+                boxes[i, c] = torch.cat([centre_img, torch.tensor([side], dtype=torch.float64)])
+                scores[i, c] = score
+        return boxes, scores
+
+    # -- stage 2 ---------------------------------------------------------------------------
+    def segment_crops(self, images: list[Tensor] | Tensor, boxes: Tensor, index: Tensor
+                      ) -> tuple[Tensor, Tensor]:
+        """Stage 2: crop logits ``(K, 1, s, s)`` and crop-to-image affines ``(K, 2, 3)``.
+
+        Args:
+            images: ``(B, 1, H, W)`` or list of ``(1, H, W)``.
+            boxes: ``(K, 3)`` (cx, cy, side) image pixels.
+            index: ``(K,)`` image of each box.
+        """
+        size = self.config.crop_size
+        affines = square_crop_affine(boxes[:, :2], boxes[:, 2], size).to(images[0].dtype)
+        crops = resample_batch(images, affines, size, index)
+        if crops.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
+            return crops, affines
+        return self.refiner(_standardise(crops)), affines
+
+    def crop_landmarks(self, crop_logits: Tensor, crop_to_image: Tensor) -> tuple[Tensor, Tensor]:
+        """Soft landmarks in original-image pixels ``(K, N, 2)`` float64 and weights ``(K, N)``."""
+        points, weights = ray_landmarks(torch.sigmoid(crop_logits).double(), self.config.n_rays,
+                                        self.config.ray_samples)
+        return to_image(points, crop_to_image.double()), weights
+
+    def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
+                crop_boxes: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
+        """Images + geometry -> locator map, crop maps, landmarks, ellipses and poses.
+
+        Args:
+            images: ``(B, 1, H, W)`` float32 in [0, 1] (or a list of ``(1, H_i, W_i)``).
+            geometry: fields ``(B,)`` or scalars.
+            cup_diameter: ``(B,)`` or ``(B, C)`` mm.
+            crop_boxes: ``(B, C, 3)`` (cx, cy, side) crops to segment, NaN rows skipped
+                (training frames them from the truth); None takes them from the locator.
+            refine_pose: run the solver's maximum-likelihood refinement (slower); otherwise
+                the closed form, differentiable through ``eigh``.
+        Returns:
+            :class:`CupNetOutput` with ``K`` = number of crops segmented.
+        """
+        image_list = (_as_image_list(images, self.dtype) if not isinstance(images, Tensor)
+                      else images)
+        if isinstance(images, Tensor) and images.ndim != 4:
+            raise ValueError(f"images must be (B, 1, H, W), got {tuple(images.shape)}")
+        locator_logits, letterbox = self.locate(list(image_list))
+        if crop_boxes is None:
+            crop_boxes, _ = self.boxes_from_locator(locator_logits, letterbox)
+        batch = locator_logits.shape[0]
+        cup_index = torch.isfinite(crop_boxes).all(-1).nonzero()  # (K, 2)
+        boxes = crop_boxes[cup_index[:, 0], cup_index[:, 1]].to(locator_logits.device)
+        crop_logits, crop_to_image = self.segment_crops(image_list, boxes, cup_index[:, 0])
+        points, weights = self.crop_landmarks(crop_logits, crop_to_image)
+        solution = self.solve(points, weights, geometry, cup_diameter, cup_index, batch,
+                              refine_pose)
+        return CupNetOutput(locator_logits, letterbox, crop_logits, crop_to_image, cup_index,
+                            points, weights, solution)
+
+    def solve(self, points: Tensor, weights: Tensor, geometry: Geometry, cup_diameter: Tensor,
+              cup_index: Tensor, batch: int, refine: bool) -> PoseSolution:
+        """Pose of each crop's landmarks with its image's geometry and cup diameter."""
+        rows = geometry_rows(geometry, batch).to(points.device)[cup_index[:, 0]]
+        diameter = torch.as_tensor(cup_diameter, dtype=torch.float64, device=points.device)
+        diameter = diameter.expand(batch) if diameter.ndim == 0 else diameter
+        diameter = (diameter[cup_index[:, 0], cup_index[:, 1]] if diameter.ndim == 2
+                    else diameter[cup_index[:, 0]])
+        if points.shape[0] == 0:
+            empty = points.new_zeros(0, 5)
+            return PoseSolution(empty, empty, torch.zeros(0, dtype=torch.bool), empty,
+                                points.new_zeros(0), torch.zeros(0, dtype=torch.bool), [])
+        return solve_pose(points, Geometry(*rows.unbind(-1)), diameter, weights, refine=refine,
+                          on_error="flag")
+
+    # -- inference -------------------------------------------------------------------------
+    @torch.inference_mode()
+    def detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
+               return_masks: bool = True) -> list[list[CupDetection]]:
+        """Cups of each image: 0 (no cup), 1 or 2 :class:`CupDetection` per image.
+
+        Args:
+            images: ``(B, 1, H, W)`` float32 in [0, 1], or a list of ``(H, W)`` / ``(1, H, W)``
+                arrays of any sizes (256-4096 px).
+            geometry: fields ``(B,)`` or scalars, principal point in original-image pixels.
+            cup_diameter: mm, scalar or ``(B,)``.
+            return_masks: fill :attr:`CupDetection.mask` (an ``(H, W)`` array per cup).
+        """
+        was_training = self.training
+        self.eval()
+        image_list = _as_image_list(images, self.dtype)
+        batch = len(image_list)
+        diameter = torch.as_tensor(cup_diameter, dtype=torch.float64)
+        diameter = diameter.expand(batch) if diameter.ndim == 0 else diameter
+        if diameter.shape != (batch,):
+            raise ValueError(f"cup_diameter must be a scalar or ({batch},), got "
+                             f"{tuple(diameter.shape)}")
+        locator_logits, letterbox = self.locate(image_list)
+        boxes, scores = self.boxes_from_locator(locator_logits, letterbox)
+        cup_index = torch.isfinite(boxes).all(-1).nonzero()
+        crop_boxes = boxes[cup_index[:, 0], cup_index[:, 1]]
+        for _ in range(self.config.refine_passes):
+            crop_logits, crop_to_image = self.segment_crops(image_list, crop_boxes,
+                                                            cup_index[:, 0])
+            points, weights = self.crop_landmarks(crop_logits, crop_to_image)
+            solution = self.solve(points, weights, geometry, diameter, cup_index, batch,
+                                  refine=True)
+            # Re-frame on the fitted ellipse where it is usable; keep the old box otherwise.
+            ellipse = solution.ellipse
+            usable = torch.isfinite(ellipse).all(-1) & (ellipse[:, 2] > 0.5)
+            new = torch.cat([ellipse[:, :2], (2 * ellipse[:, 2:3] / self.config.crop_fill)], -1)
+            crop_boxes = torch.where(usable[:, None], new, crop_boxes)
+        results: list[list[CupDetection]] = [[] for _ in range(batch)]
+        for k, (i, c) in enumerate(cup_index.tolist()):
+            mask = None
+            if return_masks:
+                height, width = image_list[i].shape[-2:]
+                mask = warp_affine(torch.sigmoid(crop_logits[k:k + 1]), crop_to_image[k:k + 1],
+                                   (height, width), align_corners=True)[0, 0].numpy()
+            ambiguous = bool(solution.ambiguous[k])
+            results[i].append(CupDetection(
+                pose=solution.pose[k].numpy(),
+                alt_pose=solution.alt_pose[k].numpy() if ambiguous else None,
+                ambiguous=ambiguous,
+                ellipse=solution.ellipse[k].numpy(),
+                landmarks=points[k].numpy(),
+                weights=weights[k].numpy(),
+                residual_px=float(solution.residual_px[k]),
+                mask=mask,
+                status=solution.status[k],
+                score=float(scores[i, c]),
+            ))
+        self.train(was_training)
+        return results
+
+
+def _read_state_dict(path: Path) -> dict[str, Tensor]:
+    """A tensor state dict from safetensors or a ``torch.load(weights_only=True)`` file."""
+    if not path.exists():
+        raise FileNotFoundError(f"checkpoint not found: {path}")
+    if path.suffix == ".safetensors":
+        from safetensors.torch import load_file
+
+        return load_file(str(path))
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    if isinstance(state, dict) and "state_dict" in state:
+        state = state["state_dict"]
+    return state
+
+
+def config_path(checkpoint: Path) -> Path:
+    """The JSON model config stored beside a checkpoint (same stem)."""
+    return checkpoint.with_suffix(".json")
+
+
+def save_model(model: CupNet, checkpoint: str | Path) -> Path:
+    """Write ``model`` as safetensors plus its JSON config beside it; returns the weights path."""
+    from safetensors.torch import save_file
+
+    checkpoint = Path(checkpoint)
+    checkpoint.parent.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
+    save_file(state, str(checkpoint))
+    config = asdict(model.config)
+    config_path(checkpoint).write_text(json.dumps(config, indent=2) + "\n")
+    return checkpoint
+
+
+def load_model(checkpoint: str | Path | None = None) -> CupNet:
+    """A CupNet in eval mode from a checkpoint; None loads the shipped default.
+
+    Accepts safetensors (with the JSON config beside it) or a file readable with
+    ``torch.load(weights_only=True)``: a plain state dict or a Lightning checkpoint (its
+    ``model.`` keys); loading never runs code from the file. Without a JSON config the
+    default :class:`CupNetConfig` is used.
+    """
+    path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
+    state = _read_state_dict(path)
+    if any(k.startswith("model.") for k in state):
+        state = {k[len("model."):]: v for k, v in state.items() if k.startswith("model.")}
+    cfg_file = config_path(path)
+    config = (CupNetConfig.from_dict(json.loads(cfg_file.read_text())) if cfg_file.exists()
+              else CupNetConfig())
+    config.encoder_weights = None  # the checkpoint holds the trained encoders
+    model = CupNet(config)
+    model.load_state_dict(state)
+    return model.eval()

@@ -1,0 +1,212 @@
+"""CupNet: exact crops, soft landmarks, end-to-end differentiability and inference plumbing."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from cupnet.crops import letterbox_affine, resample, square_crop_affine, to_image, to_view
+from cupnet.ellipse import fit_ellipse
+from cupnet.geometry import Geometry
+from cupnet.landmarks import ellipse_coverage, ray_landmarks, soft_moments
+from cupnet.model import CupNet, CupNetConfig, load_model, save_model
+from cupnet.pose import ellipse_of_pose
+
+TINY = CupNetConfig(encoder="resnet18", decoder_channels=(8, 8), n_rays=48, ray_samples=96)
+
+
+class EdgeNet(nn.Module):
+    """Tiny stand-in segmenter: logits = gain * (standardised image), a 3x3 convolution."""
+
+    def __init__(self, gain: float = 4.0) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(1, 1, 3, padding=1)
+        with torch.no_grad():
+            self.conv.weight.zero_()
+            self.conv.weight[0, 0, 1, 1] = gain
+            self.conv.bias.zero_()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.conv(x)
+
+
+def scene(poses_deg: list[list[float]], height: int, width: int, sdd: float = 1040.0,
+          spacing: float = 0.3, diameter: float = 52.0
+          ) -> tuple[torch.Tensor, Geometry, torch.Tensor]:
+    """Image (1, H, W) float64 of filled rim ellipses, its geometry and the true ellipses."""
+    geometry = Geometry.for_image(width, height, sdd, spacing)
+    pose = torch.tensor(poses_deg, dtype=torch.float64)
+    ellipse = ellipse_of_pose(pose, diameter, geometry)
+    image = 0.8 * ellipse_coverage(ellipse[None], height, width)[0]
+    return image, geometry, ellipse
+
+
+def test_resample_matches_opencv_warp_affine():
+    rng = np.random.default_rng(0)
+    image = cv2.GaussianBlur(rng.random((90, 120)), (0, 0), 2.0)
+    affine = square_crop_affine(torch.tensor([61.3, 40.7], dtype=torch.float64),
+                                torch.tensor(45.5, dtype=torch.float64), 64)
+    ours = resample(torch.from_numpy(image)[None], affine, 64, antialias=False)[0].numpy()
+    ref = cv2.warpAffine(image, affine.numpy(), (64, 64),
+                         flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    assert np.abs(ours - ref).max() < 1e-3
+
+
+def test_to_view_inverts_to_image():
+    affine = square_crop_affine(torch.tensor([300.2, 123.4]), torch.tensor(211.0), 128).double()
+    points = torch.rand(7, 2, dtype=torch.float64) * 128
+    assert torch.allclose(to_view(to_image(points, affine), affine), points, atol=1e-10)
+
+
+@pytest.mark.parametrize(("height", "width"), [(512, 512), (700, 1024), (1300, 600)])
+def test_letterbox_maps_back_exactly(height, width):
+    # The centroid of a disc seen in the letterbox maps back to the disc's centre.
+    truth = torch.tensor([[[0.37 * width, 0.61 * height, 0.08 * max(height, width),
+                            0.08 * max(height, width), 0.0]]], dtype=torch.float64)
+    image = ellipse_coverage(truth, height, width)[0]
+    affine = letterbox_affine(height, width, 128, torch.float64)
+    view = resample(image, affine, 128)
+    _, centre, _ = soft_moments(view[None])
+    assert torch.allclose(to_image(centre, affine)[0], truth[0, 0, :2], atol=0.05 * affine[0, 0])
+
+
+@pytest.mark.parametrize("params", [[63.7, 60.2, 48.3, 30.1, 27.0], [60.5, 66.3, 45.0, 44.0, 80.0],
+                                    [64.2, 63.1, 50.0, 15.0, 133.0]])
+def test_soft_landmarks_recover_known_ellipse(params):
+    truth = torch.tensor(params, dtype=torch.float64)
+    coverage = ellipse_coverage(truth[None, None], 128, 128, supersample=8)
+    points, weights = ray_landmarks(coverage, 64, 128)
+    fit = fit_ellipse(points, weights)
+    err = fit.params[0] - truth
+    assert err[:4].abs().max() < 0.1
+    # A rotation by d moves the boundary by at most about (a - b) |d|: within 0.1 px.
+    assert abs(math.radians(float(err[4]))) * float(truth[2] - truth[3]) < 0.1
+
+
+def test_landmarks_in_crop_map_back_to_image_pixels():
+    truth = torch.tensor([412.3, 287.9, 81.0, 40.5, 151.0], dtype=torch.float64)
+    affine = square_crop_affine(truth[:2] + torch.tensor([3.1, -4.2], dtype=torch.float64),
+                                torch.tensor(2 * 81.0 / 0.78, dtype=torch.float64), 128)
+    step = affine[0, 0]
+    in_crop = torch.cat([to_view(truth[None, None, :2], affine)[0], truth[None, 2:4] / step,
+                         truth[None, 4:]], -1)
+    coverage = ellipse_coverage(in_crop[None], 128, 128, supersample=8)
+    points, weights = ray_landmarks(coverage, 64, 128)
+    fit = fit_ellipse(to_image(points, affine), weights)
+    assert (fit.params[0, :4] - truth[:4]).abs().max() < 0.1 * step
+
+
+def _pose_through_network(model: CupNet, image, geometry, boxes, diameter, refine):
+    out = model(image[None], geometry, torch.tensor([diameter], dtype=image.dtype),
+                crop_boxes=boxes, refine_pose=refine)
+    assert out.solution.valid.all(), out.solution.status
+    return out.solution.pose
+
+
+def test_pose_loss_reaches_first_encoder_layer():
+    torch.manual_seed(0)
+    model = CupNet(TINY)
+    image, geometry, ellipse = scene([[20.0, 30.0, 10.0, -15.0, 300.0]], 256, 256)
+    boxes = torch.cat([ellipse[:, :2], 2 * ellipse[:, 2:3] / 0.78], -1)[None]
+    # An untrained network's map is arbitrary: add a disc to its logits so the fit exists.
+    model.refiner.segmentation_head.register_forward_hook(
+        lambda _m, _inputs, out: out + 8.0 * _disc(out.shape[-1]) - 4.0)
+    pose = _pose_through_network(model, image.float(), geometry, boxes, 52.0, refine=False)
+    loss = (pose - torch.tensor([[20.0, 30.0, 10.0, -15.0, 300.0]])).abs().sum()
+    loss.backward()
+    grad = model.refiner.encoder.conv1.weight.grad
+    assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
+def _disc(size: int) -> torch.Tensor:
+    """A filled centred disc, radius 0.39 of the crop, as a (1, 1, s, s) map."""
+    c = (size - 1) / 2
+    params = torch.tensor([[[c, c, 0.39 * size, 0.39 * size, 0.0]]], dtype=torch.float64)
+    return ellipse_coverage(params, size, size).float()
+
+
+# The ML refinement stops at its convergence tolerance, which limits the finite differences.
+@pytest.mark.parametrize(("refine", "rel"), [(False, 1e-4), (True, 1e-3)])
+def test_pose_gradient_matches_finite_differences(refine, rel):
+    torch.manual_seed(0)
+    model = CupNet(TINY).double()
+    model.refiner = EdgeNet().double()
+    image, geometry, ellipse = scene([[25.0, -35.0, -20.0, 12.0, 280.0]], 256, 256)
+    boxes = torch.cat([ellipse[:, :2] + 1.5, 2 * ellipse[:, 2:3] / 0.78], -1)[None]
+    weight = model.refiner.conv.weight
+
+    def pose() -> torch.Tensor:
+        return _pose_through_network(model, image, geometry, boxes, 52.0, refine)[0]
+
+    out = pose()
+    direction = torch.tensor([1.0, 0.3, -0.2, 0.5, 0.02], dtype=torch.float64)
+    (grad,) = torch.autograd.grad((out * direction).sum(), weight)
+    eps = 1e-5
+    with torch.no_grad():
+        for index in [(0, 0, 1, 1), (0, 0, 0, 2)]:
+            weight[index] += eps
+            plus = (pose() * direction).sum()
+            weight[index] -= 2 * eps
+            minus = (pose() * direction).sum()
+            weight[index] += eps
+            numeric = (plus - minus) / (2 * eps)
+            assert float(grad[index]) == pytest.approx(float(numeric), rel=rel, abs=1e-6)
+
+
+def test_detect_finds_two_cups_in_original_pixels():
+    # Stand-in segmenters that threshold the image: this checks the plumbing (letterbox,
+    # components, crops, landmarks back to original pixels, pose), not the learnt weights.
+    model = CupNet(TINY)
+    model.locator, model.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
+    truth = [[22.0, 35.0, -90.0, 10.0, 250.0], [15.0, -30.0, 95.0, -5.0, 330.0]]
+    image, geometry, ellipse = scene(truth, 700, 1024, spacing=0.35)
+    found = model.detect(image.float()[None], geometry, 52.0)
+    assert len(found) == 1 and len(found[0]) == 2
+    detections = sorted(found[0], key=lambda d: d.ellipse[0])
+    for det, pose, ell in zip(detections, truth, ellipse.numpy(), strict=True):
+        assert det.status in ("ok", "ambiguous")
+        # The stand-in thresholds at the mean crop intensity, not at 50 % coverage: its edge
+        # sits up to a crop pixel outside the rim (the centre is unbiased).
+        crop_step = 2 * ell[2] / TINY.crop_fill / TINY.crop_size
+        assert np.abs(det.ellipse[:2] - ell[:2]).max() < 0.25 * crop_step
+        assert np.abs(det.ellipse[2:4] - ell[2:4]).max() < crop_step
+        assert abs(det.pose[0] - pose[0]) < 2.0 and abs(det.pose[1] - pose[1]) < 1.0
+        assert abs(det.pose[4] - pose[4]) < 25.0
+        assert det.mask is not None and det.mask.shape == (700, 1024)
+        assert det.landmarks.shape == (TINY.n_rays, 2)
+
+
+def test_detect_reports_no_cup_on_empty_image():
+    model = CupNet(TINY)
+    model.locator, model.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
+    empty = torch.zeros(2, 1, 300, 400)
+    geometry = Geometry.for_image(400, 300, 1040.0, 0.3)
+    assert model.detect(empty, geometry, 52.0) == [[], []]
+
+
+def test_checkpoint_round_trip(tmp_path):
+    torch.manual_seed(1)
+    model = CupNet(TINY).eval()
+    path = save_model(model, tmp_path / "net.safetensors")
+    loaded = load_model(path)
+    assert loaded.config == model.config
+    x = torch.rand(2, 1, 64, 64)
+    with torch.no_grad():
+        assert torch.equal(model.refiner(x), loaded.refiner(x))
+    # A torch state dict with the config beside it loads too (weights_only: no code runs).
+    torch.save(model.state_dict(), tmp_path / "plain.pt")
+    (tmp_path / "plain.json").write_text((tmp_path / "net.json").read_text())
+    with torch.no_grad():
+        assert torch.equal(model.locator(x), load_model(tmp_path / "plain.pt").locator(x))
+
+
+def test_bad_image_is_rejected_with_a_clear_error():
+    model = CupNet(TINY)
+    with pytest.raises(ValueError, match="NaN"):
+        model.detect([np.full((64, 64), np.nan, dtype=np.float32)], Geometry(1040.0, 0.3, 32, 32),
+                     50.0)

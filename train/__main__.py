@@ -1,0 +1,7 @@
+"""``python -m train [fit] --config configs/cpu.yaml``."""
+
+import sys
+
+from train.cli import main
+
+main(sys.argv[1:])

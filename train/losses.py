@@ -1,0 +1,71 @@
+"""Training losses of CupNet: segmentation, geometric ellipse and normalised pose terms."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from cupnet.ellipse import sampson_distance
+
+# Pose error that counts as 1 in the normalised pose loss: the issue's target MAEs
+# (theta, phi in degrees; k, l, h in mm).
+POSE_SCALE = (1.0, 1.0, 1.0, 1.0, 8.0)
+
+
+def segmentation_loss(logits: Tensor, target: Tensor, eps: float = 1.0) -> Tensor:
+    """BCE + soft Dice of ``(K, 1, H, W)`` logits against coverage targets in [0, 1]."""
+    if logits.shape[0] == 0:
+        return logits.sum() * 0.0
+    bce = F.binary_cross_entropy_with_logits(logits, target)
+    prob = torch.sigmoid(logits)
+    inter = (prob * target).sum((-2, -1))
+    dice = 1 - (2 * inter + eps) / (prob.sum((-2, -1)) + target.sum((-2, -1)) + eps)
+    return bce + dice.mean()
+
+
+def ellipse_loss(conic: Tensor, rim: Tensor, pixel_scale: Tensor, valid: Tensor) -> Tensor:
+    """Mean absolute Sampson distance of true rim points to predicted conics.
+
+    Args:
+        conic: ``(K, 3, 3)`` predicted conics, image pixels.
+        rim: ``(K, M, 2)`` true rim points, image pixels.
+        pixel_scale: ``(K,)`` image pixels per crop pixel (distances are reported in crop
+            pixels so large and small cups weigh alike).
+        valid: ``(K,)`` bool, items with a usable fit.
+    """
+    if not bool(valid.any()):
+        return conic.sum() * 0.0
+    dist = sampson_distance(conic[valid], rim[valid]).abs() / pixel_scale[valid, None]
+    return F.smooth_l1_loss(dist, torch.zeros_like(dist), beta=1.0)
+
+
+def wrap_angle(delta: Tensor, period: float = 180.0) -> Tensor:
+    """Angle differences wrapped into ``[-period / 2, period / 2)``."""
+    return torch.remainder(delta + period / 2, period) - period / 2
+
+
+def pose_errors(pred: Tensor, truth: Tensor) -> Tensor:
+    """``(K, 5)`` signed errors (deg, deg, mm, mm, mm); phi wrapped with period 180 deg."""
+    err = pred - truth
+    return torch.cat([err[:, :1], wrap_angle(err[:, 1:2]), err[:, 2:]], -1)
+
+
+def pose_loss(pred: Tensor, truth: Tensor, valid: Tensor) -> Tensor:
+    """Huber loss of pose errors, each component divided by :data:`POSE_SCALE`.
+
+    Args:
+        pred, truth: ``(K, 5)`` public units; ``valid``: ``(K,)`` bool (solved poses).
+    """
+    if not bool(valid.any()):
+        return pred.nan_to_num().sum() * 0.0
+    scale = torch.tensor(POSE_SCALE, dtype=pred.dtype, device=pred.device)
+    err = pose_errors(pred[valid], truth[valid]) / scale
+    return F.smooth_l1_loss(err, torch.zeros_like(err), beta=1.0)
+
+
+def ramp(step: int, start: int, length: int) -> float:
+    """Weight schedule: 0 before ``start``, then linear to 1 over ``length`` steps."""
+    if step < start:
+        return 0.0
+    return 1.0 if length <= 0 else min(1.0, (step - start + 1) / length)

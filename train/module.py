@@ -1,0 +1,198 @@
+"""LightningModule of CupNet: segmentation first, then ellipse and pose losses end to end."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+import torch
+from torch import Tensor
+
+from cupnet.crops import resample_batch, to_view
+from cupnet.ellipse import fit_ellipse
+from cupnet.geometry import Geometry
+from cupnet.landmarks import ellipse_coverage
+from cupnet.model import CupDetection, CupNet, CupNetConfig, save_model
+from train.losses import ellipse_loss, pose_errors, pose_loss, ramp, segmentation_loss
+
+
+def batch_geometry(geometry: Tensor) -> Geometry:
+    """``(B, 4)`` rows (sdd, spacing, u0, v0) of a collated batch -> :class:`Geometry`."""
+    return Geometry(*geometry.double().unbind(-1))
+
+
+def jittered_boxes(ellipse: Tensor, valid: Tensor, crop_fill: float, shift: float, scale: float
+                   ) -> Tensor:
+    """Training crops framed on the true ellipses, jittered like the locator's errors.
+
+    Args:
+        ellipse: ``(B, C, 5)`` true ellipses, image pixels.
+        valid: ``(B, C)`` bool.
+        crop_fill: major diameter / crop side at no jitter.
+        shift: centre jitter, uniform in ``+-shift * a`` per axis.
+        scale: side jitter, log-uniform in ``+-scale``.
+    Returns:
+        ``(B, C, 3)`` (cx, cy, side), NaN where not valid.
+    """
+    a = ellipse[..., 2:3]
+    centre = ellipse[..., :2] + (2 * torch.rand_like(ellipse[..., :2]) - 1) * shift * a
+    side = 2 * a / crop_fill * torch.exp((2 * torch.rand_like(a) - 1) * scale)
+    boxes = torch.cat([centre, side], -1)
+    return torch.where(valid[..., None], boxes, torch.full_like(boxes, math.nan))
+
+
+def crop_targets(ellipse: Tensor, valid: Tensor, crop_to_image: Tensor, cup_index: Tensor,
+                 size: int) -> Tensor:
+    """Coverage maps ``(K, 1, size, size)`` of all true ellipses of each crop's image."""
+    image_ellipses = torch.where(valid[..., None], ellipse, torch.full_like(ellipse, math.nan))
+    mine = image_ellipses[cup_index[:, 0]].double()  # (K, C, 5)
+    affine = crop_to_image.double()
+    step = affine[:, 0, 0]
+    centres = to_view(mine[..., :2], affine)
+    in_crop = torch.cat([centres, mine[..., 2:4] / step[:, None, None], mine[..., 4:]], -1)
+    return ellipse_coverage(in_crop, size, size).float()
+
+
+def match_detections(detections: list[CupDetection], ellipse: np.ndarray, valid: np.ndarray
+                     ) -> list[CupDetection | None]:
+    """Each true cup's detection: the nearest ellipse centre within half the true major axis.
+
+    Args:
+        detections: one image's detections.
+        ellipse: ``(C, 5)`` true ellipses; valid: ``(C,)`` bool.
+    Returns:
+        ``C`` detections or None (missed or not a true cup).
+    """
+    out: list[CupDetection | None] = []
+    for c in range(len(valid)):
+        best, best_d = None, 0.5 * float(ellipse[c, 2])
+        for det in detections if valid[c] else []:
+            d = float(np.hypot(*(det.ellipse[:2] - ellipse[c, :2])))
+            if np.isfinite(d) and d < best_d:
+                best, best_d = det, d
+        out.append(best)
+    return out
+
+
+class CupNetModule(L.LightningModule):
+    """CupNet training: locator + refiner segmentation, then ellipse and pose losses.
+
+    Args:
+        model: :class:`cupnet.model.CupNetConfig` fields.
+        lr: AdamW learning rate (cosine decay to ``lr / 20`` over ``max_steps``).
+        weight_decay: AdamW weight decay.
+        ellipse_start, pose_start: steps at which the ellipse and pose losses come in, each
+            ramped linearly over ``ramp_steps`` (segmentation always on).
+        ellipse_weight, pose_weight: their full weights (``pose_weight: 0`` trains on
+            segmentation (and ellipse) alone: the ablation).
+        locator_weight: weight of the locator's segmentation loss.
+        jitter_shift, jitter_scale: crop jitter (see :func:`jittered_boxes`).
+        refine_pose: train through the solver's ML refinement (else its closed form).
+        export_path: where :meth:`on_fit_end` writes the model as safetensors + JSON.
+    """
+
+    def __init__(
+        self,
+        model: dict | None = None,
+        lr: float = 2e-3,
+        weight_decay: float = 1e-4,
+        ellipse_start: int = 200,
+        pose_start: int = 400,
+        ramp_steps: int = 200,
+        ellipse_weight: float = 0.5,
+        pose_weight: float = 0.2,
+        locator_weight: float = 0.5,
+        jitter_shift: float = 0.12,
+        jitter_scale: float = 0.15,
+        refine_pose: bool = False,
+        export_path: str | None = None,
+    ) -> None:
+        super().__init__()
+        self.save_hyperparameters()
+        self.model = CupNet(CupNetConfig.from_dict(model or {}))
+
+    def losses(self, batch: dict, step: int) -> dict[str, Tensor]:
+        """All loss terms of one batch and their weighted total (``"loss"``)."""
+        hp, cfg = self.hparams, self.model.config
+        images = batch["image"]
+        valid = batch["cup_valid"].bool()
+        geometry = batch_geometry(batch["geometry"])
+        boxes = jittered_boxes(batch["ellipse"].double(), valid, cfg.crop_fill, hp.jitter_shift,
+                               hp.jitter_scale)
+        out = self.model(images, geometry, batch["cup_diameter"], crop_boxes=boxes,
+                         refine_pose=hp.refine_pose)
+        locator_target = resample_batch(batch["mask"], out.letterbox, cfg.locator_size)
+        terms = {"seg_locator": segmentation_loss(out.locator_logits, locator_target)}
+        target = crop_targets(batch["ellipse"], valid, out.crop_to_image, out.cup_index,
+                              cfg.crop_size)
+        terms["seg_crop"] = segmentation_loss(out.crop_logits, target)
+        i, c = out.cup_index.unbind(-1)
+        w_ellipse = ramp(step, hp.ellipse_start, hp.ramp_steps) * hp.ellipse_weight
+        w_pose = ramp(step, hp.pose_start, hp.ramp_steps) * hp.pose_weight
+        if w_ellipse > 0:
+            fit = fit_ellipse(out.landmarks, out.weights, on_error="flag")
+            terms["ellipse"] = ellipse_loss(fit.conic, batch["rim"][i, c].double(),
+                                            out.crop_to_image[:, 0, 0].double(), fit.valid)
+        solution = out.solution
+        terms["pose"] = pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)
+        total = (hp.locator_weight * terms["seg_locator"] + terms["seg_crop"]
+                 + w_ellipse * terms.get("ellipse", 0.0) + w_pose * terms["pose"])
+        terms["loss"] = total.float()
+        with torch.no_grad():
+            err = pose_errors(solution.pose, batch["pose"][i, c].double())
+            ok = solution.valid
+            for j, name in enumerate(("theta", "phi", "k", "l", "h")):
+                terms[f"mae_{name}"] = (err[ok, j].abs().mean() if bool(ok.any())
+                                        else torch.tensor(math.nan))
+        return terms
+
+    def training_step(self, batch: dict, batch_idx: int) -> Tensor:
+        terms = self.losses(batch, self.global_step)
+        self.log_dict({f"train/{k}": v.detach() for k, v in terms.items() if k != "loss"},
+                      batch_size=batch["image"].shape[0])
+        self.log("train/loss", terms["loss"].detach(), prog_bar=True,
+                 batch_size=batch["image"].shape[0])
+        return terms["loss"]
+
+    def validation_step(self, batch: dict, batch_idx: int) -> None:
+        """Full inference path (locator -> crops -> pose) against the truth."""
+        detections = self.model.detect(batch["image"], batch_geometry(batch["geometry"]),
+                                       batch["cup_diameter"][:, 0].double(), return_masks=False)
+        errors, found, total = [], 0, 0
+        truth_pose = batch["pose"].double().cpu().numpy()
+        for b, dets in enumerate(detections):
+            valid = batch["cup_valid"][b].cpu().numpy().astype(bool)
+            matched = match_detections(dets, batch["ellipse"][b].cpu().numpy(), valid)
+            for c, det in enumerate(matched):
+                if not valid[c]:
+                    continue
+                total += 1
+                if det is not None and np.isfinite(det.pose).all():
+                    found += 1
+                    err = pose_errors(torch.from_numpy(det.pose)[None],
+                                      torch.from_numpy(truth_pose[b, c])[None])[0]
+                    errors.append(err.abs().numpy())
+        size = batch["image"].shape[0]
+        self.log("val/detected", found / max(total, 1), batch_size=size)
+        if errors:
+            mae = np.mean(errors, 0)
+            for j, name in enumerate(("theta", "phi", "k", "l", "h")):
+                self.log(f"val/mae_{name}", float(mae[j]), batch_size=size)
+            # One figure for checkpoint selection: each MAE relative to its target.
+            self.log("val/score", float(np.mean(mae / np.array([1.0, 1.0, 1.0, 1.0, 8.0]))),
+                     batch_size=size, prog_bar=True)
+
+    def configure_optimizers(self):
+        optimizer = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr,
+                                      weight_decay=self.hparams.weight_decay)
+        steps = max(1, int(self.trainer.max_steps)) if self.trainer.max_steps > 0 else 10_000
+        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps,
+                                                               self.hparams.lr / 20)
+        return {"optimizer": optimizer,
+                "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def on_fit_end(self) -> None:
+        if self.hparams.export_path and self.trainer.is_global_zero:
+            save_model(self.model, Path(self.hparams.export_path))
