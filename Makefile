@@ -22,7 +22,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/numsim.py
+	$(BIN)/python -m benchmarks.numsim
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -149,6 +149,21 @@ class EllipseFit:
     status: list[str]
 
 
+def _polish(scatter: Tensor, constraint: Tensor, vec: Tensor, steps: int = 2) -> Tensor:
+    """Rayleigh-quotient iterations on the pencil ``(scatter, constraint)``.
+
+    Removes the ridge's bias from the eigenvector (``(B, 3, 1)``), so points exactly on an
+    ellipse give it to machine precision. At convergence the iteration's derivative with
+    respect to its input vanishes, so gradients through it are those of the exact solution.
+    """
+    for _ in range(steps):
+        rayleigh = (vec.transpose(-1, -2) @ scatter @ vec) / (
+            vec.transpose(-1, -2) @ constraint @ vec)
+        vec = torch.linalg.solve(scatter - rayleigh * constraint, constraint @ vec)
+        vec = vec / torch.linalg.vector_norm(vec, dim=-2, keepdim=True)
+    return vec
+
+
 def _fit_problems(points: Tensor, weights: Tensor) -> list[str]:
     """Per-item reason a fit cannot succeed ('ok' where it can). points (B,N,2), weights (B,N)."""
     active = weights > 0
@@ -248,6 +263,7 @@ def fit_ellipse(
     _, vecs = torch.linalg.eigh(sym)
     top = vecs[..., -1:]  # the single positive eigenvalue is the largest
     quad_coef = torch.linalg.solve_triangular(chol.transpose(-1, -2), top, upper=True)
+    quad_coef = _polish(reduced, constraint, quad_coef)
     lin_coef = lin_from_quad @ quad_coef
     coeffs = torch.cat([quad_coef, lin_coef], -2).squeeze(-1)
     conic_norm = coefficients_to_conic(coeffs)
@@ -267,6 +283,9 @@ def fit_ellipse(
     if not valid.all() and on_error == "raise":
         first = int((~valid).nonzero()[0])
         raise EllipseFitError(f"ellipse fit of item {first}: {status[first]}")
-    params = conic_to_params(conic)
+    # Parameters from the normalised conic (well conditioned), then back to pixels.
+    params_norm = conic_to_params(conic_norm)
+    params = torch.cat([mean + scale[:, None] * params_norm[:, :2],
+                        scale[:, None] * params_norm[:, 2:4], params_norm[:, 4:]], -1)
     params = torch.where(valid[:, None], params, torch.full_like(params, math.nan))
     return EllipseFit(conic=conic, params=params, valid=valid, status=status)

@@ -182,7 +182,7 @@ def rim_conic(pose: Tensor, radius: Tensor | float, geometry: Geometry) -> Tenso
     The rim plane is mapped to the image by the homography ``G = A [e1, e2, c - S]`` of plane
     coordinates ``(alpha, beta, 1)``; the rim is ``alpha^2 + beta^2 = r^2`` there, so the image
     conic is ``G^-T diag(1, 1, -r^2) G^-1``. The result is scaled to unit Frobenius norm with
-    a negative determinant (then ``p^T C p < 0`` inside the ellipse).
+    ``p^T C p < 0`` inside the ellipse (as :func:`normalize_conic`).
 
     Args:
         pose: ``(B, 5)`` (theta, phi rad; k, l, h mm).
@@ -197,12 +197,17 @@ def rim_conic(pose: Tensor, radius: Tensor | float, geometry: Geometry) -> Tenso
     centre = pose[..., 2:5] - source_position(geometry, pose.dtype, pose.device)
     basis = torch.stack([rot[..., 0], rot[..., 2], centre], -1)  # columns e1, e2, c - S
     homography = cam @ basis
-    plane_conic = torch.diag_embed(
-        torch.stack([torch.ones_like(radius), torch.ones_like(radius), -radius**2], -1))
-    plane_conic = plane_conic.expand(*homography.shape[:-2], 3, 3)
-    inv = torch.linalg.inv(homography)
-    conic = inv.transpose(-1, -2) @ plane_conic @ inv
-    return normalize_conic(conic)
+    # G^-1 is adj(G) / det(G); the conic is defined up to scale, so use adj(G) and skip the
+    # inverse: rows of adj(G) are cross products of G's columns. The factor det(G)^2 > 0
+    # keeps the sign: points inside the rim get p^T C p < 0.
+    g0, g1, g2 = homography.unbind(-1)
+    adjugate = torch.stack([torch.linalg.cross(g1, g2), torch.linalg.cross(g2, g0),
+                            torch.linalg.cross(g0, g1)], -2)
+    r2 = (radius**2)[..., None, None]
+    quad = adjugate[..., :2, :]
+    conic = quad.transpose(-1, -2) @ quad - r2 * adjugate[..., 2:, :].transpose(-1, -2) @ \
+        adjugate[..., 2:, :]
+    return conic / torch.linalg.matrix_norm(conic)[..., None, None]
 
 
 def normalize_conic(conic: Tensor) -> Tensor:
