@@ -1,0 +1,403 @@
+"""Image input of ``cupnet predict``: discovery, reading and the geometry found in DICOM tags.
+
+Every supported file becomes one or more :class:`Frame` s: an ``(H, W)`` float32 image in
+``[0, 1]`` (bright = high pixel value, MONOCHROME1 inverted) and, for DICOM, the
+source-to-detector distance and detector pixel spacing from its tags. Multi-frame DICOM and
+multi-page TIFF give one frame each. A file that cannot be read gives a frame whose
+``error`` says why, so a batch goes on past it.
+
+:func:`iter_frames` streams: headers are probed one file at a time and pixel data is decoded
+in a small thread pool a few frames ahead of the consumer, so memory stays bounded on folders
+of thousands of images and on long fluoroscopy runs.
+"""
+
+from __future__ import annotations
+
+import glob
+from collections import deque
+from collections.abc import Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from time import perf_counter
+
+import cv2
+import numpy as np
+import pydicom
+from PIL import Image, UnidentifiedImageError
+from pydicom.errors import InvalidDicomError
+from pydicom.pixels import apply_modality_lut, apply_voi_lut, pixel_array
+
+MAX_SIDE = 4096
+RASTER_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+DICOM_SUFFIXES = (".dcm", ".dicom")
+SUPPORTED_SUFFIXES = RASTER_SUFFIXES + DICOM_SUFFIXES
+_DICOM_MAGIC_OFFSET = 128
+# Relative difference between row and column spacing below which pixels count as square.
+_SQUARE_TOL = 1e-3
+
+
+class ImageReadError(ValueError):
+    """A file that cannot be read as an image; the message names the cause."""
+
+
+@dataclass(frozen=True)
+class ImageSource:
+    """One input file: ``path`` on disk and ``name``, its path relative to the input root."""
+
+    path: Path
+    name: str
+
+
+@dataclass
+class Frame:
+    """One image to process.
+
+    Attributes:
+        name: result name: the source name, plus ``#<frame>`` (from 1) for multi-frame files.
+        source: the file it came from.
+        last_of_source: the source's last frame (progress counts files).
+        image: ``(H, W)`` float32 in ``[0, 1]``, or None where ``error`` is set.
+        sdd_mm: DistanceSourceToDetector from DICOM tags, else None.
+        pixel_spacing_mm: detector pixel spacing from DICOM tags, else None.
+        tag_notes: why a tag value present in the file was not usable (value name -> reason).
+        error: why the file or frame could not be read, else None.
+        seconds: time spent reading and decoding.
+    """
+
+    name: str
+    source: ImageSource
+    last_of_source: bool = True
+    image: np.ndarray | None = None
+    sdd_mm: float | None = None
+    pixel_spacing_mm: float | None = None
+    tag_notes: dict[str, str] | None = None
+    error: str | None = None
+    seconds: float = 0.0
+
+
+# -- discovery ----------------------------------------------------------------------------------
+def _is_dicom_without_suffix(path: Path) -> bool:
+    """DICOM files often have no suffix: recognise them by the ``DICM`` preamble magic."""
+    try:
+        with path.open("rb") as f:
+            f.seek(_DICOM_MAGIC_OFFSET)
+            return f.read(4) == b"DICM"
+    except OSError:
+        return False
+
+
+def _wanted(path: Path) -> bool:
+    if path.name.startswith(".") or not path.is_file():
+        return False
+    suffix = path.suffix.lower()
+    return suffix in SUPPORTED_SUFFIXES or (suffix == "" and _is_dicom_without_suffix(path))
+
+
+def _glob_root(pattern: str) -> Path:
+    """The longest leading part of a glob pattern without wildcards (names are relative to it)."""
+    fixed: list[str] = []
+    for part in Path(pattern).parts[:-1]:
+        if glob.has_magic(part):
+            break
+        fixed.append(part)
+    return Path(*fixed) if fixed else Path(".")
+
+
+def find_images(spec: str | Path, recursive: bool = False,
+                exclude: Path | None = None) -> list[ImageSource]:
+    """Input files named by a folder, a file or a glob pattern, in sorted order.
+
+    A folder gives its files with a supported suffix (and suffix-less DICOM files), with
+    ``recursive`` those of its subfolders too. A file is taken as is (reading it says whether
+    it is supported). A glob keeps the files it matches (``**`` spans folders with
+    ``recursive``).
+
+    Args:
+        spec: folder, file or glob.
+        recursive: descend into subfolders.
+        exclude: a folder whose contents are skipped (the output folder, when inside the input).
+    Raises:
+        FileNotFoundError: nothing by that name, or no images in it.
+    """
+    spec = str(spec)
+    path = Path(spec)
+    if path.is_dir():
+        root = path
+        candidates = path.rglob("*") if recursive else path.iterdir()
+    elif path.is_file():
+        return [ImageSource(path, path.name)]
+    elif glob.has_magic(spec):
+        root = _glob_root(spec)
+        candidates = (Path(p) for p in glob.glob(spec, recursive=recursive))
+    else:
+        raise FileNotFoundError(f"no such file, folder or glob match: {spec}")
+    excluded = exclude.resolve() if exclude is not None else None
+    found = []
+    for p in candidates:
+        if excluded is not None and p.resolve().is_relative_to(excluded):
+            continue
+        if _wanted(p):
+            found.append(ImageSource(p, p.relative_to(root).as_posix()))
+    if not found:
+        where = "matching" if glob.has_magic(spec) and not path.is_dir() else "in"
+        hint = "" if recursive or not path.is_dir() else " (use --recursive for subfolders)"
+        raise FileNotFoundError(
+            f"no images found {where} {spec}{hint}: looked for "
+            f"{', '.join(SUPPORTED_SUFFIXES)} and suffix-less DICOM files")
+    return sorted(found, key=lambda s: s.name)
+
+
+# -- conversion ---------------------------------------------------------------------------------
+def _to_gray(pixels: np.ndarray) -> np.ndarray:
+    """``(H, W)`` or ``(H, W, C)`` -> ``(H, W)``: colour channels averaged, alpha dropped."""
+    if pixels.ndim == 2:
+        return pixels
+    if pixels.ndim == 3 and pixels.shape[2] in (1, 2, 3, 4):
+        colour = pixels[..., :3] if pixels.shape[2] >= 3 else pixels[..., :1]
+        return colour.mean(-1, dtype=np.float32) if colour.shape[2] > 1 else colour[..., 0]
+    raise ImageReadError(f"unsupported pixel layout {pixels.shape}")
+
+
+def _stretch(values: np.ndarray) -> np.ndarray:
+    """Min-max scale to ``[0, 1]`` float32 (a constant image becomes all zeros)."""
+    values = values.astype(np.float32, copy=False)
+    if not np.isfinite(values).all():
+        raise ImageReadError("image contains NaN or infinite values")
+    lo, hi = float(values.min()), float(values.max())
+    return (values - lo) / (hi - lo) if hi > lo else np.zeros_like(values)
+
+
+def to_unit_range(pixels: np.ndarray) -> np.ndarray:
+    """Stored pixel values -> float32 ``(H, W)`` in ``[0, 1]``.
+
+    Unsigned 8- and 16-bit images are divided by their type's maximum, so an image keeps
+    its exposure; other types (signed, float) are min-max scaled.
+    """
+    gray = _to_gray(pixels)
+    if gray.dtype in (np.uint8, np.uint16):
+        return gray.astype(np.float32) * np.float32(1.0 / np.iinfo(gray.dtype).max)
+    return _stretch(gray)
+
+
+def _check_size(width: int, height: int) -> None:
+    if width <= 0 or height <= 0:
+        raise ImageReadError(f"image has no pixels ({width} x {height})")
+    if width > MAX_SIDE or height > MAX_SIDE:
+        raise ImageReadError(f"image too large: {width} x {height} px (at most "
+                             f"{MAX_SIDE} x {MAX_SIDE})")
+
+
+# -- DICOM --------------------------------------------------------------------------------------
+def _positive(value: object) -> float | None:
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+    return number if np.isfinite(number) and number > 0 else None
+
+
+def dicom_geometry(ds: pydicom.Dataset) -> tuple[float | None, float | None, dict[str, str]]:
+    """Source-to-detector distance and detector pixel spacing (mm) from DICOM tags.
+
+    Spacing comes from ImagerPixelSpacing (at the detector), else from PixelSpacing times
+    EstimatedRadiographicMagnificationFactor where present (PixelSpacing is calibrated to the
+    patient, ImagerPixelSpacing / magnification). Non-square pixels are not usable.
+
+    Returns:
+        ``(sdd_mm, pixel_spacing_mm, notes)``; a value is None where absent or unusable, and
+        ``notes`` says why for tags that were present but unusable.
+    """
+    notes: dict[str, str] = {}
+    sdd = _positive(ds.get("DistanceSourceToDetector"))
+    if sdd is None and "DistanceSourceToDetector" in ds:
+        notes["sdd_mm"] = f"DICOM DistanceSourceToDetector {ds.DistanceSourceToDetector!r} unusable"
+    spacing = None
+    for keyword in ("ImagerPixelSpacing", "PixelSpacing"):
+        if keyword not in ds:
+            continue
+        pair = [_positive(v) for v in ds[keyword].value] if ds[keyword].VM == 2 else [None]
+        if None in pair:
+            notes["pixel_spacing_mm"] = f"DICOM {keyword} {ds[keyword].value!r} unusable"
+            break
+        row, col = pair
+        if abs(row - col) > _SQUARE_TOL * max(row, col):
+            notes["pixel_spacing_mm"] = (f"DICOM {keyword} is not square ({row} x {col} mm); "
+                                         "give --pixel-spacing")
+            break
+        spacing = (row + col) / 2
+        if keyword == "PixelSpacing":
+            magnification = _positive(ds.get("EstimatedRadiographicMagnificationFactor"))
+            spacing *= magnification or 1.0
+        break
+    return sdd, spacing, notes
+
+
+def _dicom_header(path: Path) -> pydicom.Dataset:
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=True)
+    except InvalidDicomError as exc:
+        raise ImageReadError(f"not a DICOM file ({exc})") from exc
+    except (EOFError, OSError, ValueError, KeyError, TypeError) as exc:
+        raise ImageReadError(f"corrupt or truncated DICOM header ({exc})") from exc
+    for keyword in ("Rows", "Columns"):
+        if keyword not in ds:
+            raise ImageReadError(f"DICOM has no pixel data ({keyword} missing)")
+    _check_size(int(ds.Columns), int(ds.Rows))
+    photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2"))
+    if photometric not in ("MONOCHROME1", "MONOCHROME2", "RGB", "YBR_FULL", "YBR_FULL_422"):
+        raise ImageReadError(f"unsupported DICOM PhotometricInterpretation {photometric}")
+    return ds
+
+
+def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarray:
+    """One decoded frame with modality LUT / rescale and VOI LUT / window applied."""
+    try:
+        stored = pixel_array(path, index=index)
+    except Exception as exc:  # pydicom raises many types on broken pixel data
+        raise ImageReadError(f"corrupt or truncated DICOM pixel data ({exc})") from exc
+    if stored.ndim == 3 and stored.shape[-1] == 3:
+        stored = _to_gray(stored)
+    elif stored.ndim != 2:
+        raise ImageReadError(f"unexpected DICOM frame shape {stored.shape}")
+    values = apply_voi_lut(apply_modality_lut(stored, ds), ds)
+    image = _stretch(values)
+    if str(ds.get("PhotometricInterpretation")) == "MONOCHROME1":
+        image = 1.0 - image  # MONOCHROME1: low values are bright
+    return image
+
+
+# -- reading ------------------------------------------------------------------------------------
+def _read_raster(path: Path, page: int | None) -> np.ndarray:
+    suffix = path.suffix.lower()
+    if suffix in (".tif", ".tiff"):
+        try:
+            with Image.open(path) as im:
+                im.seek(page or 0)
+                return to_unit_range(np.asarray(im))
+        except (OSError, ValueError, EOFError) as exc:
+            raise ImageReadError(f"corrupt or truncated TIFF ({exc})") from exc
+    decoded = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
+    if decoded is None:
+        raise ImageReadError(f"corrupt or truncated {suffix.lstrip('.').upper()} data")
+    return to_unit_range(decoded)
+
+
+@dataclass(frozen=True)
+class _Unit:
+    """One frame to decode: ``index`` None for single-frame files."""
+
+    source: ImageSource
+    index: int | None
+    last: bool
+    header: pydicom.Dataset | None = None
+
+
+def _probe(source: ImageSource) -> list[_Unit]:
+    """Check a file cheaply (size, format, frame count) without decoding pixel data."""
+    path = source.path
+    try:
+        size = path.stat().st_size
+    except OSError as exc:
+        raise ImageReadError(f"cannot open file ({exc.strerror})") from exc
+    if size == 0:
+        raise ImageReadError("empty file (0 bytes)")
+    suffix = path.suffix.lower()
+    if suffix in DICOM_SUFFIXES or (suffix == "" and _is_dicom_without_suffix(path)):
+        ds = _dicom_header(path)
+        n = int(ds.get("NumberOfFrames", 1) or 1)
+        return [_Unit(source, i if n > 1 else None, i == n - 1, ds) for i in range(n)]
+    if suffix not in RASTER_SUFFIXES:
+        raise ImageReadError(f"unsupported file type {suffix or '(no suffix)'}; "
+                             f"supported: {', '.join(SUPPORTED_SUFFIXES)}")
+    try:
+        with Image.open(path) as im:
+            width, height = im.size
+            n = getattr(im, "n_frames", 1) if suffix in (".tif", ".tiff") else 1
+    except UnidentifiedImageError as exc:
+        raise ImageReadError(f"not a readable {suffix.lstrip('.').upper()} image "
+                             "(unknown or corrupt content)") from exc
+    except OSError as exc:
+        raise ImageReadError(f"corrupt image header ({exc})") from exc
+    _check_size(width, height)
+    return [_Unit(source, i if n > 1 else None, i == n - 1) for i in range(n)]
+
+
+def _frame_name(unit: _Unit) -> str:
+    return unit.source.name if unit.index is None else f"{unit.source.name}#{unit.index + 1}"
+
+
+def _decode(unit: _Unit) -> Frame:
+    start = perf_counter()
+    frame = Frame(_frame_name(unit), unit.source, unit.last)
+    try:
+        if unit.header is not None:
+            frame.image = _dicom_frame(unit.source.path, unit.header, unit.index)
+            frame.sdd_mm, frame.pixel_spacing_mm, frame.tag_notes = dicom_geometry(unit.header)
+        else:
+            frame.image = _read_raster(unit.source.path, unit.index)
+    except ImageReadError as exc:
+        frame.error = str(exc)
+    except (OSError, MemoryError) as exc:
+        frame.error = f"cannot read file ({exc})"
+    frame.seconds = perf_counter() - start
+    return frame
+
+
+def read_frames(source: ImageSource | str | Path) -> list[Frame]:
+    """All frames of one file, decoded now (errors in ``Frame.error``)."""
+    if not isinstance(source, ImageSource):
+        source = ImageSource(Path(source), Path(source).name)
+    return list(iter_frames([source], workers=0))
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """The first frame of one file as ``(H, W)`` float32 in ``[0, 1]``.
+
+    Raises:
+        ImageReadError: naming why the file cannot be read.
+    """
+    source = ImageSource(Path(path), Path(path).name)
+    units = _probe(source)
+    frame = _decode(units[0])
+    if frame.error is not None:
+        raise ImageReadError(f"{path}: {frame.error}")
+    return frame.image  # type: ignore[return-value]
+
+
+def _units(sources: Iterable[ImageSource]) -> Iterator[_Unit | Frame]:
+    """Frames to decode, or a finished error frame for a file that fails its probe."""
+    for source in sources:
+        try:
+            yield from _probe(source)
+        except ImageReadError as exc:
+            yield Frame(source.name, source, error=str(exc))
+
+
+def iter_frames(sources: Iterable[ImageSource], workers: int = 2,
+                lookahead: int = 8) -> Iterator[Frame]:
+    """Decoded frames of ``sources`` in order, read ``lookahead`` frames ahead in threads.
+
+    OpenCV, zlib and pydicom's decoders release the GIL, so reading overlaps the network.
+    At most ``lookahead`` decoded frames wait in memory. ``workers=0`` reads in the caller's
+    thread.
+    """
+    if workers == 0:
+        for unit in _units(sources):
+            yield unit if isinstance(unit, Frame) else _decode(unit)
+        return
+    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="cupnet-read")
+    pending: deque[Future[Frame] | Frame] = deque()
+    try:
+        for unit in _units(sources):
+            pending.append(unit if isinstance(unit, Frame) else pool.submit(_decode, unit))
+            while len(pending) > lookahead:
+                yield _result(pending.popleft())
+        while pending:
+            yield _result(pending.popleft())
+    finally:
+        pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _result(item: Future[Frame] | Frame) -> Frame:
+    return item if isinstance(item, Frame) else item.result()

@@ -1,0 +1,203 @@
+"""Image reading: formats, bit depths, DICOM tags and LUTs, broken files, discovery."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from pydicom.dataset import Dataset, FileMetaDataset
+from pydicom.uid import ExplicitVRLittleEndian, SecondaryCaptureImageStorage, generate_uid
+
+from cupnet.io.images import (
+    MAX_SIDE,
+    ImageReadError,
+    ImageSource,
+    find_images,
+    iter_frames,
+    read_frames,
+    read_image,
+)
+
+
+def gradient(height: int = 48, width: int = 64) -> np.ndarray:
+    """A float ramp in [0, 1] with distinct values along u and v."""
+    u = np.linspace(0, 1, width)[None, :]
+    v = np.linspace(0, 1, height)[:, None]
+    return (0.7 * u + 0.3 * v).astype(np.float64)
+
+
+def write_dicom(path: Path, pixels: np.ndarray, photometric: str = "MONOCHROME2",
+                **tags: object) -> Path:
+    """A minimal secondary-capture DICOM file; ``pixels`` uint16 ``(H, W)`` or ``(F, H, W)``."""
+    meta = FileMetaDataset()
+    meta.MediaStorageSOPClassUID = SecondaryCaptureImageStorage
+    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.TransferSyntaxUID = ExplicitVRLittleEndian
+    ds = Dataset()
+    ds.file_meta = meta
+    ds.SOPClassUID = SecondaryCaptureImageStorage
+    ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+    ds.set_pixel_data(pixels, photometric_interpretation=photometric, bits_stored=16)
+    for key, value in tags.items():
+        setattr(ds, key, value)
+    ds.save_as(path, enforce_file_format=True)
+    return path
+
+
+def test_png_8_and_16_bit_give_the_same_image(tmp_path: Path) -> None:
+    ramp = gradient()
+    cv2.imwrite(str(tmp_path / "a8.png"), np.round(ramp * 255).astype(np.uint8))
+    cv2.imwrite(str(tmp_path / "a16.png"), np.round(ramp * 65535).astype(np.uint16))
+    img8, img16 = read_image(tmp_path / "a8.png"), read_image(tmp_path / "a16.png")
+    assert img8.dtype == img16.dtype == np.float32
+    assert img8.shape == img16.shape == ramp.shape
+    np.testing.assert_allclose(img16, ramp, atol=1 / 65535)
+    np.testing.assert_allclose(img8, ramp, atol=0.5 / 255 + 1e-6)
+
+
+def test_jpeg_tiff_and_colour_png(tmp_path: Path) -> None:
+    ramp = gradient()
+    cv2.imwrite(str(tmp_path / "a.jpg"), np.round(ramp * 255).astype(np.uint8),
+                [cv2.IMWRITE_JPEG_QUALITY, 100])
+    cv2.imwrite(str(tmp_path / "a.tif"), np.round(ramp * 65535).astype(np.uint16))
+    colour = np.repeat(np.round(ramp * 255).astype(np.uint8)[..., None], 3, -1)
+    cv2.imwrite(str(tmp_path / "rgb.png"), colour)
+    np.testing.assert_allclose(read_image(tmp_path / "a.jpg"), ramp, atol=3 / 255)
+    np.testing.assert_allclose(read_image(tmp_path / "a.tif"), ramp, atol=1 / 65535)
+    np.testing.assert_allclose(read_image(tmp_path / "rgb.png"), ramp, atol=0.5 / 255 + 1e-6)
+
+
+def test_dicom_geometry_tags(tmp_path: Path) -> None:
+    stored = np.round(gradient() * 4000).astype(np.uint16)
+    imager = write_dicom(tmp_path / "imager.dcm", stored, DistanceSourceToDetector=1040.0,
+                         ImagerPixelSpacing=[0.148, 0.148], PixelSpacing=[0.1, 0.1])
+    patient = write_dicom(tmp_path / "patient.dcm", stored, PixelSpacing=[0.125, 0.125],
+                          EstimatedRadiographicMagnificationFactor=1.2)
+    bare = write_dicom(tmp_path / "bare.dcm", stored)
+    skewed = write_dicom(tmp_path / "skewed.dcm", stored, ImagerPixelSpacing=[0.1, 0.2])
+    (f_imager,), (f_patient,), (f_bare,), (f_skewed,) = (read_frames(p) for p in
+                                                         (imager, patient, bare, skewed))
+    assert f_imager.error is None
+    assert f_imager.sdd_mm == pytest.approx(1040.0)
+    assert f_imager.pixel_spacing_mm == pytest.approx(0.148)  # ImagerPixelSpacing wins
+    assert f_patient.sdd_mm is None
+    assert f_patient.pixel_spacing_mm == pytest.approx(0.125 * 1.2)
+    assert f_bare.sdd_mm is None and f_bare.pixel_spacing_mm is None and not f_bare.tag_notes
+    assert f_skewed.pixel_spacing_mm is None
+    assert "not square" in f_skewed.tag_notes["pixel_spacing_mm"]
+    # Stored values min-max scaled: the ramp comes back.
+    np.testing.assert_allclose(f_bare.image, (stored - stored.min()) / np.ptp(stored), atol=1e-6)
+
+
+def test_dicom_monochrome1_is_inverted(tmp_path: Path) -> None:
+    stored = np.round(gradient() * 4000).astype(np.uint16)
+    mono2 = read_image(write_dicom(tmp_path / "m2.dcm", stored, "MONOCHROME2"))
+    mono1 = read_image(write_dicom(tmp_path / "m1.dcm", stored, "MONOCHROME1"))
+    np.testing.assert_allclose(mono1, 1.0 - mono2, atol=1e-6)
+
+
+def test_dicom_rescale_and_window_are_applied(tmp_path: Path) -> None:
+    stored = np.round(gradient() * 4000).astype(np.uint16)
+    plain = read_image(write_dicom(tmp_path / "plain.dcm", stored))
+    # A negative rescale slope turns the image over: the modality LUT must have run.
+    flipped = read_image(write_dicom(tmp_path / "flip.dcm", stored, RescaleSlope=-2.0,
+                                     RescaleIntercept=100.0))
+    np.testing.assert_allclose(flipped, 1.0 - plain, atol=1e-6)
+    # A window over the middle of the range clips both ends (DICOM linear VOI function).
+    windowed = read_image(write_dicom(tmp_path / "win.dcm", stored, WindowCenter=2000,
+                                      WindowWidth=1000))
+    assert np.all(windowed[stored <= 1500] == 0.0)
+    assert np.all(windowed[stored >= 2500] == 1.0)
+    inside = (stored > 1600) & (stored < 2400)
+    expected = (stored[inside] - (2000 - 0.5)) / (1000 - 1) + 0.5
+    np.testing.assert_allclose(windowed[inside], expected, atol=2e-3)
+
+
+def test_multiframe_dicom_gives_one_frame_each(tmp_path: Path) -> None:
+    frames = np.stack([np.full((32, 40), 100 * (i + 1), np.uint16) for i in range(3)])
+    frames[:, 0, 0] = 0  # each frame has some contrast
+    path = write_dicom(tmp_path / "run.dcm", frames, DistanceSourceToDetector=1000.0)
+    read = read_frames(path)
+    assert [f.name for f in read] == ["run.dcm#1", "run.dcm#2", "run.dcm#3"]
+    assert [f.last_of_source for f in read] == [False, False, True]
+    assert all(f.error is None and f.image.shape == (32, 40) and f.sdd_mm == 1000.0
+               for f in read)
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "message"),
+    [
+        ("empty.png", b"", "empty file"),
+        ("text.png", b"this is not an image\n", "not a readable PNG"),
+        ("notes.bmp", b"BM\x00\x00", "unsupported file type .bmp"),
+        ("fake.dcm", b"not dicom at all" * 20, "not a DICOM file"),
+    ],
+)
+def test_broken_files_name_the_problem(tmp_path: Path, name: str, content: bytes,
+                                       message: str) -> None:
+    path = tmp_path / name
+    path.write_bytes(content)
+    (frame,) = read_frames(path)
+    assert frame.image is None and message in frame.error
+    with pytest.raises(ImageReadError, match=message):
+        read_image(path)
+
+
+def test_truncated_png_and_dicom(tmp_path: Path) -> None:
+    cv2.imwrite(str(tmp_path / "full.png"), np.round(gradient() * 65535).astype(np.uint16))
+    data = (tmp_path / "full.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    assert "corrupt or truncated PNG" in read_frames(tmp_path / "cut.png")[0].error
+    write_dicom(tmp_path / "full.dcm", np.ones((64, 64), np.uint16))
+    data = (tmp_path / "full.dcm").read_bytes()
+    (tmp_path / "cut.dcm").write_bytes(data[: len(data) - 4000])
+    assert "corrupt or truncated DICOM" in read_frames(tmp_path / "cut.dcm")[0].error
+
+
+def test_size_limit(tmp_path: Path) -> None:
+    cv2.imwrite(str(tmp_path / "wide.png"), np.zeros((8, MAX_SIDE + 1), np.uint16))
+    assert "too large" in read_frames(tmp_path / "wide.png")[0].error
+    cv2.imwrite(str(tmp_path / "max.png"), np.zeros((MAX_SIDE, MAX_SIDE), np.uint16))
+    assert read_image(tmp_path / "max.png").shape == (MAX_SIDE, MAX_SIDE)
+
+
+def test_discovery_folder_recursive_glob_and_empty(tmp_path: Path) -> None:
+    image = np.zeros((8, 8), np.uint8)
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "out").mkdir()
+    for rel in ("b.png", "a.jpg", "sub/c.tif", "out/overlay.png"):
+        cv2.imwrite(str(tmp_path / rel), image)
+    write_dicom(tmp_path / "sub" / "IM0001", np.zeros((8, 8), np.uint16))  # no suffix
+    (tmp_path / "readme.txt").write_text("not an image")
+    names = [s.name for s in find_images(tmp_path, exclude=tmp_path / "out")]
+    assert names == ["a.jpg", "b.png"]
+    names = [s.name for s in find_images(tmp_path, recursive=True, exclude=tmp_path / "out")]
+    assert names == ["a.jpg", "b.png", "sub/IM0001", "sub/c.tif"]
+    assert [s.name for s in find_images(f"{tmp_path}/*.png")] == ["b.png"]
+    assert [s.name for s in find_images(f"{tmp_path}/**/*.tif", recursive=True)] == ["sub/c.tif"]
+    assert [s.name for s in find_images(tmp_path / "b.png")] == ["b.png"]
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no images found in"):
+        find_images(tmp_path / "empty")
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        find_images(tmp_path / "missing")
+
+
+def test_stream_keeps_order_and_goes_past_bad_files(tmp_path: Path) -> None:
+    sources = []
+    for i in range(12):
+        path = tmp_path / f"{i:02d}.png"
+        if i % 5 == 3:
+            path.write_text("broken")
+        else:
+            cv2.imwrite(str(path), np.full((16, 16), i * 10, np.uint8))
+        sources.append(ImageSource(path, path.name))
+    frames = list(iter_frames(sources, workers=2, lookahead=3))
+    assert [f.name for f in frames] == [s.name for s in sources]
+    for i, frame in enumerate(frames):
+        if i % 5 == 3:
+            assert frame.error is not None and frame.image is None
+        else:
+            assert frame.error is None and frame.image[0, 0] == pytest.approx(i * 10 / 255)
