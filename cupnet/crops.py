@@ -1,10 +1,11 @@
-"""Exact resampling between an original image and network inputs (letterbox, square crops).
+"""Exact resampling between an original image and network inputs (letterbox, cup crops).
 
 Every resampled view is described by an affine ``crop_to_image`` ``(..., 2, 3)`` that maps a
 pixel ``(u, v)`` of the view to the original image: ``(u', v') = A[:, :2] @ (u, v) + A[:, 2]``,
 pixel centres at integers in both (CONVENTIONS.md), so landmarks found in a view map back to
-original-image pixels exactly with :func:`to_image`. The views used here are axis-aligned
-similarities (uniform scale, translation).
+original-image pixels exactly with :func:`to_image`. The letterbox is a similarity; a cup crop
+is rotated onto the rim ellipse's axes and may stretch its minor axis, so a rim seen almost
+edge-on still spans many crop pixels across (affine maps keep ellipses ellipses).
 """
 
 from __future__ import annotations
@@ -40,17 +41,47 @@ def letterbox_affine(height: int, width: int, size: int, dtype: torch.dtype = to
                       torch.tensor(off_v, dtype=dtype))
 
 
-def square_crop_affine(centre: Tensor, side: Tensor, size: int) -> Tensor:
-    """crop_to_image ``(..., 2, 3)`` of a square crop of ``side`` image px centred on ``centre``.
+def ellipse_crop_affine(frame: Tensor, size: int) -> Tensor:
+    """crop_to_image ``(..., 2, 3)`` of a crop framed on an ellipse.
 
     Args:
-        centre: ``(..., 2)`` image pixels (u, v).
-        side: ``(...)`` image pixels covered by the crop's ``size`` pixels.
+        frame: ``(..., 5)`` (cx, cy, major_side, minor_side, angle_deg): the crop's centre in
+            image pixels, the image lengths its width (along the angle) and height cover, and
+            the angle of its width axis from +u towards +v.
         size: crop size in pixels.
     """
-    step = side / size
+    step_u, step_v = frame[..., 2] / size, frame[..., 3] / size
+    ang = torch.deg2rad(frame[..., 4])
+    c, s = torch.cos(ang), torch.sin(ang)
     half = (size - 1) / 2
-    return similarity(step, centre[..., 0] - step * half, centre[..., 1] - step * half)
+    lin = torch.stack([torch.stack([c * step_u, -s * step_v], -1),
+                       torch.stack([s * step_u, c * step_v], -1)], -2)
+    offset = frame[..., :2] - half * lin.sum(-1)
+    return torch.cat([lin, offset[..., None]], -1)
+
+
+def frame_ellipse(ellipse: Tensor, fill: float, min_ratio: float, max_stretch: float) -> Tensor:
+    """Crop frames ``(..., 5)`` for ellipses ``(..., 5)`` (cx, cy, a, b, alpha_deg).
+
+    The major axis spans ``fill`` of the crop; the minor direction is stretched so the
+    ellipse's axis ratio in the crop is at least ``min_ratio``, by ``max_stretch`` at most.
+    """
+    a, b = ellipse[..., 2], ellipse[..., 3]
+    major = 2 * a / fill
+    ratio = (b / (min_ratio * a)).clamp(1 / max_stretch, 1.0)
+    return torch.stack([ellipse[..., 0], ellipse[..., 1], major, major * ratio, ellipse[..., 4]],
+                       -1)
+
+
+def ellipse_to_view(ellipse: Tensor, crop_to_image: Tensor) -> Tensor:
+    """Image ellipses ``(..., 5)`` -> the same ellipses in view pixels (``(..., 2, 3)`` affines)."""
+    from cupnet.ellipse import conic_to_params, params_to_conic
+
+    bottom = torch.zeros_like(crop_to_image[..., :1, :])
+    bottom[..., 0, 2] = 1
+    hom = torch.cat([crop_to_image, bottom], -2)  # view -> image, homogeneous
+    conic = params_to_conic(ellipse)
+    return conic_to_params(hom.transpose(-1, -2) @ conic @ hom)
 
 
 def to_image(points: Tensor, crop_to_image: Tensor) -> Tensor:
@@ -67,22 +98,25 @@ def to_view(points: Tensor, crop_to_image: Tensor) -> Tensor:
 def resample(image: Tensor, crop_to_image: Tensor, size: int, antialias: bool = True) -> Tensor:
     """Resample one image into a ``size x size`` view (zeros outside the image).
 
-    Downsampling by ``step`` image px per view px first box-filters the covered region by
-    ``floor(step)`` (an average pool with an exactly known pixel-centre shift), then samples
-    bilinearly, so views of large images are not aliased.
+    Downsampling by ``step`` image px per view px (the smaller singular value of the affine)
+    first box-filters the covered region by ``floor(step)`` (an average pool with an exactly
+    known pixel-centre shift), then samples bilinearly, so views of large images are not
+    aliased.
 
     Args:
         image: ``(C, H, W)``.
-        crop_to_image: ``(2, 3)`` affine (similarity).
+        crop_to_image: ``(2, 3)`` affine.
         size: view size in pixels.
     Returns:
         ``(C, size, size)`` in the image's dtype.
     """
     affine = crop_to_image.to(image.dtype)
-    step = float(torch.sqrt(torch.linalg.det(affine[:, :2]).abs()))
+    # Box-filter only by the smaller scale: a stretched direction must keep its detail.
+    step = float(torch.linalg.svdvals(affine[:, :2])[-1])
     pool = max(1, math.floor(step)) if antialias else 1
     if pool > 1:
-        corners = to_image(torch.tensor([[0.0, 0.0], [size - 1.0, size - 1.0]],
+        last = size - 1.0
+        corners = to_image(torch.tensor([[0.0, 0.0], [last, 0.0], [0.0, last], [last, last]],
                                         dtype=image.dtype, device=image.device), affine)
         lo = (corners.min(0).values - pool).floor().clamp_min(0).long()
         hi = (corners.max(0).values + pool + 1).ceil().long()

@@ -29,7 +29,13 @@ import torch
 from kornia.geometry.transform import warp_affine
 from torch import Tensor, nn
 
-from cupnet.crops import letterbox_affine, resample_batch, square_crop_affine, to_image
+from cupnet.crops import (
+    ellipse_crop_affine,
+    frame_ellipse,
+    letterbox_affine,
+    resample_batch,
+    to_image,
+)
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ray_landmarks, soft_moments
 from cupnet.pose import PoseSolution, solve_pose
@@ -50,6 +56,9 @@ class CupNetConfig:
         locator_size: letterbox side (px) of stage 1.
         crop_size: crop side (px) of stage 2.
         crop_fill: rim major diameter / crop side.
+        crop_min_ratio: the minor direction of a crop is stretched so the rim's axis ratio
+            in the crop is at least this ...
+        crop_max_stretch: ... stretching by this factor at most.
         n_rays: soft landmarks per cup.
         ray_samples: samples per ray.
         max_cups: cups per image at most.
@@ -64,6 +73,8 @@ class CupNetConfig:
     locator_size: int = 128
     crop_size: int = 128
     crop_fill: float = 0.78
+    crop_min_ratio: float = 0.5
+    crop_max_stretch: float = 6.0
     n_rays: int = 64
     ray_samples: int = 128
     max_cups: int = 2
@@ -204,12 +215,16 @@ class CupNet(nn.Module):
         views, affines = self.letterbox(images)
         return self.locator(_standardise(views)), affines
 
-    def boxes_from_locator(self, logits: Tensor, letterbox: Tensor) -> tuple[Tensor, Tensor]:
-        """Cup crops from the locator's components: boxes ``(B, C, 3)`` (cx, cy, side) image px
-        (NaN where no cup) and scores ``(B, C)``, largest components first."""
+    def ellipses_from_locator(self, logits: Tensor, letterbox: Tensor) -> tuple[Tensor, Tensor]:
+        """Rough cup ellipses from the locator's components (their second moments).
+
+        Returns:
+            ellipses ``(B, C, 5)`` (cx, cy, a, b, alpha_deg) image pixels, NaN where no cup,
+            largest components first; scores ``(B, C)`` (mean probability of the component).
+        """
         cfg = self.config
         prob = torch.sigmoid(logits.detach()).cpu().double().numpy()[:, 0]
-        boxes = torch.full((len(prob), cfg.max_cups, 3), math.nan, dtype=torch.float64)
+        ellipses = torch.full((len(prob), cfg.max_cups, 5), math.nan, dtype=torch.float64)
         scores = torch.zeros(len(prob), cfg.max_cups, dtype=torch.float64)
         for i, p in enumerate(prob):
             count, labels = cv2.connectedComponents((p > cfg.detect_threshold).astype(np.uint8))
@@ -219,30 +234,37 @@ class CupNet(nn.Module):
                 if w.sum() < cfg.min_cup_area:
                     continue
                 _, centre, cov = soft_moments(torch.from_numpy(w)[None, None])
-                major = 2 * math.sqrt(float(torch.linalg.eigvalsh(cov[0])[-1]))
-                found.append((float(w.sum()), centre[0], major, float(p[labels == label].mean())))
+                evals, evecs = torch.linalg.eigh(cov[0])
+                axes = 2 * evals.clamp_min(1 / 12).sqrt().flip(0)  # a filled ellipse: 4 var = a^2
+                angle = math.degrees(math.atan2(float(evecs[1, 1]), float(evecs[0, 1]))) % 180
+                found.append((float(w.sum()), centre, axes, angle,
+                              float(p[labels == label].mean())))
             found.sort(key=lambda f: -f[0])
-            for c, (_, centre, major, score) in enumerate(found[:cfg.max_cups]):
-                affine = letterbox[i].double().cpu()
-                centre_img = to_image(centre[None], affine)[0]
-                step = float(affine[0, 0])
-                side = 2 * major * step / cfg.crop_fill
-                boxes[i, c] = torch.cat([centre_img, torch.tensor([side], dtype=torch.float64)])
+            affine = letterbox[i].double().cpu()
+            for c, (_, centre, axes, angle, score) in enumerate(found[:cfg.max_cups]):
+                ellipses[i, c, :2] = to_image(centre, affine)[0]
+                ellipses[i, c, 2:4] = axes * affine[0, 0]
+                ellipses[i, c, 4] = angle
                 scores[i, c] = score
-        return boxes, scores
+        return ellipses, scores
+
+    def frames(self, ellipses: Tensor) -> Tensor:
+        """Crop frames ``(..., 5)`` of (rough) ellipses ``(..., 5)``, see :func:`frame_ellipse`."""
+        cfg = self.config
+        return frame_ellipse(ellipses, cfg.crop_fill, cfg.crop_min_ratio, cfg.crop_max_stretch)
 
     # -- stage 2 ---------------------------------------------------------------------------
-    def segment_crops(self, images: list[Tensor] | Tensor, boxes: Tensor, index: Tensor
+    def segment_crops(self, images: list[Tensor] | Tensor, frames: Tensor, index: Tensor
                       ) -> tuple[Tensor, Tensor]:
         """Stage 2: crop logits ``(K, 1, s, s)`` and crop-to-image affines ``(K, 2, 3)``.
 
         Args:
             images: ``(B, 1, H, W)`` or list of ``(1, H, W)``.
-            boxes: ``(K, 3)`` (cx, cy, side) image pixels.
-            index: ``(K,)`` image of each box.
+            frames: ``(K, 5)`` crop frames (see :func:`cupnet.crops.ellipse_crop_affine`).
+            index: ``(K,)`` image of each frame.
         """
         size = self.config.crop_size
-        affines = square_crop_affine(boxes[:, :2], boxes[:, 2], size).to(images[0].dtype)
+        affines = ellipse_crop_affine(frames, size).to(images[0].dtype)
         crops = resample_batch(images, affines, size, index)
         if crops.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
             return crops, affines
@@ -255,15 +277,16 @@ class CupNet(nn.Module):
         return to_image(points, crop_to_image.double()), weights
 
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
-                crop_boxes: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
+                crop_frames: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
         """Images + geometry -> locator map, crop maps, landmarks, ellipses and poses.
 
         Args:
             images: ``(B, 1, H, W)`` float32 in [0, 1] (or a list of ``(1, H_i, W_i)``).
             geometry: fields ``(B,)`` or scalars.
             cup_diameter: ``(B,)`` or ``(B, C)`` mm.
-            crop_boxes: ``(B, C, 3)`` (cx, cy, side) crops to segment, NaN rows skipped
-                (training frames them from the truth); None takes them from the locator.
+            crop_frames: ``(B, C, 5)`` crops to segment (see
+                :func:`cupnet.crops.ellipse_crop_affine`), NaN rows skipped (training frames
+                them on the truth); None frames them on the locator's components.
             refine_pose: run the solver's maximum-likelihood refinement (slower); otherwise
                 the closed form, differentiable through ``eigh``.
         Returns:
@@ -274,12 +297,12 @@ class CupNet(nn.Module):
         if isinstance(images, Tensor) and images.ndim != 4:
             raise ValueError(f"images must be (B, 1, H, W), got {tuple(images.shape)}")
         locator_logits, letterbox = self.locate(list(image_list))
-        if crop_boxes is None:
-            crop_boxes, _ = self.boxes_from_locator(locator_logits, letterbox)
+        if crop_frames is None:
+            crop_frames = self.frames(self.ellipses_from_locator(locator_logits, letterbox)[0])
         batch = locator_logits.shape[0]
-        cup_index = torch.isfinite(crop_boxes).all(-1).nonzero()  # (K, 2)
-        boxes = crop_boxes[cup_index[:, 0], cup_index[:, 1]].to(locator_logits.device)
-        crop_logits, crop_to_image = self.segment_crops(image_list, boxes, cup_index[:, 0])
+        cup_index = torch.isfinite(crop_frames).all(-1).nonzero()  # (K, 2)
+        frames = crop_frames[cup_index[:, 0], cup_index[:, 1]].to(locator_logits.device)
+        crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
         points, weights = self.crop_landmarks(crop_logits, crop_to_image)
         solution = self.solve(points, weights, geometry, cup_diameter, cup_index, batch,
                               refine_pose)
@@ -324,20 +347,18 @@ class CupNet(nn.Module):
             raise ValueError(f"cup_diameter must be a scalar or ({batch},), got "
                              f"{tuple(diameter.shape)}")
         locator_logits, letterbox = self.locate(image_list)
-        boxes, scores = self.boxes_from_locator(locator_logits, letterbox)
-        cup_index = torch.isfinite(boxes).all(-1).nonzero()
-        crop_boxes = boxes[cup_index[:, 0], cup_index[:, 1]]
+        rough, scores = self.ellipses_from_locator(locator_logits, letterbox)
+        cup_index = torch.isfinite(rough).all(-1).nonzero()
+        frames = self.frames(rough[cup_index[:, 0], cup_index[:, 1]])
         for _ in range(self.config.refine_passes):
-            crop_logits, crop_to_image = self.segment_crops(image_list, crop_boxes,
-                                                            cup_index[:, 0])
+            crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
             points, weights = self.crop_landmarks(crop_logits, crop_to_image)
             solution = self.solve(points, weights, geometry, diameter, cup_index, batch,
                                   refine=True)
             # Re-frame on the fitted ellipse where it is usable; keep the old box otherwise.
             ellipse = solution.ellipse
             usable = torch.isfinite(ellipse).all(-1) & (ellipse[:, 2] > 0.5)
-            new = torch.cat([ellipse[:, :2], (2 * ellipse[:, 2:3] / self.config.crop_fill)], -1)
-            crop_boxes = torch.where(usable[:, None], new, crop_boxes)
+            frames = torch.where(usable[:, None], self.frames(ellipse.nan_to_num(1.0)), frames)
         results: list[list[CupDetection]] = [[] for _ in range(batch)]
         for k, (i, c) in enumerate(cup_index.tolist()):
             mask = None

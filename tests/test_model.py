@@ -10,7 +10,15 @@ import pytest
 import torch
 from torch import nn
 
-from cupnet.crops import letterbox_affine, resample, square_crop_affine, to_image, to_view
+from cupnet.crops import (
+    ellipse_crop_affine,
+    ellipse_to_view,
+    frame_ellipse,
+    letterbox_affine,
+    resample,
+    to_image,
+    to_view,
+)
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage, ray_landmarks, soft_moments
@@ -49,8 +57,9 @@ def scene(poses_deg: list[list[float]], height: int, width: int, sdd: float = 10
 def test_resample_matches_opencv_warp_affine():
     rng = np.random.default_rng(0)
     image = cv2.GaussianBlur(rng.random((90, 120)), (0, 0), 2.0)
-    affine = square_crop_affine(torch.tensor([61.3, 40.7], dtype=torch.float64),
-                                torch.tensor(45.5, dtype=torch.float64), 64)
+    # A rotated crop, stretched across its height, as used for thin rims.
+    affine = ellipse_crop_affine(torch.tensor([61.3, 40.7, 45.5, 12.0, 33.0],
+                                              dtype=torch.float64), 64)
     ours = resample(torch.from_numpy(image)[None], affine, 64, antialias=False)[0].numpy()
     ref = cv2.warpAffine(image, affine.numpy(), (64, 64),
                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
@@ -58,7 +67,8 @@ def test_resample_matches_opencv_warp_affine():
 
 
 def test_to_view_inverts_to_image():
-    affine = square_crop_affine(torch.tensor([300.2, 123.4]), torch.tensor(211.0), 128).double()
+    affine = ellipse_crop_affine(torch.tensor([300.2, 123.4, 211.0, 70.0, 121.0],
+                                              dtype=torch.float64), 128)
     points = torch.rand(7, 2, dtype=torch.float64) * 128
     assert torch.allclose(to_view(to_image(points, affine), affine), points, atol=1e-10)
 
@@ -88,22 +98,25 @@ def test_soft_landmarks_recover_known_ellipse(params):
     assert abs(math.radians(float(err[4]))) * float(truth[2] - truth[3]) < 0.1
 
 
-def test_landmarks_in_crop_map_back_to_image_pixels():
-    truth = torch.tensor([412.3, 287.9, 81.0, 40.5, 151.0], dtype=torch.float64)
-    affine = square_crop_affine(truth[:2] + torch.tensor([3.1, -4.2], dtype=torch.float64),
-                                torch.tensor(2 * 81.0 / 0.78, dtype=torch.float64), 128)
-    step = affine[0, 0]
-    in_crop = torch.cat([to_view(truth[None, None, :2], affine)[0], truth[None, 2:4] / step,
-                         truth[None, 4:]], -1)
-    coverage = ellipse_coverage(in_crop[None], 128, 128, supersample=8)
+@pytest.mark.parametrize("truth", [[412.3, 287.9, 81.0, 40.5, 151.0],
+                                   [212.6, 301.2, 90.0, 4.0, 23.0]])
+def test_landmarks_in_crop_map_back_to_image_pixels(truth):
+    # A thin rim (b / a = 0.044) is stretched in its crop, so its ends are resolved too.
+    truth = torch.tensor(truth, dtype=torch.float64)
+    rough = truth + torch.tensor([3.1, -4.2, 5.0, 1.0, 4.0], dtype=torch.float64)
+    affine = ellipse_crop_affine(frame_ellipse(rough, 0.78, 0.5, 6.0), 128)
+    coverage = ellipse_coverage(ellipse_to_view(truth, affine)[None, None], 128, 128,
+                                supersample=8)
     points, weights = ray_landmarks(coverage, 64, 128)
     fit = fit_ellipse(to_image(points, affine), weights)
-    assert (fit.params[0, :4] - truth[:4]).abs().max() < 0.1 * step
+    # Within 0.1 crop pixel, the largest image length of a crop pixel.
+    crop_pixel = torch.linalg.svdvals(affine[:, :2])[0]
+    assert (fit.params[0, :4] - truth[:4]).abs().max() < 0.1 * crop_pixel
 
 
-def _pose_through_network(model: CupNet, image, geometry, boxes, diameter, refine):
+def _pose_through_network(model: CupNet, image, geometry, ellipse, diameter, refine):
     out = model(image[None], geometry, torch.tensor([diameter], dtype=image.dtype),
-                crop_boxes=boxes, refine_pose=refine)
+                crop_frames=model.frames(ellipse)[None], refine_pose=refine)
     assert out.solution.valid.all(), out.solution.status
     return out.solution.pose
 
@@ -112,11 +125,10 @@ def test_pose_loss_reaches_first_encoder_layer():
     torch.manual_seed(0)
     model = CupNet(TINY)
     image, geometry, ellipse = scene([[20.0, 30.0, 10.0, -15.0, 300.0]], 256, 256)
-    boxes = torch.cat([ellipse[:, :2], 2 * ellipse[:, 2:3] / 0.78], -1)[None]
     # An untrained network's map is arbitrary: add a disc to its logits so the fit exists.
     model.refiner.segmentation_head.register_forward_hook(
         lambda _m, _inputs, out: out + 8.0 * _disc(out.shape[-1]) - 4.0)
-    pose = _pose_through_network(model, image.float(), geometry, boxes, 52.0, refine=False)
+    pose = _pose_through_network(model, image.float(), geometry, ellipse, 52.0, refine=False)
     loss = (pose - torch.tensor([[20.0, 30.0, 10.0, -15.0, 300.0]])).abs().sum()
     loss.backward()
     grad = model.refiner.encoder.conv1.weight.grad
@@ -137,11 +149,11 @@ def test_pose_gradient_matches_finite_differences(refine, rel):
     model = CupNet(TINY).double()
     model.refiner = EdgeNet().double()
     image, geometry, ellipse = scene([[25.0, -35.0, -20.0, 12.0, 280.0]], 256, 256)
-    boxes = torch.cat([ellipse[:, :2] + 1.5, 2 * ellipse[:, 2:3] / 0.78], -1)[None]
+    rough = ellipse + torch.tensor([1.5, 1.5, 2.0, 1.0, 3.0], dtype=torch.float64)
     weight = model.refiner.conv.weight
 
     def pose() -> torch.Tensor:
-        return _pose_through_network(model, image, geometry, boxes, 52.0, refine)[0]
+        return _pose_through_network(model, image, geometry, rough, 52.0, refine)[0]
 
     out = pose()
     direction = torch.tensor([1.0, 0.3, -0.2, 0.5, 0.02], dtype=torch.float64)

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from cupnet.crops import resample_batch, to_view
+from cupnet.crops import ellipse_to_view, resample_batch
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
@@ -23,24 +23,30 @@ def batch_geometry(geometry: Tensor) -> Geometry:
     return Geometry(*geometry.double().unbind(-1))
 
 
-def jittered_boxes(ellipse: Tensor, valid: Tensor, crop_fill: float, shift: float, scale: float
-                   ) -> Tensor:
-    """Training crops framed on the true ellipses, jittered like the locator's errors.
+def jittered_ellipses(ellipse: Tensor, valid: Tensor, shift: float, scale: float, angle: float,
+                      ratio: float) -> Tensor:
+    """True ellipses perturbed like the locator's and the first pass's errors, to frame crops.
+
+    Each cup draws a magnitude ``m ~ U(0, 1)^2`` (many near-exact frames as in the second
+    pass, some coarse ones as from the locator), then uniform perturbations up to ``m`` times:
+    ``shift * a`` per centre axis, ``scale`` (log) of both axes, ``ratio`` (log) of ``b``
+    alone, ``angle`` degrees.
 
     Args:
-        ellipse: ``(B, C, 5)`` true ellipses, image pixels.
-        valid: ``(B, C)`` bool.
-        crop_fill: major diameter / crop side at no jitter.
-        shift: centre jitter, uniform in ``+-shift * a`` per axis.
-        scale: side jitter, log-uniform in ``+-scale``.
+        ellipse: ``(B, C, 5)`` true ellipses, image pixels; valid: ``(B, C)`` bool.
     Returns:
-        ``(B, C, 3)`` (cx, cy, side), NaN where not valid.
+        ``(B, C, 5)``, NaN where not valid.
     """
+    m = torch.rand_like(ellipse[..., :1]) ** 2
+    u = 2 * torch.rand_like(ellipse) - 1  # (B, C, 5) in [-1, 1]
     a = ellipse[..., 2:3]
-    centre = ellipse[..., :2] + (2 * torch.rand_like(ellipse[..., :2]) - 1) * shift * a
-    side = 2 * a / crop_fill * torch.exp((2 * torch.rand_like(a) - 1) * scale)
-    boxes = torch.cat([centre, side], -1)
-    return torch.where(valid[..., None], boxes, torch.full_like(boxes, math.nan))
+    centre = ellipse[..., :2] + m * u[..., :2] * shift * a
+    axes = ellipse[..., 2:4] * torch.exp(m * u[..., 2:3] * scale)
+    axes = torch.cat([axes[..., :1], axes[..., 1:] * torch.exp(m * u[..., 3:4] * ratio)], -1)
+    axes = torch.cat([axes.max(-1, keepdim=True).values, axes.min(-1, keepdim=True).values], -1)
+    alpha = ellipse[..., 4:] + m * u[..., 4:] * angle
+    out = torch.cat([centre, axes, alpha], -1)
+    return torch.where(valid[..., None], out, torch.full_like(out, math.nan))
 
 
 def crop_targets(ellipse: Tensor, valid: Tensor, crop_to_image: Tensor, cup_index: Tensor,
@@ -48,10 +54,7 @@ def crop_targets(ellipse: Tensor, valid: Tensor, crop_to_image: Tensor, cup_inde
     """Coverage maps ``(K, 1, size, size)`` of all true ellipses of each crop's image."""
     image_ellipses = torch.where(valid[..., None], ellipse, torch.full_like(ellipse, math.nan))
     mine = image_ellipses[cup_index[:, 0]].double()  # (K, C, 5)
-    affine = crop_to_image.double()
-    step = affine[:, 0, 0]
-    centres = to_view(mine[..., :2], affine)
-    in_crop = torch.cat([centres, mine[..., 2:4] / step[:, None, None], mine[..., 4:]], -1)
+    in_crop = ellipse_to_view(mine, crop_to_image.double()[:, None])
     return ellipse_coverage(in_crop, size, size).float()
 
 
@@ -88,7 +91,8 @@ class CupNetModule(L.LightningModule):
         ellipse_weight, pose_weight: their full weights (``pose_weight: 0`` trains on
             segmentation (and ellipse) alone: the ablation).
         locator_weight: weight of the locator's segmentation loss.
-        jitter_shift, jitter_scale: crop jitter (see :func:`jittered_boxes`).
+        jitter_shift, jitter_scale, jitter_angle, jitter_ratio: crop framing errors (see
+            :func:`jittered_ellipses`).
         refine_pose: train through the solver's ML refinement (else its closed form).
         export_path: where :meth:`on_fit_end` writes the model as safetensors + JSON.
     """
@@ -104,8 +108,10 @@ class CupNetModule(L.LightningModule):
         ellipse_weight: float = 0.5,
         pose_weight: float = 0.2,
         locator_weight: float = 0.5,
-        jitter_shift: float = 0.12,
-        jitter_scale: float = 0.15,
+        jitter_shift: float = 0.15,
+        jitter_scale: float = 0.2,
+        jitter_angle: float = 15.0,
+        jitter_ratio: float = 0.4,
         refine_pose: bool = False,
         export_path: str | None = None,
     ) -> None:
@@ -119,10 +125,10 @@ class CupNetModule(L.LightningModule):
         images = batch["image"]
         valid = batch["cup_valid"].bool()
         geometry = batch_geometry(batch["geometry"])
-        boxes = jittered_boxes(batch["ellipse"].double(), valid, cfg.crop_fill, hp.jitter_shift,
-                               hp.jitter_scale)
-        out = self.model(images, geometry, batch["cup_diameter"], crop_boxes=boxes,
-                         refine_pose=hp.refine_pose)
+        rough = jittered_ellipses(batch["ellipse"].double(), valid, hp.jitter_shift,
+                                  hp.jitter_scale, hp.jitter_angle, hp.jitter_ratio)
+        out = self.model(images, geometry, batch["cup_diameter"],
+                         crop_frames=self.model.frames(rough), refine_pose=hp.refine_pose)
         locator_target = resample_batch(batch["mask"], out.letterbox, cfg.locator_size)
         terms = {"seg_locator": segmentation_loss(out.locator_logits, locator_target)}
         target = crop_targets(batch["ellipse"], valid, out.crop_to_image, out.cup_index,
@@ -133,8 +139,9 @@ class CupNetModule(L.LightningModule):
         w_pose = ramp(step, hp.pose_start, hp.ramp_steps) * hp.pose_weight
         if w_ellipse > 0:
             fit = fit_ellipse(out.landmarks, out.weights, on_error="flag")
-            terms["ellipse"] = ellipse_loss(fit.conic, batch["rim"][i, c].double(),
-                                            out.crop_to_image[:, 0, 0].double(), fit.valid)
+            crop_step = torch.linalg.svdvals(out.crop_to_image[:, :, :2].double())[:, -1]
+            terms["ellipse"] = ellipse_loss(fit.conic, batch["rim"][i, c].double(), crop_step,
+                                            fit.valid)
         solution = out.solution
         terms["pose"] = pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)
         total = (hp.locator_weight * terms["seg_locator"] + terms["seg_crop"]
