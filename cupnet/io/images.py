@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import glob
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Container, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,6 +63,7 @@ class Frame:
         tag_notes: why a tag value present in the file was not usable (value name -> reason).
         error: why the file or frame could not be read, else None.
         seconds: time spent reading and decoding.
+        skipped: not decoded because its name was in ``iter_frames``' ``skip``.
     """
 
     name: str
@@ -74,6 +75,7 @@ class Frame:
     tag_notes: dict[str, str] | None = None
     error: str | None = None
     seconds: float = 0.0
+    skipped: bool = False
 
 
 # -- discovery ----------------------------------------------------------------------------------
@@ -374,29 +376,35 @@ def _units(sources: Iterable[ImageSource]) -> Iterator[_Unit | Frame]:
             yield Frame(source.name, source, error=str(exc))
 
 
-def iter_frames(sources: Iterable[ImageSource], workers: int = 2,
-                lookahead: int = 8) -> Iterator[Frame]:
+def iter_frames(sources: Iterable[ImageSource], workers: int = 2, lookahead: int = 8,
+                skip: Container[str] = frozenset()) -> Iterator[Frame]:
     """Decoded frames of ``sources`` in order, read ``lookahead`` frames ahead in threads.
 
     OpenCV, zlib and pydicom's decoders release the GIL, so reading overlaps the network.
     At most ``lookahead`` decoded frames wait in memory. ``workers=0`` reads in the caller's
-    thread.
+    thread. Frames named in ``skip`` (done by an earlier run) come back undecoded with
+    ``skipped`` set, so the caller can still count files.
     """
-    if workers == 0:
-        for unit in _units(sources):
-            yield unit if isinstance(unit, Frame) else _decode(unit)
-        return
-    pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="cupnet-read")
+
+    def start(unit: _Unit | Frame) -> Future[Frame] | Frame:
+        if isinstance(unit, Frame):
+            return unit
+        if _frame_name(unit) in skip:
+            return Frame(_frame_name(unit), unit.source, unit.last, skipped=True)
+        return _decode(unit) if pool is None else pool.submit(_decode, unit)
+
+    pool = ThreadPoolExecutor(workers, thread_name_prefix="cupnet-read") if workers else None
     pending: deque[Future[Frame] | Frame] = deque()
     try:
         for unit in _units(sources):
-            pending.append(unit if isinstance(unit, Frame) else pool.submit(_decode, unit))
+            pending.append(start(unit))
             while len(pending) > lookahead:
                 yield _result(pending.popleft())
         while pending:
             yield _result(pending.popleft())
     finally:
-        pool.shutdown(wait=False, cancel_futures=True)
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
 
 
 def _result(item: Future[Frame] | Frame) -> Frame:
