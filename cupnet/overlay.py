@@ -1,0 +1,141 @@
+"""Overlay images for checking results by eye: fitted rim ellipse, landmarks, pose as text.
+
+Drawn with OpenCV on a contrast-stretched 8-bit copy of the image, scaled so the longer side
+is at most ``max_side`` pixels (writing stays fast on 4096 px images); coordinates are drawn
+with sub-pixel precision.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+# BGR colours by status.
+STATUS_COLOURS = {"ok": (80, 220, 80), "ambiguous": (0, 215, 255)}
+ERROR_COLOUR = (60, 60, 255)
+TEXT_COLOUR = (255, 255, 255)
+_SHIFT = 4  # fractional bits of OpenCV's sub-pixel drawing
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+@dataclass
+class CupDrawing:
+    """What to draw for one cup (original-image pixels, public units).
+
+    Attributes:
+        ellipse: ``(5,)`` (cx, cy, a, b, alpha_deg), or None / NaN where there is none.
+        landmarks: ``(N, 2)`` (u, v) or None.
+        weights: ``(N,)`` in [0, 1] (landmark shading) or None.
+        lines: text lines describing the cup.
+        status: ``ok``, ``ambiguous`` or ``error: ...`` (sets the colour).
+    """
+
+    ellipse: np.ndarray | None
+    landmarks: np.ndarray | None
+    weights: np.ndarray | None
+    lines: list[str]
+    status: str = "ok"
+
+
+def display_image(image: np.ndarray) -> np.ndarray:
+    """``(H, W)`` [0, 1] image -> uint8 with a 1st-99th percentile contrast stretch."""
+    step_v, step_u = max(1, image.shape[0] // 256), max(1, image.shape[1] // 256)
+    lo, hi = np.percentile(image[::step_v, ::step_u], (1, 99))
+    scaled = (image - lo) / (hi - lo) if hi > lo else image
+    return (np.clip(scaled, 0, 1) * 255).astype(np.uint8)
+
+
+def pose_lines(index: int, status: str, pose: Sequence[float], residual_px: float,
+               alt_pose: Sequence[float] | None = None) -> list[str]:
+    """Text lines of one cup: its status, pose (deg, mm), residual and the second pose."""
+    lines = [f"cup {index}: {status}"]
+    if all(math.isfinite(v) for v in pose):
+        theta, phi, k_mm, l_mm, h_mm = pose
+        lines.append(f"  anteversion {theta:.1f} deg, inclination {phi:.1f} deg")
+        lines.append(f"  k {k_mm:.1f}, l {l_mm:.1f}, h {h_mm:.1f} mm; "
+                     f"residual {residual_px:.2f} px")
+    if alt_pose is not None and all(math.isfinite(v) for v in alt_pose):
+        lines.append(f"  or: anteversion {alt_pose[0]:.1f} deg, inclination {alt_pose[1]:.1f} "
+                     f"deg, h {alt_pose[4]:.1f} mm")
+    return lines
+
+
+def _fixed(value: float) -> int:
+    return int(round(value * (1 << _SHIFT)))
+
+
+def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
+                 max_side: int = 1024) -> np.ndarray:
+    """Overlay of the cups on ``image``.
+
+    Args:
+        image: ``(H, W)`` float in [0, 1].
+        cups: what to draw, in original-image pixels.
+        title: first text line (image name and status).
+        max_side: the overlay's longer side at most (pixels).
+    Returns:
+        ``(h, w, 3)`` uint8 BGR, ``h, w`` = ``H, W`` scaled by ``min(1, max_side / max(H, W))``.
+    """
+    scale = min(1.0, max_side / max(image.shape))
+    gray = display_image(image)
+    if scale < 1.0:
+        size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    canvas = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+    unit = max(canvas.shape[:2]) / 512  # line widths and text grow with the overlay
+    thickness = max(1, round(unit))
+    # Pixel centres sit at integers in both images: u' = (u + 0.5) * scale - 0.5.
+    to_view = lambda p: (np.asarray(p, np.float64) + 0.5) * scale - 0.5  # noqa: E731
+    for index, cup in enumerate(cups, 1):
+        colour = STATUS_COLOURS.get(cup.status, ERROR_COLOUR)
+        if cup.ellipse is not None and np.isfinite(cup.ellipse).all():
+            cx, cy = to_view(cup.ellipse[:2])
+            axes = (_fixed(cup.ellipse[2] * scale), _fixed(cup.ellipse[3] * scale))
+            cv2.ellipse(canvas, (_fixed(cx), _fixed(cy)), axes, float(cup.ellipse[4]), 0, 360,
+                        colour, thickness, cv2.LINE_AA, _SHIFT)
+            cv2.putText(canvas, str(index), (round(cx), round(cy)), _FONT, 0.5 * unit, colour,
+                        thickness, cv2.LINE_AA)
+        if cup.landmarks is not None:
+            weights = np.ones(len(cup.landmarks)) if cup.weights is None else cup.weights
+            for (u, v), w in zip(to_view(cup.landmarks), weights, strict=True):
+                if not (np.isfinite(u) and np.isfinite(v)):
+                    continue
+                shade = tuple(int(c * (0.3 + 0.7 * float(np.clip(w, 0, 1)))) for c in (255, 80, 0))
+                cv2.circle(canvas, (_fixed(u), _fixed(v)), _fixed(1.5 * thickness), shade, -1,
+                           cv2.LINE_AA, _SHIFT)
+    lines = [title] + [line for cup in cups for line in cup.lines]
+    _draw_text_block(canvas, lines, 0.4 * unit, thickness)
+    return canvas
+
+
+def _draw_text_block(canvas: np.ndarray, lines: list[str], font_scale: float,
+                     thickness: int) -> None:
+    """Lines of text at the top left on a dark band, readable on any image."""
+    if not lines:
+        return
+    (_, height), baseline = cv2.getTextSize("Ag", _FONT, font_scale, thickness)
+    step = height + baseline + 2
+    width = max(cv2.getTextSize(line, _FONT, font_scale, thickness)[0][0] for line in lines)
+    band = canvas[: step * len(lines) + 4, : width + 8]
+    band[:] = (band * 0.35).astype(np.uint8)
+    for i, line in enumerate(lines):
+        cv2.putText(canvas, line, (4, 2 + height + i * step), _FONT, font_scale, TEXT_COLOUR,
+                    thickness, cv2.LINE_AA)
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    """Write a PNG atomically (fast compression), creating the folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ok, data = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise OSError(f"cannot encode {path}")
+    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as tmp:
+        tmp.write(data.tobytes())
+    os.replace(tmp.name, path)

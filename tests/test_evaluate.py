@@ -1,0 +1,156 @@
+"""cupnet evaluate: matching, known perturbations give known errors, Hausdorff, report."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.distance import directed_hausdorff
+
+from cupnet.cli import main
+from cupnet.evaluate import ELLIPSE, POSE, evaluate_results, hausdorff_ellipses, true_ellipses
+
+# theta, phi, k, l, h | cx, cy, a, b, alpha
+TRUTH = {
+    "a.png": [[20.0, 30.0, -40.0, 10.0, 300.0, 200.0, 300.0, 60.0, 20.0, 120.0],
+              [35.0, -40.0, 60.0, 5.0, 250.0, 700.0, 310.0, 55.0, 30.0, 50.0]],
+    "b.png": [[10.0, 89.0, 0.0, 0.0, 400.0, 512.0, 512.0, 70.0, 12.0, 179.0]],
+    "c.png": [[45.0, 10.0, 20.0, -30.0, 150.0, 600.0, 400.0, 50.0, 35.0, 100.0]],  # missed
+    "d.png": [],  # no cup, none predicted
+}
+OFFSET = np.array([2.0, -3.0, 1.5, -0.5, 10.0])  # the known pose error
+
+
+def write_csv(path: Path, rows: list[dict]) -> Path:
+    columns = list(dict.fromkeys(k for row in rows for k in row))
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, columns)
+        writer.writeheader()
+        writer.writerows(rows)
+    return path
+
+
+def truth_rows() -> list[dict]:
+    rows = []
+    for image, cups in TRUTH.items():
+        rows += [{"image": image, "cup": j, **dict(zip(POSE + ELLIPSE, cup, strict=True))}
+                 for j, cup in enumerate(cups, 1)]
+        if not cups:
+            rows.append({"image": image, "cup": ""})
+    return rows
+
+
+def predicted_rows() -> list[dict]:
+    """Every cup off by OFFSET, its ellipse 2 px longer; cups of a.png in reverse order."""
+    rows = []
+    for image, cups in TRUTH.items():
+        if image in ("c.png", "d.png"):
+            rows.append({"image": image, "status": "no_cup", "seconds": 0.5})
+            continue
+        for cup in reversed(cups):
+            pose = np.array(cup[:5]) + OFFSET
+            pose[1] = (pose[1] + 90) % 180 - 90  # 89 - 3 = 86 stays; wrap is tested below
+            ellipse = np.array(cup[5:]) + [0, 0, 2.0, 0, 0]
+            rows.append({"image": image, "status": "ok", "seconds": 0.5,
+                         **dict(zip(POSE + ELLIPSE, [*pose, *ellipse], strict=True))})
+    # A false positive far from every true cup.
+    rows.append({"image": "b.png", "status": "ok", "seconds": 0.5,
+                 **dict(zip(POSE + ELLIPSE, [20, 20, 0, 0, 300, 50, 50, 30, 20, 0],
+                            strict=True))})
+    return rows
+
+
+def test_known_perturbation_gives_known_errors(tmp_path: Path) -> None:
+    truth = write_csv(tmp_path / "truth.csv", truth_rows())
+    pred = write_csv(tmp_path / "pred.csv", predicted_rows())
+    metrics = evaluate_results(pred, truth)
+    assert metrics["true_cups"] == 4 and metrics["matched_cups"] == 3
+    assert metrics["detection_rate"] == pytest.approx(0.75)
+    assert metrics["false_positives"] == 1
+    assert metrics["images"] == 4 and metrics["seconds_per_image"] == pytest.approx(0.5)
+    for i, name in enumerate(POSE):
+        stats = metrics["perspective"][name]
+        for key in ("mae", "median", "p95"):
+            assert stats[key] == pytest.approx(abs(OFFSET[i]), abs=1e-9), (name, key)
+    assert metrics["perspective"]["kl_mm"]["mae"] == pytest.approx(math.hypot(1.5, 0.5))
+    # Semi-major axis 2 px longer, everything else equal: the Hausdorff distance is 2 px.
+    assert metrics["perspective"]["hausdorff_px"]["mae"] == pytest.approx(2.0, abs=1e-3)
+    assert metrics["gross_failures"] == 0
+
+
+def test_inclination_error_wraps_and_gross_failures(tmp_path: Path) -> None:
+    truth = write_csv(tmp_path / "truth.csv", truth_rows()[2:3])  # b.png, phi = 89
+    row = {"image": "b.png", "status": "ok", "seconds": 1.0,
+           **dict(zip(POSE + ELLIPSE, [10.0, -88.0, 0, 0, 400, 512, 512, 70, 12, 179],
+                      strict=True))}
+    metrics = evaluate_results(write_csv(tmp_path / "p.csv", [row]), truth)
+    assert metrics["perspective"]["inclination_deg"]["mae"] == pytest.approx(3.0)
+    row["anteversion_deg"] = 16.5
+    metrics = evaluate_results(write_csv(tmp_path / "p.csv", [row]), truth)
+    assert metrics["gross_failures"] == 1 and metrics["gross_failure_rate"] == 1.0
+
+
+def test_orthographic_baseline_hand_case(tmp_path: Path) -> None:
+    # b / a = 1/2 -> asin = 30 deg; true anteversion 25 -> orthographic error 5 deg.
+    truth = write_csv(tmp_path / "t.csv", [{"image": "x.png", **dict(zip(
+        POSE + ELLIPSE, [25.0, 40.0, 0, 0, 300, 100, 100, 20, 10, 40.0], strict=True))}])
+    pred = write_csv(tmp_path / "p.csv", [{"image": "x.png", "status": "ok", **dict(zip(
+        POSE + ELLIPSE, [25.0, 40.0, 0, 0, 300, 100, 100, 20, 10, 40.0], strict=True))}])
+    metrics = evaluate_results(pred, truth)
+    assert metrics["orthographic"]["anteversion_deg"]["mae"] == pytest.approx(5.0)
+    assert metrics["orthographic"]["inclination_deg"]["mae"] == pytest.approx(0.0, abs=1e-9)
+
+
+def test_hausdorff_matches_scipy_on_dense_samples() -> None:
+    rng = np.random.default_rng(0)
+    first = np.column_stack([rng.uniform(100, 900, 6), rng.uniform(100, 900, 6),
+                             rng.uniform(30, 80, 6), rng.uniform(5, 30, 6),
+                             rng.uniform(0, 180, 6)])
+    second = first + rng.normal(0, 3, first.shape)
+    ours = hausdorff_ellipses(first, second)
+    t = np.linspace(0, 2 * np.pi, 20000, endpoint=False)
+
+    def samples(e: np.ndarray) -> np.ndarray:
+        c, s = np.cos(np.deg2rad(e[4])), np.sin(np.deg2rad(e[4]))
+        x, y = e[2] * np.cos(t), e[3] * np.sin(t)
+        return np.column_stack([e[0] + c * x - s * y, e[1] + s * x + c * y])
+
+    for i in range(6):
+        p, q = samples(first[i]), samples(second[i])
+        reference = max(directed_hausdorff(p, q)[0], directed_hausdorff(q, p)[0])
+        assert ours[i] == pytest.approx(reference, abs=2e-3)
+
+
+def test_true_ellipse_from_pose_and_meta_geometry(tmp_path: Path) -> None:
+    # Rim facing the source (theta = 90) centred on the principal point: a circle of radius
+    # r * H / (H - h) / s = 25 * 1000 / 800 / 0.5 = 62.5 px.
+    rows = [{"image": "x.png", "anteversion_deg": "90", "inclination_deg": "0", "k_mm": "0",
+             "l_mm": "0", "h_mm": "200"}]
+    meta = {"x.png": {"sdd_mm": "1000", "pixel_spacing_mm": "0.5", "cup_diameter_mm": "50",
+                      "principal_u_px": "300", "principal_v_px": "200"}}
+    ellipse = true_ellipses(rows, meta)[0]
+    np.testing.assert_allclose(ellipse[:4], [300, 200, 62.5, 62.5], atol=1e-9)
+    with pytest.raises(ValueError, match="no ellipse columns"):
+        true_ellipses(rows, {})
+
+
+def test_cli_writes_report_and_plots(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    truth = write_csv(tmp_path / "truth.csv", truth_rows())
+    pred = write_csv(tmp_path / "pred.csv", predicted_rows())
+    assert main(["evaluate", "--pred", str(pred), "--truth", str(truth), "--out",
+                 str(tmp_path / "ev")]) == 0
+    report = (tmp_path / "ev" / "report.md").read_text()
+    assert "| anteversion (deg) | 2 | 2 | 2 |" in report
+    for name in ("error_vs_distance.png", "predicted_vs_true.png"):
+        assert (tmp_path / "ev" / "plots" / name).stat().st_size > 1000
+        assert f"(plots/{name})" in report
+    assert json.loads((tmp_path / "ev" / "metrics.json").read_text())["matched_cups"] == 3
+    assert "anteversion (deg)" in capsys.readouterr().out
+    bad = write_csv(tmp_path / "bad.csv", [{"image": "a.png"}])
+    assert main(["evaluate", "--pred", str(bad), "--truth", str(truth), "--out",
+                 str(tmp_path / "ev2")]) == 2
+    assert "missing column" in capsys.readouterr().err
