@@ -1,0 +1,167 @@
+"""Synthetic fluoroscopy samples with exact ground truth, one at a time or as a stream.
+
+Sample ``i`` of seed ``s`` draws everything from ``numpy.random.default_rng([s, i])``, so it
+is the same whichever DataLoader worker makes it and however many workers there are.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Iterator
+
+import numpy as np
+import torch
+from torch import Tensor
+from torch.utils.data import IterableDataset, get_worker_info
+
+from cupnet.ellipse import conic_to_params
+from cupnet.geometry import Geometry, pose_to_radians, project_rim, rim_conic
+from data_synth.anatomy import bank_path, load_bank, smooth_field, warp_anatomy
+from data_synth.config import SynthConfig
+from data_synth.formation import form_image
+from data_synth.raycast import render_parts, subpixel_grid
+from data_synth.scene import MAX_CUPS, sample_scene, uniform
+
+RIM_POINTS = 64
+MASK_SUPERSAMPLE = 4
+# Photoelectric absorption dominates in metal and falls faster with energy than the Compton
+# scattering of tissue: metal's attenuation scales with a higher power of the energy factor.
+METAL_ENERGY_POWER = 1.5
+BASE_TISSUE = (3.0, 6.0)  # water-equivalent attenuation of a body without CT anatomy
+
+
+def sample_rng(seed: int, index: int) -> np.random.Generator:
+    """The generator of sample ``index`` of stream ``seed`` (both non-negative integers)."""
+    return np.random.default_rng([int(seed), int(index)])
+
+
+def rim_truth(poses: Tensor, diameters: Tensor, geometry: Geometry) -> tuple[Tensor, Tensor]:
+    """Ellipse parameters ``(n, 5)`` and rim landmarks ``(n, RIM_POINTS, 2)`` px, float64.
+
+    Args:
+        poses: ``(n, 5)`` public units. diameters: ``(n,)`` mm.
+    """
+    radius = diameters / 2
+    pose = pose_to_radians(poses)
+    ellipse = conic_to_params(rim_conic(pose, radius, geometry))
+    t = torch.linspace(0, 2 * math.pi, RIM_POINTS + 1, dtype=torch.float64)[:-1]
+    rim = project_rim(pose, radius, geometry, t)
+    return ellipse, rim
+
+
+def opening_mask(poses: Tensor, diameters: Tensor, geometry: Geometry, width: int,
+                 height: int) -> Tensor:
+    """Fraction ``(H, W)`` of each pixel inside the union of the cups' rim ellipses.
+
+    Coverage is measured on a 4 x 4 sub-pixel grid against the exact rim conic.
+    """
+    mask = torch.zeros(height, width)
+    if len(poses) == 0:
+        return mask
+    conics = rim_conic(pose_to_radians(poses), diameters / 2, geometry)
+    ellipses = conic_to_params(conics)
+    for conic, (cx, cy, a, b, alpha) in zip(conics, ellipses.tolist(), strict=True):
+        ca, sa = math.cos(math.radians(alpha)), math.sin(math.radians(alpha))
+        half_u, half_v = math.hypot(a * ca, b * sa), math.hypot(a * sa, b * ca)
+        box = (max(math.floor(cx - half_u) - 1, 0), min(math.ceil(cx + half_u) + 2, width),
+               max(math.floor(cy - half_v) - 1, 0), min(math.ceil(cy + half_v) + 2, height))
+        if box[0] >= box[1] or box[2] >= box[3]:
+            continue
+        u, v = subpixel_grid(box, MASK_SUPERSAMPLE, torch.float64)
+        points = torch.stack([u, v, torch.ones_like(u)], -1)
+        inside = (((points @ conic) * points).sum(-1) < 0).float()
+        coverage = torch.nn.functional.avg_pool2d(inside[None, None], MASK_SUPERSAMPLE)[0, 0]
+        region = mask[box[2]:box[3], box[0]:box[1]]
+        torch.maximum(region, coverage, out=region)
+    return mask
+
+
+def synthesize(config: SynthConfig, seed_or_generator: int | np.random.Generator,
+               index: int = 0) -> dict[str, Tensor]:
+    """One synthetic image and its ground truth.
+
+    Args:
+        config: sampling ranges.
+        seed_or_generator: stream seed (with ``index``: :func:`sample_rng`) or a generator.
+        index: sample index within the stream (ignored with a generator).
+    Returns:
+        ``image (1, H, W)`` float32 in [0, 1]; ``mask (1, H, W)`` float32 rim-ellipse coverage;
+        ``geometry (4,)`` (sdd mm, spacing mm/px, u0 px, v0 px); ``pose (2, 5)`` (theta deg,
+        phi deg, k, l, h mm); ``ellipse (2, 5)`` (cx, cy, a, b px, alpha deg);
+        ``rim (2, 64, 2)`` px; ``cup_diameter (2,)`` mm; ``cup_valid (2,)`` bool. Slots that
+        hold no cup are zero with ``cup_valid`` False. Truth is float64.
+    """
+    rng = (seed_or_generator if isinstance(seed_or_generator, np.random.Generator)
+           else sample_rng(seed_or_generator, index))
+    generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
+    scene = sample_scene(config, rng)
+    width, height, geometry = scene.width, scene.height, scene.geometry
+
+    metal = render_parts(scene.metal, geometry, width, height)
+    if rng.random() < config.p_anatomy:
+        bank = load_bank(str(bank_path(config.anatomy_bank, config.anatomy_ct)))
+        tissue = warp_anatomy(bank, rng, width, height, config.anatomy_zoom)
+        tissue = tissue * uniform(rng, config.anatomy_scale)
+    else:
+        tissue = torch.full((height, width), uniform(rng, BASE_TISSUE))
+    tissue = tissue + smooth_field(rng, width, height, uniform(rng, config.smooth_background),
+                                   generator)
+    render_parts(scene.bones, geometry, width, height, out=tissue)
+    energy = uniform(rng, config.energy_factor)
+    line_integral = tissue * energy + metal * energy**METAL_ENERGY_POWER
+    image = form_image(line_integral, scene.field_radius, config, rng, generator)
+
+    n = len(scene.poses)
+    pose = torch.zeros(MAX_CUPS, 5, dtype=torch.float64)
+    ellipse = torch.zeros(MAX_CUPS, 5, dtype=torch.float64)
+    rim = torch.zeros(MAX_CUPS, RIM_POINTS, 2, dtype=torch.float64)
+    diameter = torch.zeros(MAX_CUPS, dtype=torch.float64)
+    valid = torch.zeros(MAX_CUPS, dtype=torch.bool)
+    if n:
+        pose[:n], diameter[:n], valid[:n] = scene.poses, scene.diameters, True
+        ellipse[:n], rim[:n] = rim_truth(scene.poses, scene.diameters, geometry)
+    mask = opening_mask(scene.poses, scene.diameters, geometry, width, height)
+    return {
+        "image": image,
+        "mask": mask[None],
+        "geometry": torch.stack(geometry.tensors()),
+        "pose": pose,
+        "ellipse": ellipse,
+        "rim": rim,
+        "cup_diameter": diameter,
+        "cup_valid": valid,
+    }
+
+
+class SynthDataset(IterableDataset):
+    """Endless (or ``length``-long) stream of :func:`synthesize` samples for a DataLoader.
+
+    Worker ``w`` of ``n`` makes samples ``w, w + n, w + 2n, ...``; a DataLoader returns them
+    in index order, so the stream is the same for any number of workers.
+    """
+
+    def __init__(self, config: SynthConfig, seed: int, length: int | None = None) -> None:
+        super().__init__()
+        if not isinstance(seed, int) or seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+        if length is not None and (not isinstance(length, int) or length < 0):
+            raise ValueError(f"length must be a non-negative integer or None, got {length!r}")
+        self.config, self.seed, self.length = config, seed, length
+
+    def __len__(self) -> int:
+        if self.length is None:
+            raise TypeError("an endless SynthDataset has no length")
+        return self.length
+
+    def __getitem__(self, index: int) -> dict[str, Tensor]:
+        """Sample ``index`` of the stream (the same the iterator yields)."""
+        return synthesize(self.config, self.seed, index)
+
+    def __iter__(self) -> Iterator[dict[str, Tensor]]:
+        info = get_worker_info()
+        worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        indices = (itertools.count(worker, workers) if self.length is None
+                   else range(worker, self.length, workers))
+        for index in indices:
+            yield synthesize(self.config, self.seed, index)

@@ -1,0 +1,142 @@
+"""Hip implant as closed-form solids: acetabular shell, liner, femoral head, stem.
+
+The shell is the CONVENTIONS cup: a hemisphere of outer radius ``r`` whose rim circle is
+``c + R (r cos t, 0, r sin t)``; its dome lies on the side of the rim plane away from the
+opening, the points ``X`` with ``(X - c) . n <= 0`` where ``n`` is the cup axis
+(:func:`cupnet.geometry.cup_axis`). Every solid is a sphere or an ellipsoid, optionally cut by
+the rim plane, so each ray's line integral is exact (see :mod:`data_synth.raycast`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from cupnet.geometry import rotation
+from data_synth.raycast import (
+    Part,
+    Rays,
+    clip_halfspace,
+    ellipsoid_interval,
+    intersect,
+    length,
+    sphere_interval,
+)
+
+
+@dataclass
+class Cup:
+    """One acetabular component and what sits in it. Angles in radians, lengths in mm.
+
+    Attributes:
+        pose: ``(5,)`` (theta, phi rad; k, l, h mm) of the rim circle.
+        radius: outer radius ``r`` (= the rim radius of CONVENTIONS).
+        wall: shell thickness.
+        mu_shell: shell attenuation (1/mm).
+        porous_depth: depth of the porous outer layer (0: none); it has ``porous_density`` of
+            the shell's attenuation.
+        screw_holes: ``(K, 4)`` hole spheres through the dome (centre xyz, radius), mm.
+        liner_inner: inner radius of the polyethylene liner (0: no liner); ``mu_liner``.
+        head_radius: femoral head radius (0: none), centred at the rim centre; ``mu_head``.
+    """
+
+    pose: Tensor
+    radius: float
+    wall: float
+    mu_shell: float
+    porous_depth: float = 0.0
+    porous_density: float = 0.6
+    screw_holes: Tensor = field(default_factory=lambda: torch.zeros(0, 4))
+    liner_inner: float = 0.0
+    mu_liner: float = 0.0
+    head_radius: float = 0.0
+    mu_head: float = 0.0
+
+    @property
+    def centre(self) -> Tensor:
+        return self.pose[2:5].float()
+
+    @property
+    def axes(self) -> Tensor:
+        """``(3, 3)`` columns ``(e1, n, e2)``: the rim plane's basis and the cup axis."""
+        return rotation(self.pose[0], self.pose[1]).float()
+
+
+def cup_line_integral(cup: Cup, rays: Rays) -> Tensor:
+    """Attenuation line integral ``(N,)`` of the shell, liner and head along ``rays``."""
+    centre, axis = cup.centre, cup.axes[:, 1]
+
+    def dome_ball(radius: float):
+        return clip_halfspace(sphere_interval(rays, centre, radius), rays, centre, axis)
+
+    outer, inner = dome_ball(cup.radius), dome_ball(cup.radius - cup.wall)
+    inner_length = length(inner)
+    shell = length(outer) - inner_length
+    if cup.porous_depth > 0:
+        core = dome_ball(cup.radius - cup.porous_depth)
+        shell = shell - (1.0 - cup.porous_density) * (length(outer) - length(core))
+    for hole in cup.screw_holes:
+        ball = sphere_interval(rays, hole[:3], hole[3])
+        shell = shell - (length(intersect(outer, ball)) - length(intersect(inner, ball)))
+    total = cup.mu_shell * shell
+    if cup.liner_inner > 0:
+        total = total + cup.mu_liner * (inner_length - length(dome_ball(cup.liner_inner)))
+    if cup.head_radius > 0:
+        total = total + cup.mu_head * length(sphere_interval(rays, centre, cup.head_radius))
+    return total
+
+
+def cup_part(cup: Cup, supersample: int) -> Part:
+    """The cup as a :class:`Part` (bounded by its sphere's box)."""
+    centre = cup.centre
+    bounds = torch.stack([centre - cup.radius, centre + cup.radius])
+    return Part(lambda rays: cup_line_integral(cup, rays), bounds, supersample)
+
+
+def frame_along(direction: Tensor) -> Tensor:
+    """``(3, 3)`` rotation whose first column is the unit ``direction (3,)``."""
+    first = direction / direction.norm()
+    helper = torch.tensor([0.0, 0.0, 1.0]) if first[2].abs() < 0.9 else torch.tensor([1.0, 0, 0])
+    second = torch.linalg.cross(first, helper)
+    second = second / second.norm()
+    return torch.stack([first, second, torch.linalg.cross(first, second)], -1)
+
+
+@dataclass
+class Ellipsoid:
+    """A solid ellipsoid ``centre + axes @ diag(semi_axes) @ unit ball`` of attenuation ``mu``.
+
+    ``hollow`` in ``[0, 1)``: the inner ellipsoid scaled by ``hollow`` has ``mu_inner``
+    instead (a bone's cortex around its marrow, a stem's neck around nothing: 0).
+    """
+
+    centre: Tensor
+    axes: Tensor
+    semi_axes: Tensor
+    mu: float
+    hollow: float = 0.0
+    mu_inner: float = 0.0
+
+    @classmethod
+    def along(cls, start: Tensor, end: Tensor, radii: tuple[float, float], mu: float,
+              **kwargs: float) -> Ellipsoid:
+        """The ellipsoid spanning the segment ``start -> end`` with cross-section ``radii``."""
+        axis = end - start
+        semi = torch.tensor([float(axis.norm()) / 2, *radii])
+        return cls((start + end) / 2, frame_along(axis), semi, mu, **kwargs)
+
+    def line_integral(self, rays: Rays) -> Tensor:
+        outer = length(ellipsoid_interval(rays, self.centre, self.axes, self.semi_axes))
+        if self.hollow <= 0:
+            return self.mu * outer
+        inner = length(ellipsoid_interval(rays, self.centre, self.axes,
+                                          self.semi_axes * self.hollow))
+        return self.mu * (outer - inner) + self.mu_inner * inner
+
+    def part(self, supersample: int = 1) -> Part:
+        # Half-extent of an ellipsoid along world axis i: sqrt(sum_j (A_ij s_j)^2).
+        extent = (self.axes * self.semi_axes).norm(dim=1)
+        bounds = torch.stack([self.centre - extent, self.centre + extent])
+        return Part(self.line_integral, bounds, supersample)

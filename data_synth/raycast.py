@@ -1,0 +1,167 @@
+"""Closed-form line integrals of simple solids along the X-ray beams of CONVENTIONS geometry.
+
+A ray leaves the source ``S = (0, 0, sdd)`` towards a detector point ``(x, y, 0)``; points on
+it are ``S + t d`` with ``d`` a unit vector, so ``t`` is a length in mm. Each solid gives the
+interval ``[t0, t1]`` where the ray is inside it (empty when ``t1 <= t0``); intervals of convex
+solids intersect by ``max``/``min``, and the line integral of a solid of attenuation ``mu`` is
+``mu * (t1 - t0)^+``. Exact up to float rounding: no voxels, so edges carry no staircase.
+
+Rendering evaluates each :class:`Part` only over the pixels its 3D bounding box projects to,
+supersampled on an ``n x n`` grid inside each pixel and averaged (area anti-aliasing).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from cupnet.geometry import Geometry
+
+Interval = tuple[Tensor, Tensor]
+
+
+@dataclass
+class Rays:
+    """Beams of one image: ``source (3,)`` mm and unit ``dirs (N, 3)``."""
+
+    source: Tensor
+    dirs: Tensor
+
+
+def detector_rays(geometry: Geometry, u: Tensor, v: Tensor) -> Rays:
+    """Rays from the source to the detector points at pixel positions ``u, v`` (``(N,)`` px)."""
+    sdd, spacing, u0, v0 = geometry.tensors(u.dtype, u.device)
+    target = torch.stack([(u - u0) * spacing, (v - v0) * spacing, -sdd.expand_as(u)], -1)
+    source = torch.stack([torch.zeros_like(sdd), torch.zeros_like(sdd), sdd])
+    return Rays(source, target / target.norm(dim=-1, keepdim=True))
+
+
+def ellipsoid_interval(rays: Rays, centre: Tensor, axes: Tensor, semi_axes: Tensor) -> Interval:
+    """Where rays are inside the ellipsoid ``centre + axes @ diag(semi_axes) @ unit ball``.
+
+    Args:
+        centre: ``(3,)`` mm. axes: ``(3, 3)`` rotation, columns the principal directions.
+        semi_axes: ``(3,)`` mm (equal for a sphere).
+    Returns:
+        ``(t0, t1)``, each ``(N,)`` mm along the rays; ``t1 <= t0`` where a ray misses.
+    """
+    # In the frame where the ellipsoid is the unit ball the ray is o + t e, |e| != 1.
+    to_unit = axes.T / semi_axes[:, None]
+    origin = to_unit @ (rays.source - centre)
+    step = rays.dirs @ to_unit.T
+    step2 = (step * step).sum(-1)
+    t_mid = -(step @ origin) / step2
+    # Closest approach to the centre: subtracting here, not in b^2 - ac, keeps float32 exact
+    # to ~1e-4 mm at the silhouette, where the chord length is most sensitive.
+    closest = origin + t_mid[:, None] * step
+    half = torch.sqrt(((1.0 - (closest * closest).sum(-1)) / step2).clamp_min(0.0))
+    return t_mid - half, t_mid + half
+
+
+def sphere_interval(rays: Rays, centre: Tensor, radius: Tensor | float) -> Interval:
+    """:func:`ellipsoid_interval` of a sphere of ``radius`` mm."""
+    radius = torch.as_tensor(radius, dtype=rays.dirs.dtype)
+    eye = torch.eye(3, dtype=rays.dirs.dtype, device=rays.dirs.device)
+    return ellipsoid_interval(rays, centre, eye, radius.expand(3))
+
+
+def clip_halfspace(interval: Interval, rays: Rays, point: Tensor, normal: Tensor) -> Interval:
+    """Intersect with the half-space ``(X - point) . normal <= 0`` (``point, normal (3,)``)."""
+    t0, t1 = interval
+    offset = (rays.source - point) @ normal  # scalar: the source's signed distance
+    rate = rays.dirs @ normal  # (N,)
+    # offset + t rate <= 0; a ray parallel to the plane is all in or all out.
+    crossing = -offset / torch.where(rate == 0, torch.ones_like(rate), rate)
+    t0 = torch.where(rate < 0, torch.maximum(t0, crossing), t0)
+    t1 = torch.where(rate > 0, torch.minimum(t1, crossing), t1)
+    if offset > 0:
+        t1 = torch.where(rate == 0, torch.full_like(t1, -torch.inf), t1)
+    return t0, t1
+
+
+def intersect(a: Interval, b: Interval) -> Interval:
+    return torch.maximum(a[0], b[0]), torch.minimum(a[1], b[1])
+
+
+def length(interval: Interval) -> Tensor:
+    """Chord length ``(N,)`` mm of an interval (0 where empty)."""
+    return (interval[1] - interval[0]).clamp_min(0.0)
+
+
+@dataclass
+class Part:
+    """One solid (or group of solids) of a scene.
+
+    Attributes:
+        line_integral: rays -> ``(N,)`` attenuation line integral (dimensionless).
+        bounds: ``(2, 3)`` mm, the min and max corners of a box that contains the part.
+        supersample: samples per pixel side (1 for smooth anatomy, 2+ for sharp metal edges).
+    """
+
+    line_integral: Callable[[Rays], Tensor]
+    bounds: Tensor
+    supersample: int = 1
+
+
+def box_corners(bounds: Tensor) -> Tensor:
+    """``(2, 3)`` min/max corners -> the box's ``(8, 3)`` vertices."""
+    index = torch.cartesian_prod(*(torch.arange(2) for _ in range(3)))
+    return bounds[index, torch.arange(3)]
+
+
+def pixel_box(bounds: Tensor, geometry: Geometry, width: int, height: int
+              ) -> tuple[int, int, int, int] | None:
+    """Pixels ``(u_lo, u_hi, v_lo, v_hi)`` (end exclusive) the box can cover; None if none.
+
+    The projection of a convex body lies in the convex hull of its bounding box's projected
+    corners, so this never clips a part (the corners must lie below the source).
+    """
+    sdd, spacing, u0, v0 = (float(t) for t in geometry.tensors())
+    corners = box_corners(bounds.double())
+    scale = sdd / (sdd - corners[:, 2]) / spacing
+    u = u0 + corners[:, 0] * scale
+    v = v0 + corners[:, 1] * scale
+    u_lo, u_hi = max(int(u.min().floor()) - 1, 0), min(int(u.max().ceil()) + 2, width)
+    v_lo, v_hi = max(int(v.min().floor()) - 1, 0), min(int(v.max().ceil()) + 2, height)
+    if u_lo >= u_hi or v_lo >= v_hi:
+        return None
+    return u_lo, u_hi, v_lo, v_hi
+
+
+def subpixel_grid(box: tuple[int, int, int, int], supersample: int,
+                  dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+    """Sample positions ``(u, v)``, each ``(h * n, w * n)`` px, ``n x n`` per pixel of ``box``.
+
+    Sample ``j`` of pixel ``p`` sits at ``p - 1/2 + (j + 1/2) / n``: the pixel's area, evenly.
+    """
+    u_lo, u_hi, v_lo, v_hi = box
+    offsets = (torch.arange(supersample, dtype=dtype) + 0.5) / supersample - 0.5
+    u = (torch.arange(u_lo, u_hi, dtype=dtype)[:, None] + offsets).reshape(-1)
+    v = (torch.arange(v_lo, v_hi, dtype=dtype)[:, None] + offsets).reshape(-1)
+    return torch.meshgrid(v, u, indexing="ij")[::-1]
+
+
+def render_parts(parts: list[Part], geometry: Geometry, width: int, height: int,
+                 out: Tensor | None = None) -> Tensor:
+    """Sum of the parts' line integrals over the image: ``(height, width)`` float32.
+
+    Each part is evaluated on its own pixel box only and averaged over its sub-pixel samples.
+    ``out`` (``(height, width)``), when given, is added to in place and returned.
+    """
+    image = torch.zeros(height, width) if out is None else out
+    for part in parts:
+        box = pixel_box(part.bounds, geometry, width, height)
+        if box is None:
+            continue
+        n = part.supersample
+        u, v = subpixel_grid(box, n)
+        rays = detector_rays(geometry, u.reshape(-1), v.reshape(-1))
+        values = part.line_integral(rays).reshape(u.shape)
+        if n > 1:
+            values = torch.nn.functional.avg_pool2d(values[None, None], n)[0, 0]
+        u_lo, u_hi, v_lo, v_hi = box
+        image[v_lo:v_hi, u_lo:u_hi] += values
+    return image
