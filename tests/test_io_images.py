@@ -7,8 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from pydicom.dataset import Dataset, FileMetaDataset
-from pydicom.uid import ExplicitVRLittleEndian, SecondaryCaptureImageStorage, generate_uid
+from dicom_factory import write_dicom
 
 from cupnet.io.images import (
     MAX_SIDE,
@@ -26,24 +25,6 @@ def gradient(height: int = 48, width: int = 64) -> np.ndarray:
     u = np.linspace(0, 1, width)[None, :]
     v = np.linspace(0, 1, height)[:, None]
     return (0.7 * u + 0.3 * v).astype(np.float64)
-
-
-def write_dicom(path: Path, pixels: np.ndarray, photometric: str = "MONOCHROME2",
-                **tags: object) -> Path:
-    """A minimal secondary-capture DICOM file; ``pixels`` uint16 ``(H, W)`` or ``(F, H, W)``."""
-    meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = SecondaryCaptureImageStorage
-    meta.MediaStorageSOPInstanceUID = generate_uid()
-    meta.TransferSyntaxUID = ExplicitVRLittleEndian
-    ds = Dataset()
-    ds.file_meta = meta
-    ds.SOPClassUID = SecondaryCaptureImageStorage
-    ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
-    ds.set_pixel_data(pixels, photometric_interpretation=photometric, bits_stored=16)
-    for key, value in tags.items():
-        setattr(ds, key, value)
-    ds.save_as(path, enforce_file_format=True)
-    return path
 
 
 def test_png_8_and_16_bit_give_the_same_image(tmp_path: Path) -> None:

@@ -1,0 +1,580 @@
+"""``cupnet predict IMAGES --out DIR``: cup poses of every image, as CSV, JSON and overlays.
+
+Per image (a DICOM multi-frame run gives one per frame): read it, resolve its geometry
+(``--meta`` row > command-line flags > DICOM tags > ``--assume-defaults``), detect the cups
+with the network (or take manual landmarks with ``--landmarks``), solve each pose, and write
+one ``results.csv`` row per cup (a status row for images without one). ``results.json`` adds
+the geometry used, the assumptions made and the software and model versions.
+
+Robustness: a file that cannot be read gets its error row and the run goes on; outputs are
+rewritten atomically every few seconds, so an interrupted run (Ctrl-C included) leaves a
+valid ``results.csv`` of what finished and ``--resume`` goes on from it; nothing is
+overwritten without ``--overwrite``. Images are streamed and processed in batches, so memory
+does not grow with the number of images.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import json
+import math
+import os
+import platform
+import sys
+import tempfile
+import time
+from collections import Counter
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from cupnet import __version__
+from cupnet.geometry import Geometry
+from cupnet.io.images import Frame, find_images, iter_frames
+from cupnet.overlay import CupDrawing, draw_overlay, pose_lines, write_png
+
+# Geometry values an image needs, with what they are called in messages and which flag sets
+# them; the principal point defaults to the image centre (CONVENTIONS) and is never missing.
+REQUIRED = {
+    "sdd_mm": ("source-to-detector distance", "--sdd"),
+    "pixel_spacing_mm": ("pixel spacing", "--pixel-spacing"),
+    "cup_diameter_mm": ("cup diameter", "--cup-diameter"),
+}
+GEOMETRY_KEYS = (*REQUIRED, "principal_u_px", "principal_v_px")
+# --assume-defaults: the paper's SDD, a common cup size, and a mid-size detector whose width
+# spans the image (so the spacing scales with the image size).
+ASSUMED_SDD_MM = 1040.0
+ASSUMED_CUP_DIAMETER_MM = 52.0
+ASSUMED_DETECTOR_WIDTH_MM = 300.0
+
+POSE_COLUMNS = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
+ELLIPSE_COLUMNS = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_px",
+                   "ellipse_angle_deg")
+FLUSH_SECONDS = 2.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("images", help="a folder, an image / DICOM file, or a glob (quote it)")
+    parser.add_argument("--out", required=True, type=Path, help="output folder")
+    parser.add_argument("--recursive", action="store_true", help="include subfolders")
+    parser.add_argument("--meta", type=Path,
+                        help="meta.csv: image,sdd_mm,pixel_spacing_mm,cup_diameter_mm"
+                             "[,principal_u_px,principal_v_px]; wins over flags and tags")
+    parser.add_argument("--sdd", type=float, metavar="MM", help="source-to-detector distance")
+    parser.add_argument("--pixel-spacing", type=float, metavar="MM",
+                        help="detector pixel spacing (mm/px at the detector)")
+    parser.add_argument("--cup-diameter", type=float, metavar="MM", help="cup outer diameter")
+    parser.add_argument("--principal-point", type=float, nargs=2, metavar=("U", "V"),
+                        help="principal point in pixels (default: the image centre)")
+    parser.add_argument("--assume-defaults", action="store_true",
+                        help=f"fill missing values (SDD {ASSUMED_SDD_MM:g} mm, cup "
+                             f"{ASSUMED_CUP_DIAMETER_MM:g} mm, pixel spacing = "
+                             f"{ASSUMED_DETECTOR_WIDTH_MM:g} mm / image width) instead of an "
+                             "error row")
+    parser.add_argument("--checkpoint", type=Path,
+                        help="model weights (.safetensors or a weights-only torch file); "
+                             "default: the shipped model")
+    parser.add_argument("--landmarks", type=Path,
+                        help="solve from manual landmarks in this file instead of the network")
+    parser.add_argument("--overwrite", action="store_true", help="replace existing results")
+    parser.add_argument("--resume", action="store_true",
+                        help="keep existing results and process only the images not in them")
+    parser.add_argument("--save-masks", action="store_true", help="write cup masks as PNG")
+    parser.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs")
+    parser.add_argument("--batch-size", type=int, default=8, help="images per network batch")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+# -- geometry ---------------------------------------------------------------------------------
+@dataclass
+class ResolvedGeometry:
+    """The geometry of one image: ``values`` by key, where each came from, what is missing."""
+
+    values: dict[str, float] = field(default_factory=dict)
+    sources: dict[str, str] = field(default_factory=dict)
+    missing: list[str] = field(default_factory=list)
+
+    def error(self, notes: dict[str, str] | None) -> str:
+        """The error status naming the missing values, how to give them, and tag problems."""
+        parts = []
+        for key in self.missing:
+            name, flag = REQUIRED[key]
+            note = f"; {notes[key]}" if notes and key in notes else ""
+            parts.append(f"{name} ({flag} or meta.csv {key}{note})")
+        return f"error: missing {', '.join(parts)}; or use --assume-defaults"
+
+    def to_json(self) -> dict[str, dict[str, float | str]]:
+        return {k: {"value": self.values[k], "source": self.sources[k]} for k in self.values}
+
+
+def read_meta(path: Path) -> dict[str, dict[str, float]]:
+    """meta.csv rows by image name: ``{image: {column: value}}`` (blank cells left out)."""
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames is None or "image" not in reader.fieldnames:
+            raise ValueError(f"{path}: meta.csv needs an 'image' column")
+        unknown = set(reader.fieldnames) - {"image", *GEOMETRY_KEYS}
+        if unknown:
+            raise ValueError(f"{path}: unknown meta.csv column(s) {sorted(unknown)}")
+        rows: dict[str, dict[str, float]] = {}
+        for line, row in enumerate(reader, 2):
+            try:
+                rows[row["image"]] = {k: float(v) for k, v in row.items()
+                                      if k != "image" and v not in (None, "")}
+            except ValueError as exc:
+                raise ValueError(f"{path}, line {line}: {exc}") from exc
+    return rows
+
+
+def meta_row(meta: dict[str, dict[str, float]], name: str) -> dict[str, float]:
+    """The meta.csv row of an image: by its name, else its file name (frames: their file's)."""
+    file_name = name.split("#", 1)[0]
+    for key in (name, file_name, Path(file_name).name):
+        if key in meta:
+            return meta[key]
+    return {}
+
+
+def resolve_geometry(frame: Frame, meta: dict[str, float], flags: dict[str, float],
+                     assume_defaults: bool) -> ResolvedGeometry:
+    """Each value from the first of: meta.csv row, command-line flag, DICOM tag, assumption."""
+    height, width = frame.image.shape  # type: ignore[union-attr]
+    tags = {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm}
+    assumed = {"sdd_mm": ASSUMED_SDD_MM, "cup_diameter_mm": ASSUMED_CUP_DIAMETER_MM,
+               "pixel_spacing_mm": ASSUMED_DETECTOR_WIDTH_MM / width}
+    centre = {"principal_u_px": (width - 1) / 2, "principal_v_px": (height - 1) / 2}
+    geometry = ResolvedGeometry()
+    for key in GEOMETRY_KEYS:
+        for source, values in (("meta.csv", meta), ("command line", flags),
+                               ("DICOM tags", tags),
+                               ("assumed", assumed if assume_defaults else {}),
+                               ("image centre", centre)):
+            if values.get(key) is not None:
+                geometry.values[key] = float(values[key])
+                geometry.sources[key] = source
+                break
+        else:
+            geometry.missing.append(key)
+    return geometry
+
+
+def batch_geometry(geometries: list[ResolvedGeometry]) -> tuple[Geometry, torch.Tensor]:
+    """``Geometry`` with ``(B,)`` float64 fields and ``(B,)`` cup diameters (mm)."""
+    def column(key: str) -> torch.Tensor:
+        return torch.tensor([g.values[key] for g in geometries], dtype=torch.float64)
+
+    return (Geometry(column("sdd_mm"), column("pixel_spacing_mm"), column("principal_u_px"),
+                     column("principal_v_px")), column("cup_diameter_mm"))
+
+
+# -- detectors --------------------------------------------------------------------------------
+# names, images (H, W) in [0, 1], geometry (B,), cup diameters (B,) -> cups per image
+Detector = Callable[[list[str], list[np.ndarray], Geometry, torch.Tensor], list[list]]
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def network_detector(checkpoint: Path | None, save_masks: bool) -> tuple[Detector, dict]:
+    """The CupNet detector (weights loaded without running code) and its description."""
+    from cupnet.model import DEFAULT_CHECKPOINT, load_model
+
+    model = load_model(checkpoint)
+    path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
+
+    def detect(names: list[str], images: list[np.ndarray], geometry: Geometry,
+               diameter: torch.Tensor) -> list[list]:
+        return model.detect(images, geometry, diameter, return_masks=save_masks)
+
+    return detect, {"checkpoint": str(path), "sha256": _sha256(path),
+                    "config": {k: v for k, v in vars(model.config).items()}}
+
+
+def landmark_detector(path: Path) -> tuple[Detector, dict]:
+    """Manual landmarks (both CONVENTIONS formats) solved with the pose solver, no network."""
+    from cupnet.io.landmarks import read_landmarks
+    from cupnet.model import CupDetection
+    from cupnet.pose import solve_pose
+
+    landmark_sets = read_landmarks(path)
+
+    def detect(names: list[str], images: list[np.ndarray], geometry: Geometry,
+               diameter: torch.Tensor) -> list[list]:
+        out: list[list] = []
+        for i, name in enumerate(names):
+            cups = []
+            for points in landmark_points(landmark_sets, name):
+                sol = solve_pose(torch.as_tensor(points, dtype=torch.float64), geometry.index(i),
+                                 float(diameter[i]), on_error="flag")
+                ambiguous = bool(sol.ambiguous[0])
+                cups.append(CupDetection(
+                    pose=sol.pose[0].numpy(), alt_pose=sol.alt_pose[0].numpy() if ambiguous
+                    else None, ambiguous=ambiguous, ellipse=sol.ellipse[0].numpy(),
+                    landmarks=np.asarray(points, np.float64),
+                    weights=np.ones(len(points)), residual_px=float(sol.residual_px[0]),
+                    status=sol.status[0]))
+            out.append(cups)
+        return out
+
+    return detect, {"landmarks": str(path), "sha256": _sha256(path)}
+
+
+def landmark_points(landmark_sets: dict, name: str) -> list[np.ndarray]:
+    """The ``(N, 2)`` landmark arrays of each cup of an image (none: the file has no cup)."""
+    file_name = name.split("#", 1)[0]
+    for key in (name, file_name, Path(file_name).name):
+        if key in landmark_sets:
+            entry = landmark_sets[key]
+            return [np.asarray(cup.points, np.float64) for cup in
+                    (entry if isinstance(entry, list) else [entry])]
+    return []
+
+
+# -- rows -------------------------------------------------------------------------------------
+def _finite(values: Iterable[float]) -> list[float | None]:
+    return [float(v) if v is not None and math.isfinite(float(v)) else None for v in values]
+
+
+def cup_row(name: str, index: int, cup, seconds: float) -> dict:
+    """One results.csv row of a detected cup (public units; None for blank cells)."""
+    row = {"image": name, "cup": index, "status": cup.status}
+    row.update(zip(POSE_COLUMNS, _finite(cup.pose), strict=True))
+    row.update(zip(ELLIPSE_COLUMNS, _finite(cup.ellipse), strict=True))
+    row["residual_px"] = _finite([cup.residual_px])[0]
+    row["seconds"] = seconds
+    alt = cup.alt_pose if cup.alt_pose is not None else [None] * 5
+    row.update(zip(("alt_" + c for c in POSE_COLUMNS), _finite(alt), strict=True))
+    return row
+
+
+def status_row(name: str, status: str, seconds: float) -> dict:
+    """The row of an image without a cup result: ``no_cup`` or ``error: <reason>``."""
+    return {"image": name, "cup": None, "status": status, "seconds": seconds}
+
+
+def result_columns() -> list[str]:
+    return ["image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px", "seconds",
+            *("alt_" + c for c in POSE_COLUMNS)]
+
+
+# -- output -----------------------------------------------------------------------------------
+def _atomic_write(path: Path, write: Callable) -> None:
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False,
+                                     newline="") as tmp:
+        write(tmp)
+    os.replace(tmp.name, path)
+
+
+def _cell(value: object) -> object:
+    if value is None:
+        return ""
+    return f"{value:.6g}" if isinstance(value, float) else value
+
+
+def write_results_csv(path: Path, records: Iterable[dict]) -> None:
+    """All rows of the records, atomically (a reader never sees a half-written file)."""
+    columns = result_columns()
+
+    def write(f) -> None:
+        writer = csv.DictWriter(f, columns, extrasaction="ignore")
+        writer.writeheader()
+        for record in records:
+            for row in record["rows"]:
+                writer.writerow({k: _cell(row.get(k)) for k in columns})
+
+    _atomic_write(path, write)
+
+
+def read_results_csv(path: Path) -> dict[str, list[dict]]:
+    """Rows of an existing results.csv by image (values as strings; blank cells None)."""
+    by_image: dict[str, list[dict]] = {}
+    with path.open(newline="") as f:
+        for row in csv.DictReader(f):
+            by_image.setdefault(row["image"], []).append(
+                {k: (v if v != "" else None) for k, v in row.items()})
+    return by_image
+
+
+@dataclass
+class Outputs:
+    """Everything written under the output folder, kept and flushed together."""
+
+    out: Path
+    header: dict
+    records: dict[str, dict] = field(default_factory=dict)
+    assumptions: dict[str, str] = field(default_factory=dict)
+    last_flush: float = 0.0
+
+    @property
+    def csv_path(self) -> Path:
+        return self.out / "results.csv"
+
+    @property
+    def json_path(self) -> Path:
+        return self.out / "results.json"
+
+    def load_previous(self) -> None:
+        """For ``--resume``: the records of a previous run (results.csv is the authority)."""
+        previous = {}
+        if self.json_path.exists():
+            try:
+                document = json.loads(self.json_path.read_text())
+                previous = {r["image"]: r for r in document["images"]}
+                self.assumptions.update(document.get("assumptions", {}))
+            except (ValueError, KeyError, TypeError):
+                previous = {}  # unreadable JSON: rebuild the records from the CSV
+        if self.csv_path.exists():
+            for name, rows in read_results_csv(self.csv_path).items():
+                self.records[name] = previous.get(name) or {"image": name, "rows": rows}
+
+    def add(self, record: dict) -> None:
+        self.records[record["image"]] = record
+
+    def flush(self, summary: dict | None = None, force: bool = False) -> None:
+        if not force and time.monotonic() - self.last_flush < FLUSH_SECONDS:
+            return
+        document = {**self.header, "assumptions": self.assumptions,
+                    "summary": summary or summarise(self.records.values()),
+                    "images": list(self.records.values())}
+        _atomic_write(self.json_path, lambda f: json.dump(document, f, indent=1, default=_json))
+        write_results_csv(self.csv_path, self.records.values())
+        self.last_flush = time.monotonic()
+
+
+def _json(value: object) -> object:
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value)}")
+
+
+def summarise(records: Iterable[dict]) -> dict:
+    """Counts over image records: images, cups found, statuses, failures by reason."""
+    statuses: Counter[str] = Counter()
+    images = cups = 0
+    seconds = 0.0
+    for record in records:
+        images += 1
+        for row in record["rows"]:
+            statuses[row["status"]] += 1
+            cups += row["status"] in ("ok", "ambiguous")
+        seconds += float(record["rows"][0].get("seconds") or 0.0)
+    errors = {k: v for k, v in statuses.items() if k.startswith("error")}
+    return {"images": images, "cups": cups, "ok": statuses["ok"],
+            "ambiguous": statuses["ambiguous"], "no_cup": statuses["no_cup"],
+            "errors": sum(errors.values()), "error_reasons": errors,
+            "seconds_per_image": seconds / images if images else None}
+
+
+def output_name(name: str, suffix: str) -> str:
+    """File name under overlays/ or masks/ for an image name (frames: '#' -> '_frame')."""
+    return name.replace("#", "_frame") + suffix
+
+
+# -- the run ----------------------------------------------------------------------------------
+def _flags(args: argparse.Namespace) -> dict[str, float]:
+    flags = {"sdd_mm": args.sdd, "pixel_spacing_mm": args.pixel_spacing,
+             "cup_diameter_mm": args.cup_diameter}
+    if args.principal_point is not None:
+        flags["principal_u_px"], flags["principal_v_px"] = args.principal_point
+    return {k: v for k, v in flags.items() if v is not None}
+
+
+def _check_args(args: argparse.Namespace) -> str | None:
+    if args.resume and args.overwrite:
+        return "--resume and --overwrite exclude each other"
+    if args.batch_size < 1:
+        return "--batch-size must be >= 1"
+    for key, value in _flags(args).items():
+        if key in REQUIRED and not (math.isfinite(value) and value > 0):
+            return f"{REQUIRED[key][1]} must be a positive number of mm, got {value}"
+    existing = [p.name for p in (args.out / "results.csv", args.out / "results.json")
+                if p.exists()]
+    if existing and not (args.resume or args.overwrite):
+        return (f"{args.out} already holds {' and '.join(existing)}: use --resume to go on "
+                "with it or --overwrite to replace it")
+    return None
+
+
+def _batches(frames: Iterator[Frame], size: int) -> Iterator[list[Frame]]:
+    batch: list[Frame] = []
+    for frame in frames:
+        batch.append(frame)
+        if sum(f.image is not None for f in batch) >= size:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
+class Predictor:
+    """Processes batches of frames into image records (rows, geometry, overlay, masks)."""
+
+    def __init__(self, args: argparse.Namespace, detector: Detector, outputs: Outputs,
+                 meta: dict[str, dict[str, float]]) -> None:
+        self.args, self.detector, self.outputs, self.meta = args, detector, outputs, meta
+        self.flags = _flags(args)
+
+    def _note_assumptions(self, geometry: ResolvedGeometry, width: int) -> None:
+        for key, source in geometry.sources.items():
+            if source != "assumed" or key in self.outputs.assumptions:
+                continue
+            text = {"sdd_mm": f"{ASSUMED_SDD_MM:g} mm",
+                    "cup_diameter_mm": f"{ASSUMED_CUP_DIAMETER_MM:g} mm",
+                    "pixel_spacing_mm": f"{ASSUMED_DETECTOR_WIDTH_MM:g} mm / image width "
+                                        f"(e.g. {ASSUMED_DETECTOR_WIDTH_MM / width:.4g} mm/px "
+                                        f"at {width} px)"}[key]
+            self.outputs.assumptions[key] = text
+            tqdm.write(f"assuming {REQUIRED[key][0]} = {text} where not given "
+                       "(--assume-defaults)", file=sys.stderr)
+
+    def process(self, frames: list[Frame]) -> list[dict]:
+        """Image records of a batch, in input order."""
+        records: dict[int, dict] = {}
+        ready: list[tuple[int, Frame, ResolvedGeometry]] = []
+        for i, frame in enumerate(frames):
+            if frame.error is not None:
+                records[i] = {"image": frame.name, "rows": [
+                    status_row(frame.name, f"error: {frame.error}", frame.seconds)]}
+                continue
+            geometry = resolve_geometry(frame, meta_row(self.meta, frame.name), self.flags,
+                                        self.args.assume_defaults)
+            if geometry.missing:
+                records[i] = {"image": frame.name, "geometry": geometry.to_json(), "rows": [
+                    status_row(frame.name, geometry.error(frame.tag_notes), frame.seconds)]}
+                continue
+            self._note_assumptions(geometry, frame.image.shape[1])
+            ready.append((i, frame, geometry))
+        if ready:
+            start = time.perf_counter()
+            detections = self._detect(ready)
+            share = (time.perf_counter() - start) / len(ready)
+            for (i, frame, geo), cups in zip(ready, detections, strict=True):
+                if isinstance(cups, str):
+                    records[i] = {"image": frame.name, "geometry": geo.to_json(), "rows": [
+                        status_row(frame.name, cups, frame.seconds + share)]}
+                else:
+                    records[i] = self._record(frame, geo, cups, share)
+        return [records[i] for i in range(len(frames))]
+
+    def _detect(self, ready: list[tuple[int, Frame, ResolvedGeometry]]) -> list[list | str]:
+        """Cups per image; where the batch fails, image by image, a failure an error status."""
+        geometry, diameter = batch_geometry([g for _, _, g in ready])
+        try:
+            return self.detector([f.name for _, f, _ in ready], [f.image for _, f, _ in ready],
+                                 geometry, diameter)
+        except (RuntimeError, ValueError) as exc:
+            if len(ready) == 1:
+                return [f"error: detection failed ({exc})"]
+            return [cups for item in ready for cups in self._detect([item])]
+
+    def _record(self, frame: Frame, geometry: ResolvedGeometry, cups: list,
+                compute_seconds: float) -> dict:
+        start = time.perf_counter()
+        cups = sorted(cups, key=lambda c: float(c.ellipse[0]) if np.isfinite(c.ellipse[0])
+                      else math.inf)  # left to right on the image
+        record = {"image": frame.name, "geometry": geometry.to_json()}
+        out = self.outputs.out
+        if not self.args.no_overlays:
+            drawings = [CupDrawing(c.ellipse, c.landmarks, c.weights,
+                                   pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose),
+                                   c.status) for j, c in enumerate(cups, 1)]
+            title = f"{frame.name}: " + (f"{len(cups)} cup(s)" if cups else "no_cup")
+            record["overlay"] = f"overlays/{output_name(frame.name, '.png')}"
+            write_png(out / record["overlay"], draw_overlay(frame.image, drawings, title))
+        if self.args.save_masks:
+            record["masks"] = []
+            for j, cup in enumerate(cups, 1):
+                if cup.mask is None:
+                    continue
+                rel = f"masks/{output_name(frame.name, f'_cup{j}.png')}"
+                write_png(out / rel, np.round(np.clip(cup.mask, 0, 1) * 255).astype(np.uint8))
+                record["masks"].append(rel)
+        seconds = frame.seconds + compute_seconds + time.perf_counter() - start
+        record["rows"] = ([cup_row(frame.name, j, c, seconds) for j, c in enumerate(cups, 1)]
+                          or [status_row(frame.name, "no_cup", seconds)])
+        return record
+
+
+def _software() -> dict:
+    return {"cupnet": __version__, "python": platform.python_version(),
+            "torch": torch.__version__, "numpy": np.__version__, "platform": platform.platform()}
+
+
+def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
+                   interrupted: bool) -> None:
+    lines = [
+        f"{'interrupted' if interrupted else 'done'}: {summary['images']} images, "
+        f"{summary['cups']} cups found ({summary['ok']} ok, {summary['ambiguous']} ambiguous), "
+        f"{summary['no_cup']} without a cup, {summary['errors']} failed",
+    ]
+    lines += [f"  {n} x {reason}" for reason, n in sorted(summary["error_reasons"].items(),
+                                                          key=lambda kv: -kv[1])[:5]]
+    lines.append(f"results: {out / 'results.csv'} and results.json"
+                 + (f"; overlays: {out / 'overlays'}" if overlays else "")
+                 + f" ({elapsed:.1f} s this run)")
+    if interrupted:
+        lines.append("rerun the same command with --resume to process the rest")
+    print("\n".join(lines), file=sys.stderr)
+
+
+def run(args: argparse.Namespace) -> int:
+    problem = _check_args(args)
+    if problem is None:
+        try:
+            sources = find_images(args.images, args.recursive, exclude=args.out)
+            meta = read_meta(args.meta) if args.meta is not None else {}
+        except (FileNotFoundError, ValueError) as exc:
+            problem = str(exc)
+    if problem is not None:
+        print(f"cupnet predict: error: {problem}", file=sys.stderr)
+        return 2
+    try:
+        if args.landmarks is not None:
+            detector, model_info = landmark_detector(args.landmarks)
+        else:
+            detector, model_info = network_detector(args.checkpoint, args.save_masks)
+    except (FileNotFoundError, ValueError, RuntimeError) as exc:
+        print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {exc}",
+              file=sys.stderr)
+        return 2
+    args.out.mkdir(parents=True, exist_ok=True)
+    arguments = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
+    header = {"software": _software(), "model": model_info, "arguments": arguments}
+    outputs = Outputs(args.out, header)
+    if args.resume:
+        outputs.load_previous()
+    done = set(outputs.records)
+    predictor = Predictor(args, detector, outputs, meta)
+    todo = [s for s in sources if s.name not in done]
+    start = time.perf_counter()
+    interrupted = False
+    bar = tqdm(total=len(todo), unit="file", disable=args.quiet, desc="cupnet predict")
+    frames = iter_frames(todo, skip=done)
+    try:
+        for batch in _batches(frames, args.batch_size):
+            for record in predictor.process([f for f in batch if not f.skipped]):
+                outputs.add(record)
+            bar.update(sum(f.last_of_source for f in batch))
+            outputs.flush()
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        frames.close()
+        bar.close()
+    summary = summarise(outputs.records.values())
+    outputs.flush(summary, force=True)
+    _print_summary(summary, args.out, not args.no_overlays, time.perf_counter() - start,
+                   interrupted)
+    return 130 if interrupted else 0
+

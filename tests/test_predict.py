@@ -1,0 +1,201 @@
+"""cupnet predict: every image gets its row, geometry precedence, resume, no overwrite."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from dicom_factory import write_dicom
+
+import cupnet.predict as predict
+from cupnet.cli import main
+from cupnet.io.images import Frame, ImageSource
+from cupnet.model import CupNet, save_model
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An untrained CupNet: the pipeline's bookkeeping does not depend on what it detects."""
+    torch.manual_seed(0)
+    return save_model(CupNet(), tmp_path_factory.mktemp("model") / "untrained.safetensors")
+
+
+def noise_png(path: Path, dtype: type = np.uint16, size: int = 160) -> Path:
+    rng = np.random.default_rng(len(path.name))
+    cv2.imwrite(str(path), (rng.random((size, size)) * np.iinfo(dtype).max).astype(dtype))
+    return path
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        assert reader.fieldnames == predict.result_columns()
+        return list(reader)
+
+
+def rows_by_image(rows: list[dict[str, str]]) -> dict[str, list[dict[str, str]]]:
+    out: dict[str, list[dict[str, str]]] = {}
+    for row in rows:
+        out.setdefault(row["image"], []).append(row)
+    return out
+
+
+def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
+                                                         checkpoint: Path) -> None:
+    images = tmp_path / "images"
+    images.mkdir()
+    noise_png(images / "a16.png")
+    noise_png(images / "b8.png", np.uint8)
+    write_dicom(images / "c.dcm", (np.random.default_rng(1).random((160, 160)) * 4000)
+                .astype(np.uint16), DistanceSourceToDetector=1100.0,
+                ImagerPixelSpacing=[0.2, 0.2])
+    (images / "empty.png").write_bytes(b"")
+    (images / "text.png").write_text("not an image")
+    data = (images / "a16.png").read_bytes()
+    (images / "cut.png").write_bytes(data[: len(data) // 3])
+    meta = tmp_path / "meta.csv"
+    meta.write_text("image,sdd_mm,pixel_spacing_mm\na16.png,1000,0.25\nc.dcm,,0.3\n")
+    out = tmp_path / "out"
+    code = main(["predict", str(images), "--out", str(out), "--checkpoint", str(checkpoint),
+                 "--meta", str(meta), "--cup-diameter", "52", "--sdd", "990", "--quiet",
+                 "--save-masks"])
+    assert code == 0
+    by_image = rows_by_image(read_csv(out / "results.csv"))
+    assert set(by_image) == {"a16.png", "b8.png", "c.dcm", "empty.png", "text.png", "cut.png"}
+    assert by_image["empty.png"][0]["status"] == "error: empty file (0 bytes)"
+    assert "not a readable PNG" in by_image["text.png"][0]["status"]
+    assert "corrupt or truncated PNG" in by_image["cut.png"][0]["status"]
+    # b8.png has an SDD (flag) and a diameter but no pixel spacing anywhere: its row says so.
+    (b8,) = by_image["b8.png"]
+    assert b8["status"].startswith("error: missing pixel spacing (--pixel-spacing")
+    assert "source-to-detector" not in b8["status"]
+    for name in ("a16.png", "c.dcm"):
+        assert all(r["status"] in ("ok", "ambiguous", "no_cup") or r["status"].startswith(
+            "error: ") for r in by_image[name])
+        assert float(by_image[name][0]["seconds"]) > 0
+    document = json.loads((out / "results.json").read_text())
+    records = {r["image"]: r for r in document["images"]}
+    geometry = records["c.dcm"]["geometry"]
+    # meta.csv wins over the flag and the tags; the flag wins over the tag.
+    assert geometry["pixel_spacing_mm"] == {"value": 0.3, "source": "meta.csv"}
+    assert geometry["sdd_mm"] == {"value": 990.0, "source": "command line"}
+    assert geometry["principal_u_px"] == {"value": 79.5, "source": "image centre"}
+    assert records["a16.png"]["geometry"]["sdd_mm"]["source"] == "meta.csv"
+    assert document["model"]["checkpoint"] == str(checkpoint)
+    assert document["software"]["cupnet"]
+    assert document["summary"]["images"] == 6 and document["summary"]["errors"] >= 4
+    for name in ("a16.png", "c.dcm"):
+        overlay = out / records[name]["overlay"]
+        assert cv2.imread(str(overlay)).shape == (160, 160, 3)
+        for mask in records[name].get("masks", []):
+            assert cv2.imread(str(out / mask), cv2.IMREAD_UNCHANGED).shape == (160, 160)
+
+
+def test_geometry_precedence_and_assumptions() -> None:
+    frame = Frame("x.dcm", ImageSource(Path("x.dcm"), "x.dcm"), image=np.zeros((100, 200)),
+                  sdd_mm=1200.0, pixel_spacing_mm=0.15)
+    tags_only = predict.resolve_geometry(frame, {}, {}, assume_defaults=False)
+    assert tags_only.missing == ["cup_diameter_mm"]
+    assert tags_only.values["sdd_mm"] == 1200.0 and tags_only.sources["sdd_mm"] == "DICOM tags"
+    assert (tags_only.values["principal_u_px"], tags_only.values["principal_v_px"]) == (99.5, 49.5)
+    flags = {"sdd_mm": 1000.0, "cup_diameter_mm": 50.0, "principal_u_px": 10.0,
+             "principal_v_px": 20.0}
+    explicit = predict.resolve_geometry(frame, {"sdd_mm": 900.0}, flags, assume_defaults=False)
+    assert explicit.missing == []
+    assert explicit.values["sdd_mm"] == 900.0 and explicit.sources["sdd_mm"] == "meta.csv"
+    assert explicit.values["pixel_spacing_mm"] == 0.15
+    assert explicit.values["principal_u_px"] == 10.0
+    bare = Frame("y.png", ImageSource(Path("y.png"), "y.png"), image=np.zeros((100, 200)))
+    assumed = predict.resolve_geometry(bare, {}, {}, assume_defaults=True)
+    assert assumed.missing == []
+    assert assumed.values["pixel_spacing_mm"] == pytest.approx(
+        predict.ASSUMED_DETECTOR_WIDTH_MM / 200)
+    assert set(assumed.sources.values()) == {"assumed", "image centre"}
+    missing = predict.resolve_geometry(bare, {}, {}, assume_defaults=False)
+    message = missing.error({"pixel_spacing_mm": "DICOM PixelSpacing is not square"})
+    assert "source-to-detector distance (--sdd" in message and "not square" in message
+
+
+def test_no_overwrite_without_flag(tmp_path: Path, checkpoint: Path,
+                                   capsys: pytest.CaptureFixture) -> None:
+    image = noise_png(tmp_path / "a.png")
+    out = tmp_path / "out"
+    common = [str(image), "--out", str(out), "--checkpoint", str(checkpoint), "--sdd", "1000",
+              "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet", "--no-overlays"]
+    assert main(["predict", *common]) == 0
+    before = (out / "results.csv").read_bytes()
+    (out / "results.csv").write_bytes(before + b"")
+    assert main(["predict", *common, "--sdd", "900"]) == 2
+    assert "already holds results.csv" in capsys.readouterr().err
+    assert (out / "results.csv").read_bytes() == before
+    assert main(["predict", *common, "--resume", "--overwrite"]) == 2
+    assert main(["predict", *common, "--overwrite"]) == 0
+    assert not (out / "overlays").exists()
+
+
+def test_resume_after_interrupted_run(tmp_path: Path, checkpoint: Path,
+                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    images = tmp_path / "images"
+    images.mkdir()
+    for i in range(5):
+        noise_png(images / f"im{i}.png", size=128)
+    out = tmp_path / "out"
+    args = ["predict", str(images), "--out", str(out), "--checkpoint", str(checkpoint),
+            "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet",
+            "--batch-size", "2", "--no-overlays"]
+    real = predict.network_detector
+    calls = []
+
+    def interrupted_on_second_batch(*a, **k):
+        detect, info = real(*a, **k)
+
+        def wrapped(*args):
+            calls.append(args[0])
+            if len(calls) == 2:
+                raise KeyboardInterrupt  # Ctrl-C while the network runs
+            return detect(*args)
+
+        return wrapped, info
+
+    monkeypatch.setattr(predict, "network_detector", interrupted_on_second_batch)
+    assert main(args) == 130
+    first = rows_by_image(read_csv(out / "results.csv"))
+    assert set(first) == {"im0.png", "im1.png"}
+    monkeypatch.setattr(predict, "network_detector", real)
+    assert main(args) == 2  # existing results: neither resumed nor overwritten silently
+    assert main([*args, "--resume"]) == 0
+    final = rows_by_image(read_csv(out / "results.csv"))
+    assert set(final) == {f"im{i}.png" for i in range(5)}
+    assert final["im0.png"] == first["im0.png"]  # kept, not recomputed
+    document = json.loads((out / "results.json").read_text())
+    assert [r["image"] for r in document["images"]] == [f"im{i}.png" for i in range(5)]
+
+
+def test_multiframe_dicom_gives_a_row_per_frame(tmp_path: Path, checkpoint: Path) -> None:
+    frames = (np.random.default_rng(2).random((3, 128, 128)) * 4000).astype(np.uint16)
+    path = write_dicom(tmp_path / "run.dcm", frames, DistanceSourceToDetector=1000.0,
+                       ImagerPixelSpacing=[0.3, 0.3])
+    out = tmp_path / "out"
+    assert main(["predict", str(path), "--out", str(out), "--checkpoint", str(checkpoint),
+                 "--cup-diameter", "52", "--quiet"]) == 0
+    by_image = rows_by_image(read_csv(out / "results.csv"))
+    assert set(by_image) == {"run.dcm#1", "run.dcm#2", "run.dcm#3"}
+    assert (out / "overlays" / "run.dcm_frame2.png").exists()
+
+
+def test_folder_without_images_and_bad_checkpoint(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                  checkpoint: Path) -> None:
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "notes.txt").write_text("no images here")
+    assert main(["predict", str(tmp_path / "empty"), "--out", str(tmp_path / "out")]) == 2
+    assert "no images found in" in capsys.readouterr().err
+    noise_png(tmp_path / "a.png")
+    missing = tmp_path / "missing.safetensors"
+    assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o2"),
+                 "--checkpoint", str(missing)]) == 2
+    assert "checkpoint not found" in capsys.readouterr().err
