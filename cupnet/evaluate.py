@@ -36,6 +36,8 @@ GEOMETRY = ("sdd_mm", "pixel_spacing_mm", "cup_diameter_mm", "principal_u_px", "
 LABELS = {"anteversion_deg": "anteversion (deg)", "inclination_deg": "inclination (deg)",
           "k_mm": "k (mm)", "l_mm": "l (mm)", "kl_mm": "in-plane |(k, l)| (mm)",
           "h_mm": "h (mm)", "hausdorff_px": "Hausdorff (px)"}
+# truth.csv of ``cupnet synth`` names the angles by their symbols.
+TRUTH_ALIASES = {"theta_deg": "anteversion_deg", "phi_deg": "inclination_deg"}
 GROSS_DEG = 5.0
 CURVE_SAMPLES = 1440
 FOUND = ("ok", "ambiguous")
@@ -57,14 +59,18 @@ def _number(value: str | None) -> float:
         return math.nan
 
 
-def read_rows(path: Path, required: tuple[str, ...]) -> list[dict[str, str]]:
-    """CSV rows as dicts; a missing required column raises ``ValueError`` naming it."""
+def read_rows(path: Path, required: tuple[str, ...],
+              aliases: dict[str, str] | None = None) -> list[dict[str, str]]:
+    """CSV rows as dicts, columns renamed by ``aliases``; a missing required column raises
+    ``ValueError`` naming it."""
+    aliases = aliases or {}
     with Path(path).open(newline="") as f:
         reader = csv.DictReader(f)
-        missing = [c for c in required if c not in (reader.fieldnames or [])]
+        columns = [aliases.get(c, c) for c in reader.fieldnames or []]
+        missing = [c for c in required if c not in columns]
         if missing:
             raise ValueError(f"{path}: missing column(s) {missing}")
-        return list(reader)
+        return [{aliases.get(k, k): v for k, v in row.items()} for row in reader]
 
 
 def _array(rows: list[dict[str, str]], columns: tuple[str, ...]) -> np.ndarray:
@@ -99,7 +105,7 @@ class Matched:
         images: ``M`` image names.
         pred, true: ``(M, 5)`` poses (deg, deg, mm, mm, mm).
         pred_ellipse, true_ellipse: ``(M, 5)`` (cx, cy, a, b, alpha_deg) px.
-        n_true: true cups; n_pred: predicted cups; n_images: images in the truth.
+        n_true: true cups; n_pred: predicted cups; n_images: predicted images.
         seconds: seconds per predicted image (its first row).
         errors: images whose prediction is an error row.
         ambiguous: matched cups the solver flagged ambiguous.
@@ -143,8 +149,8 @@ def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]]
         for p, t in zip(*linear_sum_assignment(cost), strict=True):
             if cost[p, t] <= truth_ellipse[indices[t], 2]:
                 pairs.append((candidates[p], indices[t]))
-    images = {r["image"] for r in truth_rows}
-    evaluated = [first_rows[name] for name in images if name in first_rows]
+    # Images: those predicted (a truth without rows for an image means it has no cup).
+    evaluated = list(first_rows.values())
     seconds = np.array([_number(r.get("seconds")) for r in evaluated])
     return Matched(
         images=[truth_rows[t]["image"] for _, t in pairs],
@@ -153,8 +159,8 @@ def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]]
         pred_ellipse=_array([p for p, _ in pairs], ELLIPSE),
         true_ellipse=truth_ellipse[[t for _, t in pairs]].reshape(len(pairs), 5),
         n_true=len(truth_rows_ok),
-        n_pred=sum(len(v) for k, v in pred_by_image.items() if k in images),
-        n_images=len(images),
+        n_pred=sum(len(v) for v in pred_by_image.values()),
+        n_images=len(evaluated),
         seconds=seconds[np.isfinite(seconds)],
         errors=sum(r["status"].startswith("error") for r in evaluated),
         ambiguous=sum(p["status"] == "ambiguous" for p, _ in pairs),
@@ -248,7 +254,7 @@ def evaluate_results(pred_csv: str | Path, truth_csv: str | Path,
 
 def _load(pred_csv: Path, truth_csv: Path, meta_csv: Path | None) -> Matched:
     pred_rows = read_rows(pred_csv, ("image", "status", *POSE, *ELLIPSE[:2]))
-    truth_rows = read_rows(truth_csv, ("image", *POSE))
+    truth_rows = read_rows(truth_csv, ("image", *POSE), TRUTH_ALIASES)
     meta = ({r["image"]: r for r in read_rows(meta_csv, ("image",))}
             if meta_csv is not None else {})
     return match_cups(pred_rows, truth_rows, true_ellipses(truth_rows, meta))

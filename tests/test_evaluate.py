@@ -35,13 +35,10 @@ def write_csv(path: Path, rows: list[dict]) -> Path:
 
 
 def truth_rows() -> list[dict]:
-    rows = []
-    for image, cups in TRUTH.items():
-        rows += [{"image": image, "cup": j, **dict(zip(POSE + ELLIPSE, cup, strict=True))}
-                 for j, cup in enumerate(cups, 1)]
-        if not cups:
-            rows.append({"image": image, "cup": ""})
-    return rows
+    """Truth in cupnet synth's columns (theta_deg, phi_deg); d.png has no row (no cup)."""
+    names = ("theta_deg", "phi_deg", *POSE[2:], *ELLIPSE)
+    return [{"image": image, "cup": j, **dict(zip(names, cup, strict=True))}
+            for image, cups in TRUTH.items() for j, cup in enumerate(cups)]
 
 
 def predicted_rows() -> list[dict]:
