@@ -34,7 +34,7 @@ POSE = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
 ELLIPSE = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_px", "ellipse_angle_deg")
 GEOMETRY = ("sdd_mm", "pixel_spacing_mm", "cup_diameter_mm", "principal_u_px", "principal_v_px")
 LABELS = {"anteversion_deg": "anteversion (deg)", "inclination_deg": "inclination (deg)",
-          "k_mm": "k (mm)", "l_mm": "l (mm)", "kl_mm": "in-plane |(k, l)| (mm)",
+          "k_mm": "k (mm)", "l_mm": "l (mm)", "kl_mm": "in-plane (k, l) distance (mm)",
           "h_mm": "h (mm)", "hausdorff_px": "Hausdorff (px)"}
 # truth.csv of ``cupnet synth`` names the angles by their symbols.
 TRUTH_ALIASES = {"theta_deg": "anteversion_deg", "phi_deg": "inclination_deg"}
@@ -311,6 +311,7 @@ def plot_figures(matched: Matched, out: Path) -> list[Path]:
                    label="perspective (cupnet)")
         ax.set(xlabel="distance of the cup from the image centre |(k, l)| (mm)",
                ylabel=f"|{name} error| (deg)", title=name)
+        ax.set_ylim(bottom=0)
         ax.legend()
     distance_plot = out / "error_vs_distance.png"
     fig.savefig(distance_plot, dpi=110)
