@@ -1,0 +1,50 @@
+"""SynthConfig: defaults, YAML/dict loading, and errors that name the bad key."""
+
+from __future__ import annotations
+
+import pytest
+
+from data_synth import SynthConfig
+
+
+def test_defaults_follow_the_paper_protocol():
+    config = SynthConfig()
+    assert config.theta_deg == (0.0, 50.0) and config.phi_deg == (-90.0, 90.0)
+    assert config.k_mm == (-100.0, 100.0) and config.h_mm == (100.0, 520.0)
+    assert config.cup_diameter_mm == (44.0, 64.0)
+
+
+def test_from_yaml_reads_lists_and_ints(tmp_path):
+    path = tmp_path / "synth.yaml"
+    path.write_text("image_size: [320, 240]\nsdd_mm: [1000, 1040]\np_bilateral: 1\n")
+    config = SynthConfig.from_yaml(path)
+    assert config.image_size == (320, 240)
+    assert config.sdd_mm == (1000.0, 1040.0)
+    assert config.p_bilateral == 1.0
+    assert SynthConfig.from_dict(config.to_dict()) == config
+
+
+@pytest.mark.parametrize(
+    ("values", "named"),
+    [
+        ({"thetta_deg": [0, 10]}, "thetta_deg"),
+        ({"p_head": 1.5}, "p_head"),
+        ({"sdd_mm": [1200, 1000]}, "sdd_mm"),
+        ({"theta_deg": [0, 120]}, "theta_deg"),
+        ({"mu_shell": "titanium"}, "mu_shell"),
+        ({"image_size": [256]}, "image_size"),
+        ({"supersample": 0}, "supersample"),
+        ({"h_mm": [100, 1000]}, "h_mm"),
+        ({"anatomy_ct": "/no/such/ct.nii.gz"}, "anatomy_ct"),
+    ],
+)
+def test_bad_values_name_the_key(values, named):
+    with pytest.raises(ValueError, match=named):
+        SynthConfig.from_dict(values)
+
+
+def test_yaml_that_is_not_a_mapping(tmp_path):
+    path = tmp_path / "synth.yaml"
+    path.write_text("- 1\n- 2\n")
+    with pytest.raises(ValueError, match="mapping"):
+        SynthConfig.from_yaml(path)
