@@ -1,0 +1,140 @@
+"""Throughput and peak memory of ``cupnet predict`` on a folder of 1024 x 1024 16-bit PNGs.
+
+Rerun: ``.venv/bin/python -m benchmarks.predict [--images 200] [--checkpoint PATH]``.
+
+The folder is made from ``cupnet synth`` images (CT anatomy, one or two cups or none)
+rendered at 256 px and upsampled to 1024 px, with meta.csv scaled to match; a few distinct
+images are repeated to reach the count (decoding, network and pose cost do not depend on
+which image it is). Each configuration (overlays off, then on) runs ``cupnet predict`` in a
+fresh process, which first pays its one-off start (imports, model load, first-call set-up of
+PyTorch) on one image; the run itself is then timed end to end (reading, network, pose,
+writing CSV/JSON and overlays). Peak memory is the process's maximum resident set size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import cv2
+
+from benchmarks.report import machine, markdown_table, write_section
+
+SIZE = 1024
+SYNTH_SIZE = 256
+# Runs in the child: start-up on one image, then the timed run, then peak memory.
+CHILD = """
+import json, resource, sys, time
+from cupnet.cli import main
+warm, run = json.loads(sys.argv[1])
+t0 = time.perf_counter()
+assert main(warm) == 0
+t1 = time.perf_counter()
+assert main(run) == 0
+t2 = time.perf_counter()
+print(json.dumps({"startup_s": t1 - t0, "run_s": t2 - t1,
+                  "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+"""
+
+
+def make_folder(root: Path, n_images: int, n_unique: int, seed: int) -> tuple[Path, Path]:
+    """``root/images`` with ``n_images`` 1024 px 16-bit PNGs and ``root/meta.csv``."""
+    synth = root / "synth"
+    subprocess.run([sys.executable, "-m", "cupnet.cli", "synth", "--n", str(n_unique),
+                    "--seed", str(seed), "--out", str(synth), "--size", str(SYNTH_SIZE),
+                    str(SYNTH_SIZE)], check=True, stdout=subprocess.DEVNULL)
+    scale = SIZE / SYNTH_SIZE
+    with (synth / "meta.csv").open(newline="") as f:
+        meta = list(csv.DictReader(f))
+    images = root / "images"
+    images.mkdir()
+    rows = []
+    for i in range(n_images):
+        source = meta[i % len(meta)]
+        name = f"bench_{i:05d}.png"
+        if i < len(meta):
+            small = cv2.imread(str(synth / "images" / source["image"]), cv2.IMREAD_UNCHANGED)
+            cv2.imwrite(str(images / name), cv2.resize(small, (SIZE, SIZE),
+                                                       interpolation=cv2.INTER_CUBIC))
+        else:
+            shutil.copyfile(images / f"bench_{i % len(meta):05d}.png", images / name)
+        # Same detector, pixels 4x smaller; pixel centres at integers in both grids.
+        rows.append({**source, "image": name,
+                     "pixel_spacing_mm": float(source["pixel_spacing_mm"]) / scale,
+                     "principal_u_px": (float(source["principal_u_px"]) + 0.5) * scale - 0.5,
+                     "principal_v_px": (float(source["principal_v_px"]) + 0.5) * scale - 0.5})
+    meta_path = root / "meta.csv"
+    with meta_path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return images, meta_path
+
+
+def measure(images: Path, meta: Path, out: Path, overlays: bool,
+            checkpoint: str | None) -> dict:
+    """One fresh ``cupnet predict`` process: start-up, timed run, peak memory."""
+    common = ["--meta", str(meta), "--quiet"] + (["--checkpoint", checkpoint] if checkpoint
+                                                 else [])
+    common += [] if overlays else ["--no-overlays"]
+    first = sorted(images.iterdir())[0]
+    warm = ["predict", str(first), "--out", str(out / "warm"), *common]
+    run = ["predict", str(images), "--out", str(out / "run"), *common]
+    result = subprocess.run([sys.executable, "-c", CHILD, json.dumps([warm, run])],
+                            check=True, capture_output=True, text=True,
+                            env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    figures = json.loads(result.stdout.strip().splitlines()[-1])
+    with (out / "run" / "results.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    figures["images"] = len({r["image"] for r in rows})
+    figures["cups"] = sum(r["status"] in ("ok", "ambiguous") for r in rows)
+    figures["errors"] = sum(r["status"].startswith("error") for r in rows)
+    return figures
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--images", type=int, default=200)
+    parser.add_argument("--unique", type=int, default=20, help="distinct synthetic images")
+    parser.add_argument("--checkpoint", help="model weights (default: the shipped model)")
+    parser.add_argument("--seed", type=int, default=7)
+    args = parser.parse_args()
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="cupnet-bench-") as tmp:
+        root = Path(tmp)
+        images, meta = make_folder(root, args.images, min(args.unique, args.images), args.seed)
+        results = {}
+        for overlays in (False, True):
+            out = root / f"out_{'overlays' if overlays else 'plain'}"
+            results[overlays] = measure(images, meta, out, overlays, args.checkpoint)
+    rows = []
+    for overlays, r in results.items():
+        rows.append(["on" if overlays else "off", r["images"], r["cups"], r["errors"],
+                     r["run_s"], r["images"] / r["run_s"], r["peak_rss_mb"], r["startup_s"]])
+    table = markdown_table(["overlays", "images", "cups found", "error rows", "run (s)",
+                            "images / s", "peak memory (MB)", "process start-up (s)"], rows)
+    body = "\n".join([
+        "## cupnet predict: throughput and memory",
+        "",
+        f"`.venv/bin/python -m benchmarks.predict --images {args.images}` on {machine()}; "
+        f"load average {load:.1f} when started (the machine's cores may be shared). "
+        f"Folder: {args.images} PNGs, {SIZE} x {SIZE}, 16-bit (synthetic, CT anatomy); "
+        f"model: {args.checkpoint or 'shipped default'}; batch size 8. 'run' is end to end "
+        "(reading, network, pose, CSV/JSON, overlays when on) after the process's one-off "
+        "start-up (imports, model load, first-call set-up), which is listed apart.",
+        "",
+        table,
+    ])
+    print(body)
+    write_section("predict", body)
+
+
+if __name__ == "__main__":
+    main()
