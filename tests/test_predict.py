@@ -199,3 +199,31 @@ def test_folder_without_images_and_bad_checkpoint(tmp_path: Path, capsys: pytest
     assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o2"),
                  "--checkpoint", str(missing)]) == 2
     assert "checkpoint not found" in capsys.readouterr().err
+
+
+# A 1024 px wide overlay draws 2 px wide lines: the tolerance is half the width + 1 px.
+@pytest.mark.parametrize(("shape", "scale", "tol"), [((200, 300), 1.0, 1.5),
+                                                     ((1024, 2048), 0.5, 2.0)])
+def test_overlay_ellipse_follows_the_conventions(shape: tuple[int, int], scale: float,
+                                                 tol: float) -> None:
+    """OpenCV draws the rim where cupnet.ellipse.ellipse_points puts it (alpha from +u to +v)."""
+    from cupnet.ellipse import ellipse_points
+    from cupnet.overlay import CupDrawing, draw_overlay
+
+    # The same place on the overlay in both cases: original pixels scaled by 1 / scale.
+    ellipse = np.array([170.0, 120.0, 60.0, 25.0, 30.0])
+    ellipse[:2] = (ellipse[:2] + 0.5) / scale - 0.5
+    ellipse[2:4] /= scale
+    canvas = draw_overlay(np.zeros(shape), [CupDrawing(ellipse, None, None, [])], "",
+                          max_side=1024).astype(int)
+    assert canvas.shape[:2] == (round(shape[0] * scale), round(shape[1] * scale))
+    green = (canvas[..., 1] > 100) & (canvas[..., 1] > canvas[..., 2] + 50)
+    drawn = np.argwhere(green)[:, ::-1].astype(float)  # (u, v)
+    drawn = drawn[np.linalg.norm(drawn - [170, 120], axis=1) > 24]  # not the cup's label
+    curve = ellipse_points(torch.tensor(ellipse), torch.linspace(0, 2 * np.pi, 2000,
+                                                                 dtype=torch.float64)).numpy()
+    curve = (curve + 0.5) * scale - 0.5  # original pixels -> overlay pixels
+    dist = np.linalg.norm(drawn[:, None] - curve[None], axis=-1)
+    assert len(drawn) > 100
+    assert dist.min(1).max() < tol  # every drawn pixel on the curve
+    assert dist.min(0).max() < tol  # the whole curve drawn
