@@ -29,14 +29,17 @@ def soft_moments(prob: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor, Tenso
         mass ``(B,)`` (pixels), centre ``(B, 2)`` pixels (u, v), covariance ``(B, 2, 2)`` px^2.
     """
     _, _, height, width = prob.shape
-    v, u = torch.meshgrid(torch.arange(height, dtype=prob.dtype, device=prob.device),
-                          torch.arange(width, dtype=prob.dtype, device=prob.device), indexing="ij")
-    grid = torch.stack([u, v], -1).reshape(-1, 2)  # (HW, 2)
-    w = prob.flatten(1)  # (B, HW)
-    mass = w.sum(-1)
-    centre = w @ grid / (mass[:, None] + eps)
-    d = grid[None] - centre[:, None]
-    cov = torch.einsum("bn,bni,bnj->bij", w, d, d) / (mass[:, None, None] + eps)
+    u = torch.arange(width, dtype=prob.dtype, device=prob.device)
+    v = torch.arange(height, dtype=prob.dtype, device=prob.device)
+    rows, cols = prob[:, 0].sum(-1), prob[:, 0].sum(-2)  # (B, H), (B, W) marginals
+    mass = rows.sum(-1)
+    norm = mass + eps
+    mu_u, mu_v = cols @ u / norm, rows @ v / norm
+    var_u = cols @ u**2 / norm - mu_u**2
+    var_v = rows @ v**2 / norm - mu_v**2
+    cov_uv = torch.einsum("bhw,h,w->b", prob[:, 0], v, u) / norm - mu_u * mu_v
+    centre = torch.stack([mu_u, mu_v], -1)
+    cov = torch.stack([torch.stack([var_u, cov_uv], -1), torch.stack([cov_uv, var_v], -1)], -2)
     return mass, centre, cov
 
 

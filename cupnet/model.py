@@ -36,6 +36,7 @@ from cupnet.crops import (
     resample_batch,
     to_image,
 )
+from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ray_landmarks, soft_moments
 from cupnet.pose import PoseSolution, solve_pose
@@ -173,7 +174,7 @@ def _as_image_list(images: Tensor | list, dtype: torch.dtype) -> list[Tensor]:
             t = t[None]
         if t.ndim != 3 or t.shape[0] != 1:
             raise ValueError(f"image {i}: expected (1, H, W) or (H, W), got {tuple(t.shape)}")
-        if not torch.isfinite(t).all():
+        if not torch.isfinite(t.sum()):  # one reduction: cheap even for 4096^2 images
             raise ValueError(f"image {i}: contains NaN or infinite values")
         out.append(t)
     return out
@@ -194,7 +195,7 @@ class CupNet(nn.Module):
         self.locator = _unet(self.config)
         self.refiner = _unet(self.config)
         if self.config.encoder_weights:
-            state = _read_state_dict(Path(self.config.encoder_weights))
+            state, _ = _read_checkpoint(Path(self.config.encoder_weights))
             for net in (self.locator, self.refiner):
                 net.encoder.load_state_dict(state, strict=False)
 
@@ -350,16 +351,20 @@ class CupNet(nn.Module):
         rough, scores = self.ellipses_from_locator(locator_logits, letterbox)
         cup_index = torch.isfinite(rough).all(-1).nonzero()
         frames = self.frames(rough[cup_index[:, 0], cup_index[:, 1]])
-        for _ in range(self.config.refine_passes):
+        results: list[list[CupDetection]] = [[] for _ in range(batch)]
+        if len(cup_index) == 0:
+            self.train(was_training)
+            return results
+        for _ in range(self.config.refine_passes - 1):
+            # Re-frame on the fitted ellipse where it is usable; keep the old frame otherwise.
             crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
-            points, weights = self.crop_landmarks(crop_logits, crop_to_image)
-            solution = self.solve(points, weights, geometry, diameter, cup_index, batch,
-                                  refine=True)
-            # Re-frame on the fitted ellipse where it is usable; keep the old box otherwise.
-            ellipse = solution.ellipse
+            ellipse = fit_ellipse(*self.crop_landmarks(crop_logits, crop_to_image),
+                                  on_error="flag").params
             usable = torch.isfinite(ellipse).all(-1) & (ellipse[:, 2] > 0.5)
             frames = torch.where(usable[:, None], self.frames(ellipse.nan_to_num(1.0)), frames)
-        results: list[list[CupDetection]] = [[] for _ in range(batch)]
+        crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
+        points, weights = self.crop_landmarks(crop_logits, crop_to_image)
+        solution = self.solve(points, weights, geometry, diameter, cup_index, batch, refine=True)
         for k, (i, c) in enumerate(cup_index.tolist()):
             mask = None
             if return_masks:
@@ -383,18 +388,24 @@ class CupNet(nn.Module):
         return results
 
 
-def _read_state_dict(path: Path) -> dict[str, Tensor]:
-    """A tensor state dict from safetensors or a ``torch.load(weights_only=True)`` file."""
+def _read_checkpoint(path: Path) -> tuple[dict[str, Tensor], dict | None]:
+    """State dict and model config (when the file holds one) of a checkpoint.
+
+    safetensors, or a ``torch.load(weights_only=True)`` file: a plain state dict, or a
+    Lightning checkpoint whose ``hyper_parameters["model"]`` is the config.
+    """
     if not path.exists():
         raise FileNotFoundError(f"checkpoint not found: {path}")
     if path.suffix == ".safetensors":
         from safetensors.torch import load_file
 
-        return load_file(str(path))
+        return load_file(str(path)), None
     state = torch.load(path, map_location="cpu", weights_only=True)
+    config = None
     if isinstance(state, dict) and "state_dict" in state:
+        config = (state.get("hyper_parameters") or {}).get("model")
         state = state["state_dict"]
-    return state
+    return state, config
 
 
 def config_path(checkpoint: Path) -> Path:
@@ -419,17 +430,19 @@ def load_model(checkpoint: str | Path | None = None) -> CupNet:
     """A CupNet in eval mode from a checkpoint; None loads the shipped default.
 
     Accepts safetensors (with the JSON config beside it) or a file readable with
-    ``torch.load(weights_only=True)``: a plain state dict or a Lightning checkpoint (its
-    ``model.`` keys); loading never runs code from the file. Without a JSON config the
-    default :class:`CupNetConfig` is used.
+    ``torch.load(weights_only=True)``: a plain state dict (JSON config beside it) or a
+    Lightning checkpoint of :class:`train.module.CupNetModule` (its ``model.`` keys and
+    hyper-parameters); loading never runs code from the file. Without a config the default
+    :class:`CupNetConfig` is used.
     """
     path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
-    state = _read_state_dict(path)
+    state, stored = _read_checkpoint(path)
     if any(k.startswith("model.") for k in state):
         state = {k[len("model."):]: v for k, v in state.items() if k.startswith("model.")}
     cfg_file = config_path(path)
-    config = (CupNetConfig.from_dict(json.loads(cfg_file.read_text())) if cfg_file.exists()
-              else CupNetConfig())
+    if cfg_file.exists():
+        stored = json.loads(cfg_file.read_text())
+    config = CupNetConfig.from_dict(stored or {})
     config.encoder_weights = None  # the checkpoint holds the trained encoders
     model = CupNet(config)
     model.load_state_dict(state)

@@ -1,66 +1,115 @@
-"""LightningDataModule over the on-the-fly synthetic DRRs of :mod:`data_synth`."""
+"""LightningDataModule over the on-the-fly synthetic DRRs of :mod:`data_synth`.
+
+A synthesis config fixes one image size, and a batch needs one size, so the training stream
+takes whole batches from one dataset per image size in turn (round robin): the network sees
+every size, each batch collates with the default collate.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Iterator
 from pathlib import Path
 
 import lightning as L
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, IterableDataset, default_collate
 
 
-def synth_config(source: str | dict | None):
-    """A ``data_synth.SynthConfig`` from a YAML path, a dict of fields, or None (defaults)."""
+def synth_config(source: str | dict | None, image_size: int | None = None):
+    """A ``data_synth.SynthConfig`` from a YAML path, a dict of fields, or None (defaults),
+    with a square ``image_size`` (pixels) when given."""
     from data_synth import SynthConfig
 
     if source is None:
-        return SynthConfig()
-    if isinstance(source, dict):
-        return SynthConfig.from_dict(source)
-    if not Path(source).exists():
+        config = SynthConfig()
+    elif isinstance(source, dict):
+        config = SynthConfig.from_dict(source)
+    elif not Path(source).exists():
         raise FileNotFoundError(f"synthesis config not found: {source}")
-    return SynthConfig.from_yaml(source)
+    else:
+        config = SynthConfig.from_yaml(source)
+    if image_size is not None:
+        config = dataclasses.replace(config, image_size=(image_size, image_size))
+    return config
+
+
+class RoundRobinBatches(IterableDataset):
+    """Collated batches taken in turn from several sample streams (one per image size).
+
+    Args:
+        datasets: iterable datasets of sample dicts.
+        batch_size: samples per batch.
+        batches: total batches (None: until a stream ends).
+    """
+
+    def __init__(self, datasets: list, batch_size: int, batches: int | None = None) -> None:
+        self.datasets, self.batch_size, self.batches = datasets, batch_size, batches
+
+    def __iter__(self) -> Iterator[dict]:
+        streams = [iter(d) for d in self.datasets]
+        count = 0
+        while self.batches is None or count < self.batches:
+            stream = streams[count % len(streams)]
+            samples = [s for _, s in zip(range(self.batch_size), stream, strict=False)]
+            if len(samples) < self.batch_size:
+                return
+            yield default_collate(samples)
+            count += 1
 
 
 class CupDataModule(L.LightningDataModule):
     """Training and validation streams of synthetic images, deterministic per seed.
 
     Args:
-        synth: synthesis config for training (YAML path or dict of ``SynthConfig`` fields).
+        synth: synthesis config (YAML path or dict of ``SynthConfig`` fields).
+        image_sizes: square training image sizes (px), taken in turn batch by batch; None
+            keeps the config's ``image_size``.
         val_synth: synthesis config for validation (default: ``synth``).
-        batch_size: images per batch (default collate; the config fixes the image size).
-        num_workers: DataLoader workers (the dataset splits its stream between them).
-        train_seed, val_seed: dataset seeds (distinct, so validation images are unseen).
-        train_length: images per training epoch (None: endless, bounded by ``max_steps``).
+        val_image_size: validation image size (None: the config's).
+        batch_size: images per batch.
+        num_workers: DataLoader workers of the training stream (the synthetic dataset gives
+            each worker its own share of the stream).
+        train_seed, val_seed: dataset seeds (distinct, so validation images are unseen); the
+            stream of size ``i`` uses ``train_seed + i``.
+        train_batches: batches per training epoch (None: endless, bounded by ``max_steps``).
         val_length: validation images.
     """
 
     def __init__(
         self,
         synth: str | dict | None = None,
+        image_sizes: list[int] | None = None,
         val_synth: str | dict | None = None,
+        val_image_size: int | None = None,
         batch_size: int = 8,
         num_workers: int = 0,
         train_seed: int = 0,
         val_seed: int = 1_000_003,
-        train_length: int | None = None,
+        train_batches: int | None = None,
         val_length: int = 32,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
 
-    def _dataset(self, source: str | dict | None, seed: int, length: int | None):
+    def train_dataset(self) -> RoundRobinBatches:
         from data_synth import SynthDataset
 
-        return SynthDataset(synth_config(source), seed=seed, length=length)
+        hp = self.hparams
+        sizes = hp.image_sizes or [None]
+        datasets = [SynthDataset(synth_config(hp.synth, size), seed=hp.train_seed + i)
+                    for i, size in enumerate(sizes)]
+        return RoundRobinBatches(datasets, hp.batch_size, hp.train_batches)
 
     def train_dataloader(self) -> DataLoader:
         hp = self.hparams
-        return DataLoader(self._dataset(hp.synth, hp.train_seed, hp.train_length),
-                          batch_size=hp.batch_size, num_workers=hp.num_workers,
+        return DataLoader(self.train_dataset(), batch_size=None, num_workers=hp.num_workers,
                           persistent_workers=hp.num_workers > 0)
 
     def val_dataloader(self) -> DataLoader:
+        from data_synth import SynthDataset
+
         hp = self.hparams
         source = hp.val_synth if hp.val_synth is not None else hp.synth
-        return DataLoader(self._dataset(source, hp.val_seed, hp.val_length),
-                          batch_size=hp.batch_size, num_workers=0)
+        dataset = SynthDataset(synth_config(source, hp.val_image_size), seed=hp.val_seed,
+                               length=hp.val_length)
+        return DataLoader(dataset, batch_size=hp.batch_size, num_workers=0)

@@ -93,7 +93,11 @@ class CupNetModule(L.LightningModule):
         locator_weight: weight of the locator's segmentation loss.
         jitter_shift, jitter_scale, jitter_angle, jitter_ratio: crop framing errors (see
             :func:`jittered_ellipses`).
+        crops_per_cup: differently jittered crops per cup and image (synthesis costs more
+            than a crop's training step, so each image is used several times).
         refine_pose: train through the solver's ML refinement (else its closed form).
+        torch_threads: intra-op threads (None: torch's default); 1 suits a shared CPU,
+            where the data worker takes the other core.
         export_path: where :meth:`on_fit_end` writes the model as safetensors + JSON.
     """
 
@@ -112,7 +116,9 @@ class CupNetModule(L.LightningModule):
         jitter_scale: float = 0.2,
         jitter_angle: float = 15.0,
         jitter_ratio: float = 0.4,
+        crops_per_cup: int = 2,
         refine_pose: bool = False,
+        torch_threads: int | None = None,
         export_path: str | None = None,
     ) -> None:
         super().__init__()
@@ -123,18 +129,21 @@ class CupNetModule(L.LightningModule):
         """All loss terms of one batch and their weighted total (``"loss"``)."""
         hp, cfg = self.hparams, self.model.config
         images = batch["image"]
-        valid = batch["cup_valid"].bool()
+        cups = batch["cup_valid"].shape[1]
+        # Slot c * cups + j is the c-th jittered crop of cup j.
+        valid = batch["cup_valid"].bool().repeat(1, hp.crops_per_cup)
         geometry = batch_geometry(batch["geometry"])
-        rough = jittered_ellipses(batch["ellipse"].double(), valid, hp.jitter_shift,
-                                  hp.jitter_scale, hp.jitter_angle, hp.jitter_ratio)
-        out = self.model(images, geometry, batch["cup_diameter"],
+        rough = jittered_ellipses(batch["ellipse"].double().repeat(1, hp.crops_per_cup, 1), valid,
+                                  hp.jitter_shift, hp.jitter_scale, hp.jitter_angle,
+                                  hp.jitter_ratio)
+        out = self.model(images, geometry, batch["cup_diameter"].repeat(1, hp.crops_per_cup),
                          crop_frames=self.model.frames(rough), refine_pose=hp.refine_pose)
         locator_target = resample_batch(batch["mask"], out.letterbox, cfg.locator_size)
         terms = {"seg_locator": segmentation_loss(out.locator_logits, locator_target)}
-        target = crop_targets(batch["ellipse"], valid, out.crop_to_image, out.cup_index,
-                              cfg.crop_size)
+        target = crop_targets(batch["ellipse"], batch["cup_valid"].bool(), out.crop_to_image,
+                              out.cup_index, cfg.crop_size)
         terms["seg_crop"] = segmentation_loss(out.crop_logits, target)
-        i, c = out.cup_index.unbind(-1)
+        i, c = out.cup_index[:, 0], out.cup_index[:, 1] % cups
         w_ellipse = ramp(step, hp.ellipse_start, hp.ramp_steps) * hp.ellipse_weight
         w_pose = ramp(step, hp.pose_start, hp.ramp_steps) * hp.pose_weight
         if w_ellipse > 0:
@@ -154,6 +163,10 @@ class CupNetModule(L.LightningModule):
                 terms[f"mae_{name}"] = (err[ok, j].abs().mean() if bool(ok.any())
                                         else torch.tensor(math.nan))
         return terms
+
+    def setup(self, stage: str) -> None:
+        if self.hparams.torch_threads:
+            torch.set_num_threads(self.hparams.torch_threads)
 
     def training_step(self, batch: dict, batch_idx: int) -> Tensor:
         terms = self.losses(batch, self.global_step)

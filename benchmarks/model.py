@@ -1,0 +1,127 @@
+"""CupNet speed and accuracy: segmentation + pose per 512x512 image, and pose MAE on fresh DRRs.
+
+Run: ``python benchmarks/model.py [--checkpoint PATH] [--ablation NAME=PATH ...] [--images N]``.
+Writes the ``model`` (speed) and ``model_accuracy`` (accuracy, ablation) sections of
+docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from benchmarks.report import machine, markdown_table, write_section  # noqa: E402
+from cupnet.geometry import Geometry  # noqa: E402
+from cupnet.model import DEFAULT_CHECKPOINT, CupNet, load_model  # noqa: E402
+from train.data import synth_config  # noqa: E402
+from train.losses import pose_errors  # noqa: E402
+from train.module import match_detections  # noqa: E402
+
+NAMES = ("theta", "phi", "k", "l", "h")
+TARGETS = (1.0, 1.0, 1.0, 1.0, 8.0)
+
+
+def samples(config: str, seed: int, count: int) -> list[dict]:
+    from data_synth import SynthDataset
+
+    return list(SynthDataset(synth_config(config), seed=seed, length=count))
+
+
+def geometry_of(sample: dict) -> Geometry:
+    return Geometry(*(float(v) for v in sample["geometry"]))
+
+
+def latency(model: CupNet, images: list[dict], repeats: int = 1) -> dict[str, float]:
+    """Mean seconds per image of detect() (segmentation + landmarks + pose), batch of one."""
+    model.detect(images[0]["image"][None], geometry_of(images[0]),
+                 float(images[0]["cup_diameter"][0]), return_masks=False)  # warm-up
+    times = []
+    for _ in range(repeats):
+        for s in images:
+            start = time.perf_counter()
+            model.detect(s["image"][None], geometry_of(s), float(s["cup_diameter"][0]),
+                         return_masks=False)
+            times.append(time.perf_counter() - start)
+    return {"mean_s": float(np.mean(times)), "median_s": float(np.median(times))}
+
+
+def accuracy(model: CupNet, data: list[dict]) -> dict[str, float]:
+    """Pose MAE of matched cups and the fraction of true cups detected with a pose."""
+    errors, found, total, false_pos = [], 0, 0, 0
+    for s in data:
+        dets = model.detect(s["image"][None], geometry_of(s), float(s["cup_diameter"][0]),
+                            return_masks=False)[0]
+        valid = s["cup_valid"].numpy().astype(bool)
+        matched = match_detections(dets, s["ellipse"].numpy(), valid)
+        false_pos += len(dets) - sum(m is not None for m in matched)
+        for c, det in enumerate(matched):
+            if not valid[c]:
+                continue
+            total += 1
+            if det is not None and np.isfinite(det.pose).all():
+                found += 1
+                err = pose_errors(torch.from_numpy(det.pose)[None],
+                                  s["pose"][c].double()[None])[0]
+                errors.append(err.abs().numpy())
+    mae = np.mean(errors, 0) if errors else np.full(5, np.nan)
+    out = {f"mae_{n}": float(v) for n, v in zip(NAMES, mae, strict=True)}
+    out.update(detected=found / max(total, 1), cups=total, false_positives=false_pos)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
+    parser.add_argument("--ablation", nargs="*", default=[],
+                        help="more checkpoints to compare on the same set, as NAME=PATH")
+    parser.add_argument("--eval-config", default="configs/synth_eval.yaml")
+    parser.add_argument("--speed-config", default="configs/synth_speed.yaml")
+    parser.add_argument("--images", type=int, default=100)
+    parser.add_argument("--seed", type=int, default=20_261_123)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    model = load_model(args.checkpoint)
+    speed_set = samples(args.speed_config, args.seed + 1, 20)
+    timing = latency(model, speed_set)
+    rows = [["segmentation + pose, 512x512, batch 1", f"{1000 * timing['mean_s']:.1f}",
+             f"{1000 * timing['median_s']:.1f}", f"{1 / timing['mean_s']:.1f}"]]
+    speed = markdown_table(["pipeline", "mean ms / image", "median ms / image", "images / s"],
+                           rows)
+    print(speed)
+    write_section("model", "## CupNet speed\n\n"
+                  f"`python benchmarks/model.py` on {machine()}; checkpoint "
+                  f"`{Path(args.checkpoint).name}`; 20 synthetic 512x512 images, "
+                  "`CupNet.detect` end to end (locator, 2 refiner passes, landmarks, pose with "
+                  "ML refinement).\n\n" + speed)
+
+    eval_set = samples(args.eval_config, args.seed, args.images)
+    models = {"shipped (end to end)": model}
+    for item in args.ablation:
+        name, path = item.split("=", 1)
+        models[name] = load_model(path)
+    header = ["model", *[f"MAE {n}" for n in NAMES], "detected", "false positives"]
+    table = []
+    for name, net in models.items():
+        res = accuracy(net, eval_set)
+        table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
+                      res["false_positives"]])
+        print(name, res)
+    text = markdown_table(header, table)
+    print(text)
+    write_section("model_accuracy", "## CupNet accuracy\n\n"
+                  f"`python benchmarks/model.py`: {args.images} fresh DRRs from "
+                  f"`{args.eval_config}` (seed {args.seed}), MAE over detected true cups "
+                  f"(deg, deg, mm, mm, mm); targets {TARGETS}.\n\n" + text)
+
+
+if __name__ == "__main__":
+    main()
