@@ -56,7 +56,10 @@ ASSUMED_DETECTOR_WIDTH_MM = 300.0
 POSE_COLUMNS = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
 ELLIPSE_COLUMNS = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_px",
                    "ellipse_angle_deg")
+# Outputs are rewritten at most every FLUSH_SECONDS, and at least FLUSH_RATIO times as long as
+# the last rewrite took, so rewriting stays a small share of the run on huge folders.
 FLUSH_SECONDS = 2.0
+FLUSH_RATIO = 20.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -315,6 +318,7 @@ class Outputs:
     records: dict[str, dict] = field(default_factory=dict)
     assumptions: dict[str, str] = field(default_factory=dict)
     last_flush: float = 0.0
+    flush_interval: float = FLUSH_SECONDS
 
     @property
     def csv_path(self) -> Path:
@@ -342,14 +346,16 @@ class Outputs:
         self.records[record["image"]] = record
 
     def flush(self, summary: dict | None = None, force: bool = False) -> None:
-        if not force and time.monotonic() - self.last_flush < FLUSH_SECONDS:
+        if not force and time.monotonic() - self.last_flush < self.flush_interval:
             return
+        start = time.monotonic()
         document = {**self.header, "assumptions": self.assumptions,
                     "summary": summary or summarise(self.records.values()),
                     "images": list(self.records.values())}
         _atomic_write(self.json_path, lambda f: json.dump(document, f, indent=1, default=_json))
         write_results_csv(self.csv_path, self.records.values())
         self.last_flush = time.monotonic()
+        self.flush_interval = max(FLUSH_SECONDS, FLUSH_RATIO * (self.last_flush - start))
 
 
 def _json(value: object) -> object:
@@ -525,7 +531,7 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
                  + f" ({elapsed:.1f} s this run)")
     if interrupted:
         lines.append("rerun the same command with --resume to process the rest")
-    print("\n".join(lines), file=sys.stderr)
+    print("\n".join(lines))
 
 
 def run(args: argparse.Namespace) -> int:
