@@ -15,7 +15,14 @@ from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
 from cupnet.model import CupDetection, CupNet, CupNetConfig, save_model
-from train.losses import ellipse_loss, pose_errors, pose_loss, ramp, segmentation_loss
+from train.losses import (
+    POSE_SCALE,
+    ellipse_loss,
+    pose_errors,
+    pose_loss,
+    ramp,
+    segmentation_loss,
+)
 
 
 def batch_geometry(geometry: Tensor) -> Geometry:
@@ -195,14 +202,15 @@ class CupNetModule(L.LightningModule):
                                       torch.from_numpy(truth_pose[b, c])[None])[0]
                     errors.append(err.abs().numpy())
         size = batch["image"].shape[0]
-        self.log("val/detected", found / max(total, 1), batch_size=size)
-        if errors:
-            mae = np.mean(errors, 0)
-            for j, name in enumerate(("theta", "phi", "k", "l", "h")):
-                self.log(f"val/mae_{name}", float(mae[j]), batch_size=size)
-            # One figure for checkpoint selection: each MAE relative to its target.
-            self.log("val/score", float(np.mean(mae / np.array([1.0, 1.0, 1.0, 1.0, 8.0]))),
-                     batch_size=size, prog_bar=True)
+        detected = found / max(total, 1)
+        self.log("val/detected", detected, batch_size=size)
+        mae = np.mean(errors, 0) if errors else np.full(5, np.nan)
+        for j, name in enumerate(("theta", "phi", "k", "l", "h")):
+            self.log(f"val/mae_{name}", float(mae[j]), batch_size=size)
+        # One figure for checkpoint selection: each MAE relative to its target, plus missed
+        # cups; logged on every batch (a large value when nothing was found).
+        relative = float(np.mean(mae / np.array(POSE_SCALE))) if errors else 100.0
+        self.log("val/score", relative + 10 * (1 - detected), batch_size=size, prog_bar=True)
 
     def configure_optimizers(self):
         optimizer = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr,
