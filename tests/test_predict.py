@@ -15,7 +15,7 @@ from dicom_factory import write_dicom
 import cupnet.predict as predict
 from cupnet.cli import main
 from cupnet.io.images import Frame, ImageSource
-from cupnet.model import CupNet, save_model
+from cupnet.model import CupNet, CupNetConfig, save_model
 
 
 @pytest.fixture(scope="module")
@@ -23,6 +23,14 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An untrained CupNet: the pipeline's bookkeeping does not depend on what it detects."""
     torch.manual_seed(0)
     return save_model(CupNet(), tmp_path_factory.mktemp("model") / "untrained.safetensors")
+
+
+@pytest.fixture(scope="module")
+def blind_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An untrained CupNet that never reports a cup (threshold above any probability): for
+    the tests of bookkeeping, where detections only cost time."""
+    model = CupNet(CupNetConfig(detect_threshold=2.0))
+    return save_model(model, tmp_path_factory.mktemp("model") / "blind.safetensors")
 
 
 def noise_png(path: Path, dtype: type = np.uint16, size: int = 160) -> Path:
@@ -121,11 +129,11 @@ def test_geometry_precedence_and_assumptions() -> None:
     assert "source-to-detector distance (--sdd" in message and "not square" in message
 
 
-def test_no_overwrite_without_flag(tmp_path: Path, checkpoint: Path,
+def test_no_overwrite_without_flag(tmp_path: Path, blind_checkpoint: Path,
                                    capsys: pytest.CaptureFixture) -> None:
     image = noise_png(tmp_path / "a.png")
     out = tmp_path / "out"
-    common = [str(image), "--out", str(out), "--checkpoint", str(checkpoint), "--sdd", "1000",
+    common = [str(image), "--out", str(out), "--checkpoint", str(blind_checkpoint), "--sdd", "1000",
               "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet", "--no-overlays"]
     assert main(["predict", *common]) == 0
     before = (out / "results.csv").read_bytes()
@@ -138,14 +146,14 @@ def test_no_overwrite_without_flag(tmp_path: Path, checkpoint: Path,
     assert not (out / "overlays").exists()
 
 
-def test_resume_after_interrupted_run(tmp_path: Path, checkpoint: Path,
+def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
                                       monkeypatch: pytest.MonkeyPatch) -> None:
     images = tmp_path / "images"
     images.mkdir()
     for i in range(5):
         noise_png(images / f"im{i}.png", size=128)
     out = tmp_path / "out"
-    args = ["predict", str(images), "--out", str(out), "--checkpoint", str(checkpoint),
+    args = ["predict", str(images), "--out", str(out), "--checkpoint", str(blind_checkpoint),
             "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet",
             "--batch-size", "2", "--no-overlays"]
     real = predict.network_detector
@@ -176,12 +184,12 @@ def test_resume_after_interrupted_run(tmp_path: Path, checkpoint: Path,
     assert [r["image"] for r in document["images"]] == [f"im{i}.png" for i in range(5)]
 
 
-def test_multiframe_dicom_gives_a_row_per_frame(tmp_path: Path, checkpoint: Path) -> None:
+def test_multiframe_dicom_gives_a_row_per_frame(tmp_path: Path, blind_checkpoint: Path) -> None:
     frames = (np.random.default_rng(2).random((3, 128, 128)) * 4000).astype(np.uint16)
     path = write_dicom(tmp_path / "run.dcm", frames, DistanceSourceToDetector=1000.0,
                        ImagerPixelSpacing=[0.3, 0.3])
     out = tmp_path / "out"
-    assert main(["predict", str(path), "--out", str(out), "--checkpoint", str(checkpoint),
+    assert main(["predict", str(path), "--out", str(out), "--checkpoint", str(blind_checkpoint),
                  "--cup-diameter", "52", "--quiet"]) == 0
     by_image = rows_by_image(read_csv(out / "results.csv"))
     assert set(by_image) == {"run.dcm#1", "run.dcm#2", "run.dcm#3"}
