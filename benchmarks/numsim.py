@@ -91,7 +91,8 @@ def run(cases: int, paper_cases: int, seed: int) -> str:
                 ortho = orthographic_pose(sol.ellipse[valid])
                 ortho_theta = (ortho[:, 0] - truth[valid, 0]).abs()
                 gross = ((err["theta"] > 5) | (err["phi"] > 5)).float().mean()
-                label = f"{'full' if arc >= 360 else '200deg'} {noise:g}px{' rnd' if rounding else ''}"
+                arc_name = "full" if arc >= 360 else "200deg"
+                label = f"{arc_name} {noise:g}px{' rnd' if rounding else ''}"
                 rows.append([
                     label, float(err["theta"].mean()), float(err["theta"].quantile(0.95)),
                     float(err["phi"].mean()), float(err["phi"].quantile(0.95)),
@@ -117,8 +118,9 @@ def run(cases: int, paper_cases: int, seed: int) -> str:
                     pseconds = (time.perf_counter() - start) / paper_cases
                     perr = errors(paper, truth[:paper_cases])
                     pgross = ((perr["theta"] > 5) | (perr["phi"] > 5)).float().mean()
-                    paper_rows.append([label, float(perr["theta"].mean()), float(perr["phi"].mean()),
-                                       float(perr["kl"].mean()), float(perr["h"].mean()),
+                    paper_rows.append([label, float(perr["theta"].mean()),
+                                       float(perr["phi"].mean()), float(perr["kl"].mean()),
+                                       float(perr["h"].mean()),
                                        f"{100 * float(pgross):.1f}", float(steps.float().mean()),
                                        f"{pseconds * 1000:.1f}"])
                 print(rows[-1])

@@ -15,7 +15,8 @@ from pathlib import Path
 import torch
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
-HEADER = "# Benchmarks\n\nWritten by the scripts in `benchmarks/`; each section says how to rerun it.\n"
+HEADER = ("# Benchmarks\n\nWritten by the scripts in `benchmarks/`; each section says how to "
+          "rerun it.\n")
 
 
 def markdown_table(header: list[str], rows: list[list[object]]) -> str:
@@ -41,7 +42,10 @@ def write_section(name: str, body: str, doc: Path = DOC) -> None:
     text = doc.read_text() if doc.exists() else HEADER
     block = f"{begin}\n{body.strip()}\n{end}"
     pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
-    text = pattern.sub(lambda _: block, text) if pattern.search(text) else f"{text.rstrip()}\n\n{block}\n"
+    if pattern.search(text):
+        text = pattern.sub(lambda _: block, text)
+    else:
+        text = f"{text.rstrip()}\n\n{block}\n"
     doc.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.NamedTemporaryFile("w", dir=doc.parent, delete=False) as tmp:
         tmp.write(text)

@@ -30,7 +30,7 @@ class EllipseFitError(ValueError):
 
 
 def coefficients_to_conic(coeffs: Tensor) -> Tensor:
-    """``(..., 6)`` coefficients ``(A, B, C, D, E, F)`` of ``Ax^2+Bxy+Cy^2+Dx+Ey+F`` -> ``(..., 3, 3)``."""
+    """``(..., 6)`` coefficients of ``Ax^2 + Bxy + Cy^2 + Dx + Ey + F`` -> ``(..., 3, 3)``."""
     a, b, c, d, e, f = coeffs.unbind(-1)
     rows = [
         torch.stack([a, b / 2, d / 2], -1),
@@ -169,7 +169,8 @@ def _fit_problems(points: Tensor, weights: Tensor) -> list[str]:
     active = weights > 0
     finite = torch.isfinite(points).all(-1)
     counts = active.sum(-1)
-    bad_value = (active & ~finite).any(-1) | ~torch.isfinite(weights).all(-1) | (weights < 0).any(-1)
+    bad_value = ((active & ~finite).any(-1) | ~torch.isfinite(weights).all(-1)
+                 | (weights < 0).any(-1))
     # Spread of the active points: a line (or one point) has a vanishing minor spread.
     w = torch.where(active & finite, weights, torch.zeros_like(weights))
     p = torch.where((active & finite)[..., None], points, torch.zeros_like(points))
@@ -220,7 +221,8 @@ def fit_ellipse(
         points = points[None]
         weights = None if weights is None else weights[None]
     if points.ndim != 3 or points.shape[-1] != 2:
-        raise EllipseFitError(f"points must have shape (B, N, 2) or (N, 2), got {tuple(points.shape)}")
+        raise EllipseFitError(
+            f"points must have shape (B, N, 2) or (N, 2), got {tuple(points.shape)}")
     if weights is None:
         weights = torch.ones(points.shape[:2], dtype=points.dtype, device=points.device)
     status = _fit_problems(points.detach(), weights.detach())

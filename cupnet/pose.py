@@ -6,9 +6,10 @@ Pipeline of :func:`solve_pose`:
 2. closed form (:func:`poses_from_conic`): the cone from the X-ray source through the ellipse
    is cut by the two planes that give a circle of the cup's radius (Safaee-Rad et al. 1992,
    Chen et al. 2004), both candidate poses returned;
-3. maximum-likelihood refinement (:func:`refine_pose`): batched Levenberg-Marquardt on the
-   Sampson distance of each landmark to the projected rim conic, which needs no landmark
-   correspondence; differentiable by the implicit function theorem at the optimum;
+3. maximum-likelihood refinement (:func:`refine_pose`): batched Levenberg-Marquardt
+   orthogonal-distance regression of the projected rim, each landmark's position along the
+   rim estimated with the pose (no correspondence needed); differentiable by the implicit
+   function theorem at the optimum;
 4. the candidate inside the CONVENTIONS ranges is chosen (:func:`canonical_pose`), and the
    result flagged ``ambiguous`` when the other candidate is in range too.
 
@@ -26,7 +27,7 @@ import torch
 from torch import Tensor
 from torch.func import jacfwd, vmap
 
-from cupnet.ellipse import conic_to_params, fit_ellipse, sampson_distance
+from cupnet.ellipse import conic_to_params, fit_ellipse
 from cupnet.geometry import (
     Geometry,
     camera_matrix,
@@ -35,6 +36,7 @@ from cupnet.geometry import (
     pose_to_radians,
     project_rim,
     rim_conic,
+    rotation,
     source_position,
 )
 
@@ -214,130 +216,181 @@ def canonical_pose(pose: Tensor) -> Tensor:
     return torch.cat([theta[..., None], phi[..., None], pose[..., 2:]], -1)
 
 
-def _residuals(pose: Tensor, points: Tensor, weights: Tensor, geom: Tensor,
-               radius: Tensor) -> Tensor:
-    """Weighted Sampson residuals for one item. pose (5,), points (N,2), weights (N,) -> (N,)."""
-    conic = rim_conic(pose[None], radius, _geometry_of(geom))
-    return weights.sqrt() * sampson_distance(conic, points[None])[0]
+def _rim_with_jacobians(pose: Tensor, t: Tensor, radius: Tensor, geom: Tensor
+                        ) -> tuple[Tensor, Tensor, Tensor]:
+    """Projected rim points and their analytic derivatives.
+
+    Args:
+        pose: ``(B, 5)`` rad / mm; t: ``(B, N)`` rim parameters; radius: ``(B,)`` mm;
+        geom: ``(B, 4)`` (sdd, spacing, u0, v0).
+    Returns:
+        ``x (B, N, 2)`` px, ``d x / d pose (B, N, 2, 5)``, ``d x / d t (B, N, 2)``.
+    """
+    theta, phi = pose[:, 0], pose[:, 1]
+    ones = torch.ones_like(theta)
+    rot, d_rot_theta = torch.func.jvp(rotation, (theta, phi), (ones, torch.zeros_like(phi)))
+    d_rot_phi = torch.func.jvp(rotation, (theta, phi), (torch.zeros_like(theta), ones))[1]
+    r = radius[:, None, None]
+    local = torch.stack([torch.cos(t), torch.zeros_like(t), torch.sin(t)], -1) * r  # (B,N,3)
+    d_local = torch.stack([-torch.sin(t), torch.zeros_like(t), torch.cos(t)], -1) * r
+    points = pose[:, None, 2:5] + local @ rot.transpose(-1, -2)
+    d_points = torch.stack([  # (B, N, 3, 6): d X / d (theta, phi, k, l, h, t)
+        local @ d_rot_theta.transpose(-1, -2), local @ d_rot_phi.transpose(-1, -2),
+        *(torch.zeros_like(points) for _ in range(3)), d_local @ rot.transpose(-1, -2)], -1)
+    d_points[..., 0, 2] = 1.0
+    d_points[..., 1, 3] = 1.0
+    d_points[..., 2, 4] = 1.0
+    sdd, spacing, u0, v0 = (g[:, None] for g in geom.unbind(-1))
+    depth = sdd - points[..., 2]
+    focal = sdd / spacing / depth  # (B, N)
+    x = torch.stack([u0 + focal * points[..., 0], v0 + focal * points[..., 1]], -1)
+    # d x / d X = focal [[1, 0, X_x / depth], [0, 1, X_y / depth]].
+    lateral = points[..., :2] / depth[..., None]
+    d_x = focal[..., None, None] * (d_points[..., :2, :]
+                                    + lateral[..., None] * d_points[..., 2:3, :])
+    return x, d_x[..., :5], d_x[..., 5]
 
 
-def _objective(pose: Tensor, points: Tensor, weights: Tensor, geom: Tensor,
-               radius: Tensor) -> Tensor:
-    return 0.5 * (_residuals(pose, points, weights, geom, radius) ** 2).sum()
+def _initial_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor) -> Tensor:
+    """Rim parameter of each landmark: its position on the rim plane through the pose's
+    homography, ``t = atan2(beta, alpha)``. Exact for landmarks on the projected rim.
 
-
-def _residuals_and_jacobian(pose: Tensor, points: Tensor, weights: Tensor, geom: Tensor,
-                            radius: Tensor) -> tuple[Tensor, Tensor]:
-    """Weighted Sampson residuals ``(B, N)`` and their analytic Jacobian ``(B, N, 5)``.
-
-    The conic's derivative comes from five forward-mode passes through :func:`rim_conic`;
-    the Sampson distance ``q / (2 |g|)`` (``q = p^T C p``, ``g = C[:2] p``) is differentiated
-    by hand, which is ~50x faster than ``vmap(jacfwd(...))`` over thousands of poses.
+    Args: pose ``(B, 5)``, points ``(B, N, 2)`` px, radius ``(B,)``, geom ``(B, 4)``.
+    Returns: ``(B, N)`` rad.
     """
     geometry = _geometry_of(geom)
-    hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)  # (B, N, 3)
-    tangents = torch.eye(5, dtype=pose.dtype, device=pose.device)
-    conic, d_conic = None, []
-    for k in range(5):
-        conic, dk = torch.func.jvp(lambda p: rim_conic(p, radius, geometry), (pose,),
-                                   (tangents[k].expand_as(pose),))
-        d_conic.append(dk)
-    d_conic = torch.stack(d_conic, 1)  # (B, 5, 3, 3)
-    conic_hom = hom @ conic  # (B, N, 3) = (C p)^T, C symmetric
-    g = conic_hom[..., :2]
-    q = (conic_hom * hom).sum(-1)
-    g_norm = torch.linalg.vector_norm(g, dim=-1)
-    # dq_k = p^T dC_k p = monomials(p) . (dA, dB, dC, dD, dE, dF)_k: one (N,6)@(6,5) product.
-    u, v = points.unbind(-1)
-    monomials = torch.stack([u * u, 2 * u * v, v * v, 2 * u, 2 * v, torch.ones_like(u)], -1)
-    upper = d_conic[:, :, [0, 0, 1, 0, 1, 2], [0, 1, 1, 2, 2, 2]]  # (B, 5, 6)
-    dq = monomials @ upper.transpose(-1, -2)  # (B, N, 5)
-    # d|g|_k = g . (dC_k[:2] p) / |g| = p . (dC_k[:2]^T g) / |g|.
-    dg = hom @ d_conic[:, :, :2].flatten(1, 2).transpose(-1, -2)  # (B, N, 10): (k, i)
-    dg_norm = (dg.unflatten(-1, (5, 2)) * g[:, :, None]).sum(-1) / g_norm[..., None]
-    root_w = weights.sqrt()
-    res = root_w * q / (2 * g_norm)
-    jac = root_w[..., None] * (dq / (2 * g_norm[..., None])
-                               - (q / (2 * g_norm**2))[..., None] * dg_norm)
-    return res, jac
+    rot = rotation(pose[:, 0], pose[:, 1])
+    cam = camera_matrix(geometry, pose.dtype, pose.device)
+    centre = pose[:, 2:5] - source_position(geometry, pose.dtype, pose.device)
+    homography = cam @ torch.stack([rot[..., 0], rot[..., 2], centre], -1)
+    hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
+    plane = torch.linalg.solve(homography[:, None], hom[..., None]).squeeze(-1)  # (B, N, 3)
+    sign = torch.sign(plane[..., 2])
+    return torch.atan2(sign * plane[..., 1], sign * plane[..., 0])
 
 
-def _levenberg_marquardt(pose: Tensor, points: Tensor, weights: Tensor, geom: Tensor,
-                         radius: Tensor, max_iter: int, tol: float) -> Tensor:
-    """Batched LM with Marquardt's diagonal scaling; every tensor has a leading batch dim.
+def _odr_objective(pose: Tensor, t: Tensor, points: Tensor, weights: Tensor, geom: Tensor,
+                   radius: Tensor) -> Tensor:
+    """``sum_b 1/2 sum_i w_i |x_i - rim(pose_b, t_i)|^2`` (items are independent)."""
+    x = project_rim(pose, radius, _geometry_of(geom), t)
+    return 0.5 * (weights * ((points - x) ** 2).sum(-1)).sum()
 
-    Items that have converged leave the working set, so the few slow ones (near-degenerate
-    ellipses) do not cost a full batch per iteration.
+
+def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tensor,
+                         geom: Tensor, radius: Tensor, max_iter: int, tol: float
+                         ) -> tuple[Tensor, Tensor]:
+    """Orthogonal-distance regression of the rim: LM over the pose and one rim parameter per
+    landmark, ``min sum_i w_i |x_i - rim(pose, t_i)|^2``, the maximum-likelihood estimate
+    for Gaussian landmark noise. The ``t`` block of the normal equations is diagonal, so each
+    step eliminates it (Schur complement) and solves a 5x5 system.
+
+    Items that have converged leave the working set. Every tensor has a leading batch dim.
+    Returns the pose ``(B, 5)`` and rim parameters ``(B, N)``.
     """
-    pose = pose.clone()
+    pose, t = pose.clone(), t.clone()
+    root_w = weights.sqrt()
+
+    def evaluate(p, tt, x, rw, g, r):
+        # Variable projection: move each landmark's rim parameter to its closest rim point
+        # first (a few 1D Gauss-Newton steps), so the pose step sees the profile objective.
+        for _ in range(2):
+            rim, _, jt = _rim_with_jacobians(p, tt, r, g)
+            tt = tt + ((x - rim) * jt).sum(-1) / (jt**2).sum(-1).clamp_min(1e-30)
+        rim, jp, jt = _rim_with_jacobians(p, tt, r, g)
+        res = rw[..., None] * (x - rim)
+        return res, rw[..., None, None] * jp, rw[..., None] * jt, (res**2).sum((-1, -2)), tt
+
+    res, jp, jt, cost, t = evaluate(pose, t, points, root_w, geom, radius)
     damping = torch.full(pose.shape[:1], 1e-3, dtype=pose.dtype, device=pose.device)
-    res, jac = _residuals_and_jacobian(pose, points, weights, geom, radius)
-    cost = (res**2).sum(-1)
     active = torch.arange(pose.shape[0], device=pose.device)
     for _ in range(max_iter):
-        p, x, w, g, r = (t[active] for t in (pose, points, weights, geom, radius))
-        jtj = jac.transpose(-1, -2) @ jac
-        grad = (jac.transpose(-1, -2) @ res[..., None]).squeeze(-1)
-        scale = jtj.diagonal(dim1=-2, dim2=-1).clamp_min(1e-30)
-        system = jtj + damping[:, None, None] * torch.diag_embed(scale)
-        step = -torch.linalg.solve(system, grad[..., None]).squeeze(-1)
-        trial_res, trial_jac = _residuals_and_jacobian(p + step, x, w, g, r)
-        trial_cost = (trial_res**2).sum(-1)
-        better = torch.isfinite(trial_cost) & (trial_cost <= cost)
-        pose[active] = torch.where(better[:, None], p + step, p)
-        # Converged when the step is statistically negligible: its length in the metric of
-        # the pose covariance (J^T J / sigma^2, sigma^2 ~ cost / N) is below sqrt(tol). The
-        # floor lets exact, noise-free landmarks stop at a residual of ~1e-10 px.
-        predicted = -(2 * (grad * step).sum(-1) + (step * (jtj @ step[..., None])[..., 0]).sum(-1))
-        floor = tol * cost / res.shape[-1] + 1e-20 * res.shape[-1]
+        x, rw, g, r = (v[active] for v in (points, root_w, geom, radius))
+        p, tt = pose[active], t[active]
+        jtj = torch.einsum("bnip,bniq->bpq", jp, jp)
+        grad_p = torch.einsum("bnip,bni->bp", jp, res)
+        d_t = (jt**2).sum(-1)  # (B, N)
+        grad_t = (jt * res).sum(-1)
+        cross = torch.einsum("bnip,bni->bnp", jp, jt)  # (B, N, 5)
+        d_damped = d_t * (1 + damping[:, None]) + 1e-12 * d_t.mean(-1, keepdim=True)
+        schur = jtj + damping[:, None, None] * torch.diag_embed(jtj.diagonal(dim1=-2, dim2=-1))
+        schur = schur - torch.einsum("bnp,bnq->bpq", cross / d_damped[..., None], cross)
+        rhs = grad_p - (cross * (grad_t / d_damped)[..., None]).sum(1)
+        step_p = torch.linalg.solve(schur, rhs[..., None]).squeeze(-1)
+        step_t = (grad_t - (cross * step_p[:, None]).sum(-1)) / d_damped
+        trial = evaluate(p + step_p, tt + step_t, x, rw, g, r)
+        # Accept ties within round-off, so the last digits still converge.
+        better = torch.isfinite(trial[3]) & (trial[3] <= cost * (1 + 1e-13))
+        pose[active] = torch.where(better[:, None], p + step_p, p)
+        t[active] = torch.where(better[:, None], trial[4], tt)
+        # Converged when the step is statistically negligible: the cost decrease the
+        # linear model promises is below tol noise variances (sigma^2 ~ cost / N). The floor
+        # lets exact, noise-free landmarks stop at a residual of ~1e-10 px.
+        predicted = (step_p * rhs).sum(-1) + (step_t * (grad_t - (cross * step_p[:, None]).sum(-1))
+                                              ).sum(-1)
+        floor = tol * cost / res.shape[1] + 1e-20 * res.shape[1]
         damping = torch.where(better, damping / 4, damping * 4)
         keep = (predicted > floor) & (damping < 1e12)
-        res = torch.where(better[:, None], trial_res, res)[keep]
-        jac = torch.where(better[:, None, None], trial_jac, jac)[keep]
-        cost = torch.where(better, trial_cost, cost)[keep]
-        damping = damping[keep]
-        active = active[keep]
+        res, jp, jt = (torch.where(better.view(-1, *[1] * (a.ndim - 1)), b_, a)[keep]
+                       for a, b_ in zip((res, jp, jt), trial[:3], strict=True))
+        cost = torch.where(better, trial[3], cost)[keep]
+        damping, active = damping[keep], active[keep]
         if active.numel() == 0:
             break
-    return pose
+    return pose, t
 
 
 class _RefinePose(torch.autograd.Function):
-    """LM forward; backward by the implicit function theorem at the optimum."""
+    """ODR forward; backward by the implicit function theorem at the optimum.
+
+    At the optimum ``z* = (pose, t)`` the gradient of the objective ``L`` vanishes, so
+    ``d z* / d data = -H^-1 d(grad L) / d data``. ``H`` has a diagonal ``t`` block, so
+    ``H^-1`` applied to the upstream gradient needs six Hessian-vector products and a 5x5
+    Schur solve per item.
+    """
 
     @staticmethod
     def forward(ctx, start, points, weights, geom, radius, max_iter, tol):  # type: ignore[override]
         with torch.no_grad():
-            pose = _levenberg_marquardt(start, points, weights, geom, radius, max_iter, tol)
-        ctx.save_for_backward(pose, points, weights, geom, radius)
-        return pose
+            t0 = _initial_rim_parameters(start, points, radius, geom)
+            pose, t = _levenberg_marquardt(start, t0, points, weights, geom, radius, max_iter, tol)
+        ctx.save_for_backward(pose, t, points, weights, geom, radius)
+        ctx.mark_non_differentiable(t)
+        return pose, t
 
     @staticmethod
-    def backward(ctx, grad_pose):  # type: ignore[override]
-        pose, points, weights, geom, radius = ctx.saved_tensors
-        gradient = torch.func.grad(_objective)
+    def backward(ctx, grad_pose, _grad_t):  # type: ignore[override]
+        pose, t, points, weights, geom, radius = ctx.saved_tensors
+        gradient = torch.func.grad(_odr_objective, argnums=(0, 1))
 
-        def per_item(p, x, w, g, r, upstream):
-            hessian = jacfwd(gradient)(p, x, w, g, r)
-            ridge = 1e-12 * hessian.diagonal().abs().sum() * torch.eye(5, dtype=p.dtype)
-            v = torch.linalg.solve(hessian + ridge, upstream)
-            _, pull = torch.func.vjp(lambda xx, ww: gradient(p, xx, ww, g, r), x, w)
-            gx, gw = pull(-v)
-            return gx, gw
+        def hvp(v_pose: Tensor, v_t: Tensor) -> tuple[Tensor, Tensor]:
+            return torch.func.jvp(lambda p, tt: gradient(p, tt, points, weights, geom, radius),
+                                  (pose, t), (v_pose, v_t))[1]
 
         with torch.enable_grad():
-            gx, gw = vmap(per_item)(pose, points, weights, geom, radius, grad_pose)
-        return None, gx, gw, None, None, None, None
+            eye = torch.eye(5, dtype=pose.dtype, device=pose.device)
+            columns = [hvp(eye[k].expand_as(pose), torch.zeros_like(t)) for k in range(5)]
+            h_pp = torch.stack([c[0] for c in columns], -1)  # (B, 5, 5)
+            h_tp = torch.stack([c[1] for c in columns], -1)  # (B, N, 5)
+            h_tt = hvp(torch.zeros_like(pose), torch.ones_like(t))[1]  # diagonal, (B, N)
+            h_tt = torch.where(h_tt.abs() > 1e-12, h_tt, torch.full_like(h_tt, 1e-12))
+            schur = h_pp - torch.einsum("bnp,bnq->bpq", h_tp / h_tt[..., None], h_tp)
+            v_pose = torch.linalg.solve(schur, grad_pose[..., None]).squeeze(-1)
+            v_t = -(h_tp * v_pose[:, None]).sum(-1) / h_tt
+            _, pull = torch.func.vjp(lambda x, w: gradient(pose, t, x, w, geom, radius),
+                                     points, weights)
+            grad_points, grad_weights = pull((-v_pose, -v_t))
+        return None, grad_points, grad_weights, None, None, None, None
 
 
 def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tensor | float,
-                weights: Tensor | None = None, max_iter: int = 30, tol: float = 1e-6) -> Tensor:
-    """Maximum-likelihood pose: minimise sum_i w_i d_S(x_i, rim(pose))^2.
+                weights: Tensor | None = None, max_iter: int = 30, tol: float = 1e-6
+                ) -> tuple[Tensor, Tensor]:
+    """Maximum-likelihood pose: orthogonal-distance regression of the projected rim.
 
-    ``d_S`` is the Sampson (first-order geometric) distance of landmark ``x_i`` to the
-    projected rim conic, so no correspondence along the rim is needed. Gradients with
-    respect to ``points`` and ``weights`` are exact at the optimum (implicit function
-    theorem); ``start`` gets none.
+    Minimises ``sum_i w_i |x_i - rim(pose, t_i)|^2`` over the pose and each landmark's rim
+    parameter ``t_i`` (positions along the rim are unknown, so they are estimated too).
+    Gradients with respect to ``points`` and ``weights`` are exact at the optimum (implicit
+    function theorem); ``start`` gets none.
 
     Args:
         start: ``(B, 5)`` initial poses (rad, mm), e.g. from :func:`poses_from_conic`.
@@ -346,11 +399,11 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
         radius: mm, scalar or ``(B,)``.
         weights: ``(B, N)`` non-negative, default ones.
         max_iter: LM iterations at most.
-        tol: stop when a step's squared length in units of the pose's standard deviation
-            falls below this (1e-6: a thousandth of a standard deviation). Tighten (e.g.
-            1e-20) where the implicit gradient must be exact to many digits.
+        tol: stop when a step would lower the cost by less than ``tol`` noise variances
+            (1e-6: a thousandth of a standard deviation). Tighten (e.g. 1e-20) where the
+            implicit gradient must be exact to many digits.
     Returns:
-        ``(B, 5)`` refined poses (rad, mm).
+        ``(B, 5)`` refined poses (rad, mm) and ``(B, N)`` rim parameters of the landmarks.
     """
     batch = start.shape[0]
     if weights is None:
@@ -361,15 +414,43 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
                              max_iter, tol)
 
 
+def _preferred(solutions: Tensor) -> Tensor:
+    """``(B,)`` index of the candidate of ``(B, 2, 5)`` to report first: the one in range (least
+    range violation); where both are, the larger theta (the mirror pose of a cup seen off the
+    central ray has the smaller one, and clinical anteversion is rarely near 0)."""
+    violation = range_violation(solutions)
+    theta = _oriented_angles(solutions)[0]
+    tie = (violation[:, 0] - violation[:, 1]).abs() <= 1e-12
+    return torch.where(tie, theta[:, 1] > theta[:, 0], violation[:, 1] < violation[:, 0]).long()
+
+
 def _select(solutions: Tensor, ambiguity_tol: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Pick the in-range candidate of ``(B, 2, 5)`` -> (pose, alt pose, ambiguous)."""
-    violation = range_violation(solutions)  # (B, 2)
-    first = violation[:, 0] <= violation[:, 1]
-    chosen = torch.where(first[:, None], solutions[:, 0], solutions[:, 1])
-    other = torch.where(first[:, None], solutions[:, 1], solutions[:, 0])
-    other_violation = torch.where(first, violation[:, 1], violation[:, 0])
-    ambiguous = other_violation <= ambiguity_tol
+    """Pick the preferred candidate of ``(B, 2, 5)`` -> (pose, alt pose, ambiguous)."""
+    index = _preferred(solutions)
+    rows = torch.arange(solutions.shape[0], device=solutions.device)
+    chosen, other = solutions[rows, index], solutions[rows, 1 - index]
+    ambiguous = range_violation(other) <= ambiguity_tol
     return canonical_pose(chosen), canonical_pose(other), ambiguous
+
+
+def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geometry,
+                  iterations: int = 4) -> Tensor:
+    """Distance of each landmark to the projected rim (its closest rim point), pixels.
+
+    Args:
+        pose: ``(B, 5)`` rad / mm; points: ``(B, N, 2)`` px; radius: ``(B,)`` mm.
+        iterations: Gauss-Newton steps on each landmark's rim parameter.
+    Returns:
+        ``(B, N)`` px, not differentiable.
+    """
+    with torch.no_grad():
+        geom = _batch_geometry(geometry, pose.shape[0], pose.dtype, pose.device)
+        t = _initial_rim_parameters(pose, points, radius, geom)
+        for _ in range(iterations):
+            rim, _, d_t = _rim_with_jacobians(pose, t, radius, geom)
+            t = t + ((points - rim) * d_t).sum(-1) / (d_t**2).sum(-1).clamp_min(1e-30)
+        rim = _rim_with_jacobians(pose, t, radius, geom)[0]
+        return torch.linalg.vector_norm(points - rim, dim=-1)
 
 
 def solve_pose(
@@ -428,12 +509,11 @@ def solve_pose(
                                        math.radians(ambiguity_tol_deg), max_iter)
     pose, alt, ambiguous = _select(solutions, math.radians(ambiguity_tol_deg))
 
-    conic = rim_conic(pose, safe_radius, safe_geometry)
-    residual_points = points if weights is None else points
     w_res = torch.ones(points.shape[:2], dtype=dtype, device=device) if weights is None else weights
-    dist = sampson_distance(conic, torch.where(ok[:, None, None], residual_points,
-                                               torch.zeros_like(points)))
-    residual = torch.sqrt((w_res * dist**2).sum(-1) / w_res.sum(-1).clamp_min(1e-300))
+    dist = rim_distances(pose.detach(), torch.where(ok[:, None, None], points.detach(), 0.0),
+                         safe_radius.detach(), safe_geometry)
+    residual = torch.sqrt((w_res.detach() * dist**2).sum(-1) / w_res.detach().sum(-1).clamp_min(
+        1e-300))
 
     h = pose[:, 4].detach()
     sdd = _batch_geometry(safe_geometry, batch, dtype, device)[:, 0]
@@ -476,14 +556,14 @@ def _refine_candidates(solutions: Tensor, points: Tensor, weights: Tensor | None
     points = torch.where(ok[:, None, None], points, _stand_in_points(geometry, n, dtype))
     weights = torch.where(ok[:, None], weights, torch.ones_like(weights))
     violation = range_violation(solutions)
-    chosen = (violation[:, 1] < violation[:, 0]).long()
+    chosen = _preferred(solutions)
     # Refinement moves a candidate's range violation by a fraction of a degree at most.
     maybe_both = violation.max(-1).values <= ambiguity_tol + math.radians(2.0)
     items = torch.cat([torch.arange(batch, device=device), maybe_both.nonzero()[:, 0]])
     which = torch.cat([chosen, 1 - chosen[maybe_both]])
     rows = _batch_geometry(geometry, batch, dtype, device)[items]
-    refined = refine_pose(solutions[items, which], points[items], _geometry_of(rows),
-                          radius[items], weights[items], max_iter)
+    refined, _ = refine_pose(solutions[items, which], points[items], _geometry_of(rows),
+                             radius[items], weights[items], max_iter)
     out = solutions.detach().clone()
     out[items, which] = refined
     return out

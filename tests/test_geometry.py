@@ -1,0 +1,102 @@
+"""Forward model against an independent numpy implementation of CONVENTIONS.md."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from cup_cases import paper_poses
+
+from cupnet.ellipse import algebraic_residual, conic_to_params
+from cupnet.geometry import (
+    Geometry,
+    cup_axis,
+    mm_to_pixels,
+    pixels_to_mm,
+    pose_to_radians,
+    project_rim,
+    rim_conic,
+    rotation,
+)
+
+
+def numpy_rim_pixels(theta_deg, phi_deg, k, l_, h, r, sdd, spacing, u0, v0, t):
+    """CONVENTIONS written out by hand: Rz(phi) @ Rx(theta), c + R (r cos t, 0, r sin t)."""
+    a, p = math.radians(theta_deg), math.radians(phi_deg)
+    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    rz = np.array([[math.cos(p), -math.sin(p), 0], [math.sin(p), math.cos(p), 0], [0, 0, 1]])
+    local = np.stack([r * np.cos(t), np.zeros_like(t), r * np.sin(t)], 1)
+    world = np.array([k, l_, h]) + local @ (rz @ rx).T
+    scale = sdd / (sdd - world[:, 2])
+    return np.stack([u0 + scale * world[:, 0] / spacing, v0 + scale * world[:, 1] / spacing], 1)
+
+
+def test_projection_matches_numpy_reference(generator):
+    poses = paper_poses(20, generator)
+    geometry = Geometry(1100.0, 0.3, 511.5, 480.0)
+    t = torch.linspace(0, 2 * math.pi, 37, dtype=torch.float64)
+    ours = project_rim(pose_to_radians(poses), 27.0, geometry, t).numpy()
+    for pose, got in zip(poses.tolist(), ours, strict=True):
+        want = numpy_rim_pixels(*pose, 27.0, 1100.0, 0.3, 511.5, 480.0, t.numpy())
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+def test_cup_axis_is_the_conventions_formula(generator):
+    poses = pose_to_radians(paper_poses(50, generator))
+    th, ph = poses[:, 0], poses[:, 1]
+    want = torch.stack([-torch.sin(ph) * torch.cos(th), torch.cos(ph) * torch.cos(th),
+                        torch.sin(th)], -1)
+    torch.testing.assert_close(cup_axis(poses), want)
+    rot = rotation(th, ph)
+    torch.testing.assert_close(rot @ rot.transpose(-1, -2), torch.eye(3, dtype=torch.float64)
+                               .expand_as(rot))
+
+
+def test_inclination_sign_follows_conventions():
+    """phi > 0 tilts the projected axis towards -u (the image's left)."""
+    pose = pose_to_radians(torch.tensor([[20.0, 40.0, 0.0, 0.0, 300.0]], dtype=torch.float64))
+    assert cup_axis(pose)[0, 0] < 0 and cup_axis(pose)[0, 1] > 0
+
+
+def test_rim_conic_contains_projected_rim_and_matches_a_fitted_ellipse(generator):
+    import cv2
+
+    poses = paper_poses(30, generator)
+    poses[:, 0] = poses[:, 0].clamp(min=5.0)  # well-defined ellipses for OpenCV
+    geometry = Geometry(1040.0, 0.2, 600.0, 500.0)
+    t = torch.linspace(0, 2 * math.pi, 721, dtype=torch.float64)[:-1]
+    points = project_rim(pose_to_radians(poses), 25.0, geometry, t)
+    conic = rim_conic(pose_to_radians(poses), 25.0, geometry)
+    params = conic_to_params(conic)
+    # Every projected rim point lies on the conic (residual relative to the conic's scale).
+    scale = (points**2).sum(-1).max() + 1
+    assert algebraic_residual(conic, points).abs().max() / scale < 1e-12
+    for pts, p in zip(points.numpy(), params.numpy(), strict=True):
+        (cx, cy), (w, h), ang = cv2.fitEllipseDirect(pts.astype(np.float32))
+        assert abs(cx - p[0]) < 1e-2 and abs(cy - p[1]) < 1e-2
+        assert abs(max(w, h) / 2 - p[2]) < 1e-2 and abs(min(w, h) / 2 - p[3]) < 1e-2
+
+
+def test_pixels_mm_round_trip():
+    geometry = Geometry(1000.0, 0.25, 100.0, 50.0)
+    uv = torch.tensor([[[0.0, 0.0], [100.0, 50.0], [399.5, -20.0]]], dtype=torch.float64)
+    xy = pixels_to_mm(uv, geometry)
+    torch.testing.assert_close(xy[0, 1], torch.zeros(2, dtype=torch.float64))
+    torch.testing.assert_close(mm_to_pixels(xy, geometry), uv)
+
+
+def test_default_principal_point_is_image_centre():
+    g = Geometry.for_image(1024, 768, 1000.0, 0.2)
+    assert (g.principal_u, g.principal_v) == (511.5, 383.5)
+
+
+@pytest.mark.parametrize("field, value, word", [("sdd", -1.0, "source-to-detector"),
+                                                ("pixel_spacing", 0.0, "pixel spacing"),
+                                                ("principal_u", math.nan, "principal point")])
+def test_geometry_validation_names_the_bad_value(field, value, word):
+    kwargs = dict(sdd=1000.0, pixel_spacing=0.2, principal_u=0.0, principal_v=0.0)
+    kwargs[field] = value
+    with pytest.raises(ValueError, match=word):
+        Geometry(**kwargs).validate()

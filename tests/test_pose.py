@@ -1,0 +1,188 @@
+"""Closed-form pose, ML refinement, range choice, gradients, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from cup_cases import paper_poses, rim_landmarks
+
+from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians, rim_conic
+from cupnet.pose import (
+    PoseError,
+    canonical_pose,
+    cramer_rao_bound,
+    orthographic_pose,
+    poses_from_conic,
+    range_violation,
+    refine_pose,
+    solve_pose,
+    solve_pose_paper,
+)
+
+GEOMETRY = Geometry(1040.0, 1.0, 0.0, 0.0)
+
+
+def test_closed_form_round_trip_over_the_paper_ranges(generator):
+    """Pose -> rim conic -> both candidates: one of them is the pose (deg / mm)."""
+    truth = paper_poses(2000, generator)
+    conic = rim_conic(pose_to_radians(truth), 25.0, GEOMETRY)
+    candidates = pose_to_degrees(canonical_pose(poses_from_conic(conic, GEOMETRY, 25.0)))
+    err = (candidates - truth[:, None]).abs().max(-1).values.min(-1).values
+    assert err.quantile(0.99) < 1e-7
+    assert err.max() < 1e-4  # rims seen almost edge-on (b/a ~ 1e-3) are ill-conditioned
+
+
+def test_solve_pose_noise_free_is_exact_and_flags_ambiguity(generator):
+    truth = paper_poses(500, generator)
+    geometry = Geometry(1040.0, 0.4, 700.0, 650.0)
+    sol = solve_pose(rim_landmarks(truth, geometry), geometry, 50.0)
+    assert sol.valid.all()
+    err = (sol.pose - truth).abs().max(-1).values
+    alt_err = (sol.alt_pose - truth).abs().max(-1).values
+    # Unambiguous: exact. Ambiguous: the truth is one of the two poses returned.
+    assert err[~sol.ambiguous].max() < 1e-6
+    assert torch.minimum(err, alt_err)[sol.ambiguous].max() < 1e-6
+    assert set(sol.status) <= {"ok", "ambiguous"}
+    assert (sol.residual_px < 1e-6).all()
+    # Both returned poses lie in the CONVENTIONS ranges.
+    for pose in (sol.pose, sol.alt_pose[sol.ambiguous]):
+        assert (pose[:, 0] >= 0).all() and (pose[:, 0] <= 90).all()
+        assert (pose[:, 1].abs() <= 90).all()
+
+
+def test_edge_on_and_face_on_cups():
+    # On the central ray the mirror pose is (-theta, phi) = (theta, phi - 180): both in range
+    # (within the 1 deg margin) near theta = 0 and near phi = 90.
+    truth = torch.tensor([[0.3, 20.0, 0.0, 0.0, 300.0],     # almost edge-on: ambiguous
+                          [89.5, 10.0, 0.0, 0.0, 200.0],    # almost face-on
+                          [30.0, 89.8, 0.0, 0.0, 300.0]], dtype=torch.float64)
+    sol = solve_pose(rim_landmarks(truth, GEOMETRY), GEOMETRY, 50.0)
+    assert bool(sol.ambiguous[0]) and bool(sol.ambiguous[2])
+    err = torch.minimum((sol.pose - truth).abs().max(-1).values,
+                        (sol.alt_pose - truth).abs().nan_to_num(1e9).max(-1).values)
+    assert err[[0, 2]].max() < 1e-5
+    # Face-on: phi is ill-defined, the rest is exact.
+    assert (sol.pose[1, [0, 2, 3, 4]] - truth[1, [0, 2, 3, 4]]).abs().max() < 1e-3
+
+
+def test_range_violation_and_canonical_pose():
+    rad = pose_to_radians(torch.tensor([[20.0, 30.0, 0, 0, 100], [20.0, 120.0, 0, 0, 100],
+                                        [-5.0, 10.0, 0, 0, 100]], dtype=torch.float64))
+    violation = torch.rad2deg(range_violation(rad))
+    torch.testing.assert_close(violation, torch.tensor([0.0, 20.0, 5.0], dtype=torch.float64))
+    canon = pose_to_degrees(canonical_pose(rad))
+    # (-5, 10) is the same rim circle as (5, -170): out of range, nearest boundary theta = 0.
+    assert canon[2, 0] == 0.0 and abs(float(canon[2, 1]) - 10.0) < 1e-9
+
+
+def test_refinement_lowers_the_rim_residual_and_reaches_a_stationary_point(generator):
+    truth = paper_poses(64, generator)
+    truth[:, 0] = truth[:, 0].clamp(min=15.0)
+    points = rim_landmarks(truth, GEOMETRY) + torch.randn(64, 100, 2, generator=generator,
+                                                          dtype=torch.float64)
+    closed = solve_pose(points, GEOMETRY, 50.0, refine=False, on_error="flag")
+    refined = solve_pose(points, GEOMETRY, 50.0, on_error="flag")
+    assert (refined.residual_px <= closed.residual_px + 1e-9).all()
+    assert refined.residual_px.mean() < closed.residual_px.mean()
+    # Residual of the ML fit ~ the noise's normal component (1 px), a little less (5 dof).
+    assert 0.85 < float(refined.residual_px.mean()) < 1.0
+
+
+def test_cramer_rao_bound_matches_the_spread_of_the_ml_estimate(generator):
+    truth = torch.tensor([[40.0, 25.0, 30.0, -20.0, 300.0]], dtype=torch.float64)
+    trials = 400
+    t = torch.arange(100, dtype=torch.float64) * (2 * math.pi / 100)
+    clean = rim_landmarks(truth, GEOMETRY)
+    points = clean + torch.randn(trials, 100, 2, generator=generator, dtype=torch.float64)
+    est = solve_pose(points, GEOMETRY, 50.0).pose
+    bound = cramer_rao_bound(pose_to_radians(truth), 25.0, GEOMETRY, t, 1.0)[0]
+    ratio = est.std(0) / bound
+    assert ((ratio > 0.85) & (ratio < 1.15)).all(), ratio
+
+
+def test_gradcheck_refined_pose_wrt_points_and_weights(generator):
+    truth = torch.tensor([[35.0, 20.0, 10.0, 5.0, 250.0]], dtype=torch.float64)
+    geometry = Geometry(1040.0, 1.0, 0.0, 0.0)
+    t = torch.arange(8, dtype=torch.float64) * (2 * math.pi / 8)
+    points = rim_landmarks(truth, geometry, n=8) + 0.3 * torch.randn(
+        1, 8, 2, generator=generator, dtype=torch.float64)
+    start = poses_from_conic(rim_conic(pose_to_radians(truth), 25.0, geometry), geometry,
+                             25.0)[:, 0]
+    weights = 0.5 + torch.rand(1, 8, generator=generator, dtype=torch.float64)
+    points.requires_grad_(True)
+    weights.requires_grad_(True)
+    del t
+
+    def refined(p: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        return refine_pose(start, p, geometry, 25.0, w, max_iter=100, tol=1e-30)[0]
+
+    assert torch.autograd.gradcheck(refined, (points, weights), atol=1e-6, rtol=1e-4)
+
+
+def test_gradcheck_closed_form_pose_wrt_points(generator):
+    truth = torch.tensor([[25.0, -30.0, -10.0, 20.0, 300.0]], dtype=torch.float64)
+    points = rim_landmarks(truth, GEOMETRY, n=7) + 0.2 * torch.randn(
+        1, 7, 2, generator=generator, dtype=torch.float64)
+    points.requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda p: solve_pose(p, GEOMETRY, 50.0, refine=False).pose, (points,))
+
+
+def test_pose_gradient_reaches_landmarks_through_solve_pose(generator):
+    truth = torch.tensor([[30.0, 15.0, 0.0, 0.0, 300.0]], dtype=torch.float64)
+    points = (rim_landmarks(truth, GEOMETRY, n=32) + 0.5 * torch.randn(
+        1, 32, 2, generator=generator, dtype=torch.float64)).requires_grad_(True)
+    sol = solve_pose(points, GEOMETRY, 50.0)
+    sol.pose[0, 0].backward()
+    assert torch.isfinite(points.grad).all() and points.grad.abs().sum() > 0
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(geometry=Geometry(1040.0, -1.0, 0.0, 0.0)), "pixel spacing"),
+    (dict(geometry=Geometry(0.0, 1.0, 0.0, 0.0)), "source-to-detector"),
+    (dict(cup_diameter=-50.0), "radius"),
+    (dict(cup_diameter=400.0), "outside"),  # no cup that big fits between source and detector
+])
+def test_bad_geometry_raises_naming_the_value(kwargs, message):
+    truth = torch.tensor([[30.0, 15.0, 0.0, 0.0, 300.0]], dtype=torch.float64)
+    args = dict(points=rim_landmarks(truth, GEOMETRY), geometry=GEOMETRY, cup_diameter=50.0)
+    args.update(kwargs)
+    with pytest.raises(PoseError, match=message):
+        solve_pose(**args)
+
+
+def test_tiny_ellipse_and_bad_items_are_flagged_while_the_batch_goes_on():
+    truth = torch.tensor([[30.0, 15.0, 0.0, 0.0, 300.0]] * 3, dtype=torch.float64)
+    points = rim_landmarks(truth, GEOMETRY, n=20).clone()
+    points[1] = points[1].mean(0) + (points[1] - points[1].mean(0)) * 0.01  # ~0.3 px ellipse
+    points[2, 3] = math.nan
+    sol = solve_pose(points, GEOMETRY, 50.0, on_error="flag")
+    assert sol.status[0] == "ok"
+    assert "too small" in sol.status[1] and "non-finite" in sol.status[2]
+    assert torch.isnan(sol.pose[1:]).all() and torch.isfinite(sol.pose[0]).all()
+    with pytest.raises(PoseError, match="item 1: ellipse too small"):
+        solve_pose(points, GEOMETRY, 50.0)
+
+
+def test_orthographic_baseline_is_exact_for_a_distant_source():
+    truth = torch.tensor([[35.0, -40.0, 0.0, 0.0, 100.0]], dtype=torch.float64)
+    far = Geometry(1e9, 1.0, 0.0, 0.0)
+    sol = solve_pose(rim_landmarks(truth, far), far, 50.0)
+    ortho = orthographic_pose(sol.ellipse)
+    torch.testing.assert_close(ortho[0], truth[0, :2], atol=1e-4, rtol=0)
+
+
+def test_orthographic_baseline_is_biased_off_centre_and_perspective_is_not():
+    truth = torch.tensor([[20.0, 30.0, 100.0, 100.0, 150.0]], dtype=torch.float64)
+    sol = solve_pose(rim_landmarks(truth, GEOMETRY), GEOMETRY, 50.0)
+    assert abs(float(orthographic_pose(sol.ellipse)[0, 0]) - 20.0) > 2.0
+    assert abs(float(sol.pose[0, 0]) - 20.0) < 1e-6
+
+
+def test_paper_mode_converges_from_its_first_best_guess():
+    truth = torch.tensor([[28.0, 35.0, 20.0, -10.0, 300.0]], dtype=torch.float64)
+    pose, steps = solve_pose_paper(rim_landmarks(truth, GEOMETRY), GEOMETRY, 50.0, steps=4000)
+    assert (pose - truth).abs().max() < 0.05
+    assert 10 < int(steps[0]) <= 4000
