@@ -182,3 +182,19 @@ def test_stream_keeps_order_and_goes_past_bad_files(tmp_path: Path) -> None:
             assert frame.error is not None and frame.image is None
         else:
             assert frame.error is None and frame.image[0, 0] == pytest.approx(i * 10 / 255)
+
+
+def test_stream_reads_a_bounded_number_of_frames_ahead(tmp_path: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    import cupnet.io.images as images
+
+    cv2.imwrite(str(tmp_path / "one.png"), np.zeros((16, 16), np.uint8))
+    sources = [ImageSource(tmp_path / "one.png", f"copy{i}.png") for i in range(100)]
+    decoded = []
+    real = images._decode
+    monkeypatch.setattr(images, "_decode", lambda unit: decoded.append(unit) or real(unit))
+    stream = iter_frames(sources, workers=2, lookahead=4)
+    first = next(stream)
+    assert first.name == "copy0.png"
+    assert len(decoded) <= 5  # the frame handed out and at most 4 waiting
+    stream.close()
