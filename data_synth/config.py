@@ -68,7 +68,7 @@ class SynthConfig:
     p_screw_holes: float = _prob(0.4)
     p_porous_rim: float = _prob(0.5)
     # Attenuation (1/mm at the reference energy).
-    mu_shell: Range = _range((0.12, 0.3), 0.0)
+    mu_shell: Range = _range((0.15, 0.35), 0.0)
     mu_head: Range = _range((0.14, 0.45), 0.0)
     mu_liner: Range = _range((0.0, 0.004), 0.0)
     mu_bone: Range = _range((0.025, 0.05), 0.0)
@@ -77,8 +77,8 @@ class SynthConfig:
     anatomy_bank: str | None = None
     anatomy_ct: str | None = None
     p_anatomy: float = _prob(0.9)
-    anatomy_scale: Range = _range((0.5, 1.4), 0.0)
-    anatomy_zoom: Range = _range((0.8, 1.6), 0.05)
+    anatomy_scale: Range = _range((0.4, 1.1), 0.0)
+    anatomy_zoom: Range = _range((1.0, 1.8), 0.05)
     p_bones: float = _prob(0.9)
     smooth_background: Range = _range((0.0, 0.6), 0.0)
     # Image formation.

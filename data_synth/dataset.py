@@ -10,6 +10,7 @@ import itertools
 import math
 from collections.abc import Iterator
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -20,15 +21,33 @@ from cupnet.geometry import Geometry, pose_to_radians, project_rim, rim_conic
 from data_synth.anatomy import bank_path, load_bank, smooth_field, warp_anatomy
 from data_synth.config import SynthConfig
 from data_synth.formation import form_image
-from data_synth.raycast import render_parts, subpixel_grid
+from data_synth.raycast import Part, render_parts, subpixel_grid
 from data_synth.scene import MAX_CUPS, sample_scene, uniform
 
 RIM_POINTS = 64
-MASK_SUPERSAMPLE = 4
+THIN_ELLIPSE_PX = 2.0
+THIN_SUPERSAMPLE = 8
 # Photoelectric absorption dominates in metal and falls faster with energy than the Compton
 # scattering of tissue: metal's attenuation scales with a higher power of the energy factor.
 METAL_ENERGY_POWER = 1.5
 BASE_TISSUE = (3.0, 6.0)  # water-equivalent attenuation of a body without CT anatomy
+
+
+def render_bones(bones: list[Part], geometry: Geometry, width: int, height: int) -> Tensor:
+    """Line integrals ``(H, W)`` of the smooth bone parts, cast at half resolution.
+
+    Half-resolution pixel ``(j, i)`` covers full-resolution pixels ``2j, 2j + 1``, so its centre
+    is at ``u = 2 j + 1/2``: spacing ``2 s`` and principal point ``(u0 - 1/2) / 2``; bilinear
+    upsampling (OpenCV's pixel-area alignment) puts the values back in place.
+    """
+    if not bones:
+        return torch.zeros(height, width)
+    sdd, spacing, u0, v0 = (float(t) for t in geometry.tensors())
+    half = Geometry(sdd, 2 * spacing, (u0 - 0.5) / 2, (v0 - 0.5) / 2)
+    small = render_parts(bones, half, (width + 1) // 2, (height + 1) // 2)
+    full = cv2.resize(small.numpy(), ((width + 1) // 2 * 2, (height + 1) // 2 * 2),
+                      interpolation=cv2.INTER_LINEAR)
+    return torch.from_numpy(full[:height, :width])
 
 
 def sample_rng(seed: int, index: int) -> np.random.Generator:
@@ -54,7 +73,10 @@ def opening_mask(poses: Tensor, diameters: Tensor, geometry: Geometry, width: in
                  height: int) -> Tensor:
     """Fraction ``(H, W)`` of each pixel inside the union of the cups' rim ellipses.
 
-    Coverage is measured on a 4 x 4 sub-pixel grid against the exact rim conic.
+    Anti-aliased analytically: the coverage of a pixel is ``clamp(1/2 - d, 0, 1)`` with ``d``
+    the first-order (Sampson) signed distance in pixels of its centre from the rim conic,
+    exact for a straight edge and within ~1/(8 b) px for an ellipse of semi-minor axis ``b``;
+    ellipses thinner than ``THIN_ELLIPSE_PX`` count inside samples on an 8 x 8 grid instead.
     """
     mask = torch.zeros(height, width)
     if len(poses) == 0:
@@ -68,10 +90,18 @@ def opening_mask(poses: Tensor, diameters: Tensor, geometry: Geometry, width: in
                max(math.floor(cy - half_v) - 1, 0), min(math.ceil(cy + half_v) + 2, height))
         if box[0] >= box[1] or box[2] >= box[3]:
             continue
-        u, v = subpixel_grid(box, MASK_SUPERSAMPLE, torch.float64)
+        # Thinner than a few pixels the first-order distance fails: count sub-pixels instead.
+        n = 1 if b >= THIN_ELLIPSE_PX else THIN_SUPERSAMPLE
+        u, v = subpixel_grid(box, n, torch.float64)
         points = torch.stack([u, v, torch.ones_like(u)], -1)
-        inside = (((points @ conic) * points).sum(-1) < 0).float()
-        coverage = torch.nn.functional.avg_pool2d(inside[None, None], MASK_SUPERSAMPLE)[0, 0]
+        gradient = points @ conic  # half the gradient of p^T C p in its first two entries
+        value = (gradient * points).sum(-1)
+        if n == 1:
+            distance = value / (2 * gradient[..., :2].norm(dim=-1)).clamp_min(1e-12)
+            coverage = (0.5 - distance).clamp(0, 1).float()
+        else:
+            inside = (value < 0).float()[None, None]
+            coverage = torch.nn.functional.avg_pool2d(inside, n)[0, 0]
         region = mask[box[2]:box[3], box[0]:box[1]]
         torch.maximum(region, coverage, out=region)
     return mask
@@ -90,11 +120,10 @@ def synthesize(config: SynthConfig, seed_or_generator: int | np.random.Generator
         ``geometry (4,)`` (sdd mm, spacing mm/px, u0 px, v0 px); ``pose (2, 5)`` (theta deg,
         phi deg, k, l, h mm); ``ellipse (2, 5)`` (cx, cy, a, b px, alpha deg);
         ``rim (2, 64, 2)`` px; ``cup_diameter (2,)`` mm; ``cup_valid (2,)`` bool. Slots that
-        hold no cup are zero with ``cup_valid`` False. Truth is float64.
+        hold no cup are zero with ``cup_valid`` False. Truth is float64. ``index ()`` int64.
     """
     rng = (seed_or_generator if isinstance(seed_or_generator, np.random.Generator)
            else sample_rng(seed_or_generator, index))
-    generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
     scene = sample_scene(config, rng)
     width, height, geometry = scene.width, scene.height, scene.geometry
 
@@ -105,12 +134,11 @@ def synthesize(config: SynthConfig, seed_or_generator: int | np.random.Generator
         tissue = tissue * uniform(rng, config.anatomy_scale)
     else:
         tissue = torch.full((height, width), uniform(rng, BASE_TISSUE))
-    tissue = tissue + smooth_field(rng, width, height, uniform(rng, config.smooth_background),
-                                   generator)
-    render_parts(scene.bones, geometry, width, height, out=tissue)
+    tissue = tissue + smooth_field(rng, width, height, uniform(rng, config.smooth_background))
+    tissue = tissue + render_bones(scene.bones, geometry, width, height)
     energy = uniform(rng, config.energy_factor)
     line_integral = tissue * energy + metal * energy**METAL_ENERGY_POWER
-    image = form_image(line_integral, scene.field_radius, config, rng, generator)
+    image = form_image(line_integral, scene.field_radius, config, rng)
 
     n = len(scene.poses)
     pose = torch.zeros(MAX_CUPS, 5, dtype=torch.float64)
@@ -131,14 +159,16 @@ def synthesize(config: SynthConfig, seed_or_generator: int | np.random.Generator
         "rim": rim,
         "cup_diameter": diameter,
         "cup_valid": valid,
+        "index": torch.tensor(index, dtype=torch.int64),
     }
 
 
 class SynthDataset(IterableDataset):
     """Endless (or ``length``-long) stream of :func:`synthesize` samples for a DataLoader.
 
-    Worker ``w`` of ``n`` makes samples ``w, w + n, w + 2n, ...``; a DataLoader returns them
-    in index order, so the stream is the same for any number of workers.
+    Worker ``w`` of ``n`` makes samples ``w, w + n, w + 2n, ...``. Sample ``i`` is the same
+    whatever the number of workers (its ``index`` entry says which it is); only the order in
+    which a multi-worker DataLoader batches them changes.
     """
 
     def __init__(self, config: SynthConfig, seed: int, length: int | None = None) -> None:

@@ -12,6 +12,7 @@ supersampled on an ``n x n`` grid inside each pixel and averaged (area anti-alia
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -32,11 +33,12 @@ class Rays:
 
 
 def detector_rays(geometry: Geometry, u: Tensor, v: Tensor) -> Rays:
-    """Rays from the source to the detector points at pixel positions ``u, v`` (``(N,)`` px)."""
+    """Rays from the source to the detector points at pixel positions ``u, v`` (any shape)."""
     sdd, spacing, u0, v0 = geometry.tensors(u.dtype, u.device)
-    target = torch.stack([(u - u0) * spacing, (v - v0) * spacing, -sdd.expand_as(u)], -1)
-    source = torch.stack([torch.zeros_like(sdd), torch.zeros_like(sdd), sdd])
-    return Rays(source, target / target.norm(dim=-1, keepdim=True))
+    x, y = (u - u0) * spacing, (v - v0) * spacing
+    inverse_norm = torch.rsqrt(x * x + y * y + sdd * sdd)
+    dirs = torch.stack([x * inverse_norm, y * inverse_norm, -sdd * inverse_norm], -1)
+    return Rays(torch.stack([torch.zeros_like(sdd), torch.zeros_like(sdd), sdd]), dirs)
 
 
 def ellipsoid_interval(rays: Rays, centre: Tensor, axes: Tensor, semi_axes: Tensor) -> Interval:
@@ -62,10 +64,13 @@ def ellipsoid_interval(rays: Rays, centre: Tensor, axes: Tensor, semi_axes: Tens
 
 
 def sphere_interval(rays: Rays, centre: Tensor, radius: Tensor | float) -> Interval:
-    """:func:`ellipsoid_interval` of a sphere of ``radius`` mm."""
-    radius = torch.as_tensor(radius, dtype=rays.dirs.dtype)
-    eye = torch.eye(3, dtype=rays.dirs.dtype, device=rays.dirs.device)
-    return ellipsoid_interval(rays, centre, eye, radius.expand(3))
+    """:func:`ellipsoid_interval` of a sphere of ``radius`` mm (``centre (3,)``)."""
+    offset = centre - rays.source
+    t_mid = rays.dirs @ offset
+    # The closest point's distance, not |offset|^2 - t_mid^2: no float32 cancellation.
+    closest = offset - t_mid[:, None] * rays.dirs
+    half = torch.sqrt((radius**2 - (closest * closest).sum(-1)).clamp_min(0.0))
+    return t_mid - half, t_mid + half
 
 
 def clip_halfspace(interval: Interval, rays: Rays, point: Tensor, normal: Tensor) -> Interval:
@@ -106,12 +111,6 @@ class Part:
     supersample: int = 1
 
 
-def box_corners(bounds: Tensor) -> Tensor:
-    """``(2, 3)`` min/max corners -> the box's ``(8, 3)`` vertices."""
-    index = torch.cartesian_prod(*(torch.arange(2) for _ in range(3)))
-    return bounds[index, torch.arange(3)]
-
-
 def pixel_box(bounds: Tensor, geometry: Geometry, width: int, height: int
               ) -> tuple[int, int, int, int] | None:
     """Pixels ``(u_lo, u_hi, v_lo, v_hi)`` (end exclusive) the box can cover; None if none.
@@ -120,12 +119,13 @@ def pixel_box(bounds: Tensor, geometry: Geometry, width: int, height: int
     corners, so this never clips a part (the corners must lie below the source).
     """
     sdd, spacing, u0, v0 = (float(t) for t in geometry.tensors())
-    corners = box_corners(bounds.double())
-    scale = sdd / (sdd - corners[:, 2]) / spacing
-    u = u0 + corners[:, 0] * scale
-    v = v0 + corners[:, 1] * scale
-    u_lo, u_hi = max(int(u.min().floor()) - 1, 0), min(int(u.max().ceil()) + 2, width)
-    v_lo, v_hi = max(int(v.min().floor()) - 1, 0), min(int(v.max().ceil()) + 2, height)
+    (x0, y0, z0), (x1, y1, z1) = bounds.tolist()
+    # Extremes of x / (sdd - z) over the corners: at z0 or z1, with x0 or x1.
+    near, far = sdd / (sdd - z0) / spacing, sdd / (sdd - z1) / spacing
+    us = [u0 + x * m for x in (x0, x1) for m in (near, far)]
+    vs = [v0 + y * m for y in (y0, y1) for m in (near, far)]
+    u_lo, u_hi = max(math.floor(min(us)) - 1, 0), min(math.ceil(max(us)) + 2, width)
+    v_lo, v_hi = max(math.floor(min(vs)) - 1, 0), min(math.ceil(max(vs)) + 2, height)
     if u_lo >= u_hi or v_lo >= v_hi:
         return None
     return u_lo, u_hi, v_lo, v_hi
@@ -149,19 +149,27 @@ def render_parts(parts: list[Part], geometry: Geometry, width: int, height: int,
     """Sum of the parts' line integrals over the image: ``(height, width)`` float32.
 
     Each part is evaluated on its own pixel box only and averaged over its sub-pixel samples.
-    ``out`` (``(height, width)``), when given, is added to in place and returned.
+    Parts without supersampling share one table of pixel-centre rays. ``out``
+    (``(height, width)``), when given, is added to in place and returned.
     """
     image = torch.zeros(height, width) if out is None else out
+    centre_rays: Rays | None = None
     for part in parts:
         box = pixel_box(part.bounds, geometry, width, height)
         if box is None:
             continue
-        n = part.supersample
-        u, v = subpixel_grid(box, n)
-        rays = detector_rays(geometry, u.reshape(-1), v.reshape(-1))
-        values = part.line_integral(rays).reshape(u.shape)
-        if n > 1:
-            values = torch.nn.functional.avg_pool2d(values[None, None], n)[0, 0]
         u_lo, u_hi, v_lo, v_hi = box
-        image[v_lo:v_hi, u_lo:u_hi] += values
+        n = part.supersample
+        if n == 1:
+            if centre_rays is None:
+                u, v = subpixel_grid((0, width, 0, height), 1)
+                centre_rays = detector_rays(geometry, u, v)  # dirs (H, W, 3)
+            dirs = centre_rays.dirs[v_lo:v_hi, u_lo:u_hi].reshape(-1, 3)
+            values = part.line_integral(Rays(centre_rays.source, dirs))
+            image[v_lo:v_hi, u_lo:u_hi] += values.reshape(v_hi - v_lo, u_hi - u_lo)
+            continue
+        u, v = subpixel_grid(box, n)
+        values = part.line_integral(detector_rays(geometry, u.reshape(-1), v.reshape(-1)))
+        values = torch.nn.functional.avg_pool2d(values.reshape(u.shape)[None, None], n)
+        image[v_lo:v_hi, u_lo:u_hi] += values[0, 0]
     return image

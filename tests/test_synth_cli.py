@@ -1,0 +1,77 @@
+"""cupnet synth: images, meta.csv and truth.csv on disk, DICOM tags, errors."""
+
+from __future__ import annotations
+
+import csv
+
+import cv2
+import numpy as np
+import pytest
+
+from cupnet.cli import main
+from data_synth import SynthConfig, synthesize
+from data_synth.cli import META_COLUMNS, TRUTH_COLUMNS
+
+
+def read_csv(path):
+    with open(path, newline="") as stream:
+        return list(csv.DictReader(stream))
+
+
+def test_png_output_matches_synthesize(tmp_path):
+    out = tmp_path / "synth"
+    assert main(["synth", "--n", "3", "--out", str(out), "--size", "64", "48",
+                 "--seed", "4"]) == 0
+    meta, truth = read_csv(out / "meta.csv"), read_csv(out / "truth.csv")
+    assert list(meta[0]) == META_COLUMNS and [r["image"] for r in meta] == [
+        f"synth_{i:06d}.png" for i in range(3)]
+    if truth:
+        assert list(truth[0]) == TRUTH_COLUMNS
+    config = SynthConfig(image_size=(64, 48))
+    rows = 0
+    for i, row in enumerate(meta):
+        sample = synthesize(config, 4, i)
+        pixels = cv2.imread(str(out / "images" / row["image"]), cv2.IMREAD_UNCHANGED)
+        assert pixels.dtype == np.uint16 and pixels.shape == (48, 64)
+        np.testing.assert_array_equal(pixels, np.round(sample["image"][0].numpy() * 65535))
+        geometry = [float(row[k]) for k in ("sdd_mm", "pixel_spacing_mm", "principal_u_px",
+                                            "principal_v_px")]
+        np.testing.assert_allclose(geometry, sample["geometry"].numpy(), atol=1e-5)
+        cups = [r for r in truth if r["image"] == row["image"]]
+        assert len(cups) == int(sample["cup_valid"].sum())
+        for cup in cups:
+            j = int(cup["cup"])
+            values = [float(cup[k]) for k in TRUTH_COLUMNS[2:7]]
+            np.testing.assert_allclose(values, sample["pose"][j].numpy(), atol=1e-5)
+            np.testing.assert_allclose(float(cup["ellipse_a_px"]), sample["ellipse"][j, 2],
+                                       atol=1e-5)
+        rows += len(cups)
+    assert rows == len(truth)
+
+
+def test_dicom_output_carries_the_geometry(tmp_path):
+    import pydicom
+
+    out = tmp_path / "dcm"
+    assert main(["synth", "--n", "1", "--out", str(out), "--size", "40", "32",
+                 "--format", "dcm"]) == 0
+    meta = read_csv(out / "meta.csv")[0]
+    ds = pydicom.dcmread(out / "images" / meta["image"])
+    assert ds.Rows == 32 and ds.Columns == 40 and ds.pixel_array.dtype == np.uint16
+    assert float(ds.DistanceSourceToDetector) == pytest.approx(float(meta["sdd_mm"]), abs=1e-3)
+    assert [float(v) for v in ds.ImagerPixelSpacing] == pytest.approx(
+        [float(meta["pixel_spacing_mm"])] * 2, abs=1e-5)
+
+
+def test_refuses_to_overwrite_and_names_bad_config_keys(tmp_path, capsys):
+    out = tmp_path / "synth"
+    assert main(["synth", "--n", "1", "--out", str(out), "--size", "32", "32"]) == 0
+    assert main(["synth", "--n", "1", "--out", str(out), "--size", "32", "32"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert main(["synth", "--n", "1", "--out", str(out), "--size", "32", "32",
+                 "--overwrite"]) == 0
+    config = tmp_path / "bad.yaml"
+    config.write_text("p_bilateral: 2.0\n")
+    assert main(["synth", "--n", "1", "--out", str(tmp_path / "x"), "--config",
+                 str(config)]) == 2
+    assert "p_bilateral" in capsys.readouterr().err

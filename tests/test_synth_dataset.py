@@ -1,0 +1,104 @@
+"""SynthDataset / synthesize: shapes, determinism across workers, truth that matches the image."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from cupnet.ellipse import params_to_conic, sampson_distance
+from data_synth import MAX_CUPS, SynthConfig, SynthDataset, synthesize
+
+SMALL = {"image_size": (64, 48)}
+
+
+def test_sample_shapes_and_dtypes():
+    sample = synthesize(SynthConfig(**SMALL), 0, 0)
+    expected = {
+        "image": ((1, 48, 64), torch.float32), "mask": ((1, 48, 64), torch.float32),
+        "geometry": ((4,), torch.float64), "pose": ((MAX_CUPS, 5), torch.float64),
+        "ellipse": ((MAX_CUPS, 5), torch.float64), "rim": ((MAX_CUPS, 64, 2), torch.float64),
+        "cup_diameter": ((MAX_CUPS,), torch.float64), "cup_valid": ((MAX_CUPS,), torch.bool),
+        "index": ((), torch.int64),
+    }
+    assert set(sample) == set(expected)
+    for key, (shape, dtype) in expected.items():
+        assert sample[key].shape == shape and sample[key].dtype == dtype, key
+    assert 0 <= sample["image"].min() and sample["image"].max() <= 1
+    assert 0 <= sample["mask"].min() and sample["mask"].max() <= 1
+
+
+def test_same_seed_and_index_give_the_same_sample():
+    config = SynthConfig(**SMALL)
+    a, b, c = synthesize(config, 7, 3), synthesize(config, 7, 3), synthesize(config, 7, 4)
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    assert not torch.equal(a["image"], c["image"])
+
+
+def test_stream_is_the_same_for_any_number_of_workers():
+    dataset = SynthDataset(SynthConfig(**SMALL), seed=11, length=6)
+
+    def by_index(workers):
+        samples = {}
+        for batch in DataLoader(dataset, batch_size=2, num_workers=workers):
+            for i, index in enumerate(batch["index"].tolist()):
+                samples[index] = {key: value[i] for key, value in batch.items()}
+        return samples
+
+    single, multi = by_index(0), by_index(2)
+    assert sorted(single) == sorted(multi) == list(range(6))
+    for index, sample in single.items():
+        for key in sample:
+            assert torch.equal(sample[key], multi[index][key]), (index, key)
+    assert torch.equal(single[2]["image"], dataset[2]["image"])
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_truth_is_consistent_with_itself_and_the_image(seed):
+    # No anatomy and no round field: the implant is the only thing on a flat background.
+    config = SynthConfig(image_size=(96, 80), p_invert=0.0, p_no_cup=0.0, p_bilateral=0.0,
+                         p_anatomy=0.0, p_bones=0.0, smooth_background=(0.0, 0.0),
+                         p_circular_field=0.0)
+    sample = synthesize(config, seed, 0)
+    assert sample["cup_valid"].tolist() == [True, False]
+    ellipse, rim = sample["ellipse"][0], sample["rim"][0]
+    # Rim landmarks lie on the truth ellipse, and inside the image.
+    distance = sampson_distance(params_to_conic(ellipse[None]), rim[None])
+    assert distance.abs().max() < 1e-6
+    assert (rim[:, 0] >= 0).all() and (rim[:, 0] <= 95).all()
+    assert (rim[:, 1] >= 0).all() and (rim[:, 1] <= 79).all()
+    # The mask is the filled ellipse: its area and centroid.
+    mask = sample["mask"][0].double()
+    cx, cy, a, b, _ = ellipse.tolist()
+    assert abs(mask.sum() - math.pi * a * b) < 0.02 * math.pi * a * b + 0.05 * (a + b) + 0.5
+    v, u = torch.meshgrid(torch.arange(80.0), torch.arange(96.0), indexing="ij")
+    centroid = torch.stack([(mask * u.double()).sum(), (mask * v.double()).sum()]) / mask.sum()
+    # A rim seen edge-on is thinner than a pixel: its mask cannot place it within a pixel.
+    atol = 0.1 if b >= 2 else 0.5
+    assert torch.allclose(centroid, torch.tensor([cx, cy], dtype=torch.float64), atol=atol)
+    # Behind the opening lies the metal dome: darker than the field on average.
+    image = sample["image"][0]
+    assert image[mask > 0.5].mean() < image[mask == 0].mean()
+
+
+def test_no_cup_images():
+    sample = synthesize(SynthConfig(**SMALL, p_no_cup=1.0), 3, 0)
+    assert not sample["cup_valid"].any()
+    assert sample["mask"].sum() == 0 and sample["pose"].abs().sum() == 0
+
+
+def test_bilateral_cups_sit_on_opposite_hips():
+    config = SynthConfig(image_size=(128, 128), p_bilateral=1.0, p_no_cup=0.0,
+                         detector_width_mm=(420.0, 420.0), h_mm=(100.0, 200.0))
+    pairs = [s for s in (synthesize(config, 5, i) for i in range(8)) if s["cup_valid"].all()]
+    assert pairs, "a wide field should fit both hips"
+    for sample in pairs:
+        (phi0, k0), (phi1, k1) = sample["pose"][:, [1, 2]].tolist()
+        assert abs(phi0 + phi1) < 30  # mirrored inclination (with jitter)
+        # A right hip (phi > 0, on the image's left) has its partner to its right.
+        assert (k1 > k0) == (phi0 > 0)
+        assert sample["cup_diameter"][0] == sample["cup_diameter"][1]
+        assert sample["mask"].sum() > 0
