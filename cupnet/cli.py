@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+import warnings
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -39,6 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     if not argv or argv[0] not in COMMANDS:
         parser.parse_args(argv)  # prints help / the error and exits
         return 2
+    # A dependency scripts a function with torch.jit at import: not the user's concern.
+    warnings.filterwarnings("ignore", category=FutureWarning, message=".*torch.jit.script.*")
     name, rest = argv[0], argv[1:]
     module = importlib.import_module(COMMANDS[name][0])
     sub_parser = argparse.ArgumentParser(prog=f"cupnet {name}", description=COMMANDS[name][1])

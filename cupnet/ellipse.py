@@ -231,12 +231,10 @@ def fit_ellipse(
         raise EllipseFitError(f"ellipse fit of item {bad[0]}: {status[bad[0]]}")
     valid = torch.tensor([s == "ok" for s in status], device=points.device)
 
-    # Invalid items get a unit circle so the batch stays finite; their results are masked.
+    # Invalid items get unit weights and zero points, and below identity blocks in place of
+    # their (singular) scatter matrices, so the batch stays finite; their results are masked.
     if bad:
-        t = torch.linspace(0, 2 * math.pi, points.shape[1] + 1, dtype=points.dtype,
-                           device=points.device)[:-1]
-        circle = torch.stack([torch.cos(t), torch.sin(t)], -1).expand_as(points)
-        points = torch.where(valid[:, None, None], points, circle)
+        points = torch.where(valid[:, None, None], points, torch.zeros_like(points))
         weights = torch.where(valid[:, None], weights, torch.ones_like(weights))
     active = weights > 0
     points = torch.where(active[..., None], points, torch.zeros_like(points))
@@ -251,11 +249,12 @@ def fit_ellipse(
     s1 = torch.einsum("bn,bni,bnj->bij", w, quad, quad)
     s2 = torch.einsum("bn,bni,bnj->bij", w, quad, lin)
     s3 = torch.einsum("bn,bni,bnj->bij", w, lin, lin)
+    eye = torch.eye(3, dtype=points.dtype, device=points.device)
+    s3 = torch.where(valid[:, None, None], s3, eye)
     lin_from_quad = -torch.linalg.solve(s3, s2.transpose(-1, -2))  # (B, 3, 3)
     reduced = s1 + s2 @ lin_from_quad
-    reduced = 0.5 * (reduced + reduced.transpose(-1, -2))
+    reduced = torch.where(valid[:, None, None], 0.5 * (reduced + reduced.transpose(-1, -2)), eye)
     trace = reduced.diagonal(dim1=-2, dim2=-1).sum(-1)
-    eye = torch.eye(3, dtype=points.dtype, device=points.device)
     chol = torch.linalg.cholesky(reduced + (_RIDGE * trace)[:, None, None] * eye)
     constraint = torch.tensor([[0.0, 0.0, 2.0], [0.0, -1.0, 0.0], [2.0, 0.0, 0.0]],
                               dtype=points.dtype, device=points.device)
@@ -265,7 +264,10 @@ def fit_ellipse(
     _, vecs = torch.linalg.eigh(sym)
     top = vecs[..., -1:]  # the single positive eigenvalue is the largest
     quad_coef = torch.linalg.solve_triangular(chol.transpose(-1, -2), top, upper=True)
-    quad_coef = _polish(reduced, constraint, quad_coef)
+    if valid.any():  # polishing a stand-in block could meet an exactly singular system
+        polished = _polish(reduced[valid], constraint, quad_coef[valid])
+        quad_coef = quad_coef.clone()
+        quad_coef[valid] = polished
     lin_coef = lin_from_quad @ quad_coef
     coeffs = torch.cat([quad_coef, lin_coef], -2).squeeze(-1)
     conic_norm = coefficients_to_conic(coeffs)

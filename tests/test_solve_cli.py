@@ -1,0 +1,100 @@
+"""`cupnet solve` on both landmark formats, geometry precedence, bad rows, no overwrite."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+import torch
+from cup_cases import rim_landmarks
+
+from cupnet.cli import main
+from cupnet.geometry import Geometry
+from cupnet.io.landmarks import read_landmarks
+
+TRUTH = torch.tensor([[30.0, 20.0, 10.0, -20.0, 300.0], [15.0, -40.0, -50.0, 30.0, 200.0]],
+                     dtype=torch.float64)
+
+
+def write_long(path: Path, geometry: Geometry, extra: str = "") -> None:
+    points = rim_landmarks(TRUTH, geometry, n=40)
+    lines = ["image,u,v"] + [f"{name},{u},{v}" for name, pts in zip(("a.png", "b.png"), points,
+                                                                     strict=True)
+                             for u, v in pts.tolist()]
+    path.write_text("\n".join(lines) + "\n" + extra)
+
+
+def write_paper(path: Path) -> None:
+    points = rim_landmarks(TRUTH, Geometry(1040.0, 1.0, 255.5, 255.5), n=30)
+    header = ("image_name,image_width,image_height,source_to_detection_distance,radius,"
+              "n_landmarks," + ",".join(f"landmark_{i}_x,landmark_{i}_y" for i in range(1, 31)))
+    rows = [f"{name},512,512,1040,25,30," + ",".join(f"{u},{v}" for u, v in pts.tolist())
+            for name, pts in zip(("p1.png", "p2.png"), points, strict=True)]
+    path.write_text("\n".join([header, *rows]) + "\n")
+
+
+def results(path: Path) -> list[dict[str, str]]:
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def assert_poses(rows: list[dict[str, str]]) -> None:
+    for row, truth in zip(rows, TRUTH[:len(rows)].tolist(), strict=True):
+        got = [float(row[c]) for c in ("anteversion_deg", "inclination_deg", "k_mm", "l_mm",
+                                       "h_mm")]
+        assert got == pytest.approx(truth, abs=1e-3)
+        assert row["status"] == "ok" and float(row["residual_px"]) < 1e-6
+
+
+def test_paper_format_is_detected_and_solved_in_its_pixel_equals_mm_units(tmp_path):
+    write_paper(tmp_path / "label.csv")
+    assert main(["solve", str(tmp_path / "label.csv"), "--out", str(tmp_path / "r.csv")]) == 0
+    assert_poses(results(tmp_path / "r.csv"))
+
+
+def test_long_format_with_flags_and_bad_rows(tmp_path):
+    geometry = Geometry(1000.0, 0.4, 300.0, 250.0)
+    write_long(tmp_path / "lm.csv", geometry, extra="c.png,1,2\nc.png,3,4\nd.png,abc,3\n")
+    out = tmp_path / "r.csv"
+    code = main(["solve", str(tmp_path / "lm.csv"), "--sdd", "1000", "--pixel-spacing", "0.4",
+                 "--cup-diameter", "50", "--principal-point", "300", "250", "--out", str(out)])
+    assert code == 0
+    rows = results(out)
+    assert_poses(rows[:2])
+    assert rows[2]["image"] == "c.png" and "too few points" in rows[2]["status"]
+    assert rows[3]["image"] == "d.png" and "line" in rows[3]["status"]
+
+
+def test_meta_wins_over_flags_and_missing_values_are_named(tmp_path):
+    geometry = Geometry(1040.0, 0.5, 255.5, 255.5)
+    write_long(tmp_path / "lm.csv", geometry)
+    (tmp_path / "meta.csv").write_text(
+        "image,sdd_mm,pixel_spacing_mm,cup_diameter_mm,principal_u_px,principal_v_px\n"
+        "a.png,1040,0.5,50,255.5,255.5\n")
+    out = tmp_path / "r.csv"
+    # Wrong flags for a.png are overridden by meta.csv; b.png has no principal point.
+    main(["solve", str(tmp_path / "lm.csv"), "--meta", str(tmp_path / "meta.csv"), "--sdd",
+          "900", "--pixel-spacing", "0.5", "--cup-diameter", "50", "--out", str(out)])
+    rows = results(out)
+    assert_poses(rows[:1])
+    assert rows[1]["status"].startswith("error: missing principal point")
+
+
+def test_existing_output_is_not_overwritten(tmp_path, capsys):
+    write_paper(tmp_path / "label.csv")
+    out = tmp_path / "r.csv"
+    out.write_text("keep me")
+    assert main(["solve", str(tmp_path / "label.csv"), "--out", str(out)]) == 2
+    assert out.read_text() == "keep me" and "--overwrite" in capsys.readouterr().err
+    assert main(["solve", str(tmp_path / "label.csv"), "--out", str(out), "--overwrite"]) == 0
+    assert_poses(results(out))
+
+
+def test_unknown_format_and_empty_file_are_clear_errors(tmp_path):
+    (tmp_path / "x.csv").write_text("a,b,c\n1,2,3\n")
+    with pytest.raises(ValueError, match="unknown landmark format"):
+        read_landmarks(tmp_path / "x.csv")
+    (tmp_path / "e.csv").write_text("")
+    with pytest.raises(ValueError, match="empty"):
+        read_landmarks(tmp_path / "e.csv")
