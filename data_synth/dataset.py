@@ -55,34 +55,30 @@ def sample_rng(seed: int, index: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), int(index)])
 
 
-def rim_truth(poses: Tensor, diameters: Tensor, geometry: Geometry) -> tuple[Tensor, Tensor]:
-    """Ellipse parameters ``(n, 5)`` and rim landmarks ``(n, RIM_POINTS, 2)`` px, float64.
+def rim_truth(poses: Tensor, diameters: Tensor, geometry: Geometry
+              ) -> tuple[Tensor, Tensor, Tensor]:
+    """Rim conics ``(n, 3, 3)``, ellipse parameters ``(n, 5)`` and landmarks ``(n, 64, 2)`` px.
 
     Args:
-        poses: ``(n, 5)`` public units. diameters: ``(n,)`` mm.
+        poses: ``(n, 5)`` public units. diameters: ``(n,)`` mm. All float64.
     """
     radius = diameters / 2
     pose = pose_to_radians(poses)
-    ellipse = conic_to_params(rim_conic(pose, radius, geometry))
+    conic = rim_conic(pose, radius, geometry)
     t = torch.linspace(0, 2 * math.pi, RIM_POINTS + 1, dtype=torch.float64)[:-1]
-    rim = project_rim(pose, radius, geometry, t)
-    return ellipse, rim
+    return conic, conic_to_params(conic), project_rim(pose, radius, geometry, t)
 
 
-def opening_mask(poses: Tensor, diameters: Tensor, geometry: Geometry, width: int,
-                 height: int) -> Tensor:
-    """Fraction ``(H, W)`` of each pixel inside the union of the cups' rim ellipses.
+def opening_mask(conics: Tensor, ellipses: Tensor, width: int, height: int) -> Tensor:
+    """Fraction ``(H, W)`` of each pixel inside the union of the rim ellipses.
 
-    Anti-aliased analytically: the coverage of a pixel is ``clamp(1/2 - d, 0, 1)`` with ``d``
-    the first-order (Sampson) signed distance in pixels of its centre from the rim conic,
-    exact for a straight edge and within ~1/(8 b) px for an ellipse of semi-minor axis ``b``;
-    ellipses thinner than ``THIN_ELLIPSE_PX`` count inside samples on an 8 x 8 grid instead.
+    ``conics``: ``(n, 3, 3)`` rim conics (negative inside); ``ellipses``: their ``(n, 5)``
+    parameters. Anti-aliased analytically: a pixel's coverage is ``clamp(1/2 - d, 0, 1)``
+    with ``d`` the first-order (Sampson) signed distance in pixels of its centre from the
+    conic, exact for a straight edge and within ~1/(8 b) px for an ellipse of semi-minor axis
+    ``b``; ellipses thinner than ``THIN_ELLIPSE_PX`` count inside samples on an 8 x 8 grid.
     """
     mask = torch.zeros(height, width)
-    if len(poses) == 0:
-        return mask
-    conics = rim_conic(pose_to_radians(poses), diameters / 2, geometry)
-    ellipses = conic_to_params(conics)
     for conic, (cx, cy, a, b, alpha) in zip(conics, ellipses.tolist(), strict=True):
         ca, sa = math.cos(math.radians(alpha)), math.sin(math.radians(alpha))
         half_u, half_v = math.hypot(a * ca, b * sa), math.hypot(a * sa, b * ca)
@@ -146,10 +142,11 @@ def synthesize(config: SynthConfig, seed_or_generator: int | np.random.Generator
     rim = torch.zeros(MAX_CUPS, RIM_POINTS, 2, dtype=torch.float64)
     diameter = torch.zeros(MAX_CUPS, dtype=torch.float64)
     valid = torch.zeros(MAX_CUPS, dtype=torch.bool)
+    mask = torch.zeros(height, width)
     if n:
         pose[:n], diameter[:n], valid[:n] = scene.poses, scene.diameters, True
-        ellipse[:n], rim[:n] = rim_truth(scene.poses, scene.diameters, geometry)
-    mask = opening_mask(scene.poses, scene.diameters, geometry, width, height)
+        conics, ellipse[:n], rim[:n] = rim_truth(scene.poses, scene.diameters, geometry)
+        mask = opening_mask(conics, ellipse[:n], width, height)
     return {
         "image": image,
         "mask": mask[None],

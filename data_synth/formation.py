@@ -34,6 +34,16 @@ def _radius_grid(height: int, width: int) -> np.ndarray:
     return np.sqrt(v[:, None] ** 2 + u[None, :] ** 2)
 
 
+# Statistics of the field (mean for the exposure control, quantiles for the window) come
+# from every STATS_STRIDE-th row and column: as good for a smooth image, ~10x cheaper.
+STATS_STRIDE = 3
+
+
+def _field_sample(x: np.ndarray, in_field: np.ndarray) -> np.ndarray:
+    sub = x[::STATS_STRIDE, ::STATS_STRIDE]
+    return sub[in_field[::STATS_STRIDE, ::STATS_STRIDE]]
+
+
 def gaussian_blur(image: np.ndarray, sigma: float) -> np.ndarray:
     """Blur ``(H, W)`` float32 by a Gaussian of ``sigma`` px (OpenCV: on a CPU ~50x faster
     than kornia's or torch's convolution of a one-channel image, measured 0.3 vs 7-25 ms)."""
@@ -66,7 +76,7 @@ def form_image(line_integral: Tensor, field_radius: float, config: SynthConfig,
     height, width = line_integral.shape
     radius = _radius_grid(height, width)
     in_field = radius <= field_radius
-    if not in_field.any():
+    if not in_field[::STATS_STRIDE, ::STATS_STRIDE].any():
         in_field = np.ones_like(in_field)
     x = np.exp(-line_integral.numpy().astype(np.float32, copy=False))
     sigma = uniform(rng, config.blur_sigma_px)
@@ -76,34 +86,33 @@ def form_image(line_integral: Tensor, field_radius: float, config: SynthConfig,
     if scatter > 0:
         x = add_scatter(x, scatter)
     reach = field_radius if math.isfinite(field_radius) else float(radius.max())
-    x = x * (1 - uniform(rng, config.vignetting) * np.minimum(radius / reach, 1) ** 2)
+    x *= 1 - uniform(rng, config.vignetting) * np.minimum(radius * (1 / reach), 1) ** 2
     # Automatic exposure control: the dose gives a mean of `photons` counts inside the field;
     # from here on x is in units of that mean.
-    x = x / float(x[in_field].mean())
+    x *= 1 / float(_field_sample(x, in_field).mean())
     photons = uniform(rng, config.photons)
-    # Quantum noise: Poisson counts in their normal approximation (photons >> 1 where the
-    # image has detail; under metal both are a dark floor) at a fraction of the cost.
-    noise = rng.standard_normal(x.shape, dtype=np.float32)
-    x = x + np.sqrt(np.maximum(x, 0) / photons) * noise
     electronic = uniform(rng, config.electronic_noise)
-    if electronic > 0:
-        x = x + electronic * rng.standard_normal(x.shape, dtype=np.float32)
+    # Quantum noise (Poisson counts in their normal approximation: photons >> 1 where the
+    # image has detail, under metal both are a dark floor) and electronic noise, one draw.
+    sd = np.sqrt(np.maximum(x, 0) * (1 / photons) + electronic**2)
+    x += sd * rng.standard_normal(x.shape, dtype=np.float32)
     # Veiling glare of the intensifier: light spread over the output screen, a floor under
     # the darkest (metal) pixels.
-    x = x + uniform(rng, config.veiling_glare)
+    x += uniform(rng, config.veiling_glare)
     x = np.log(np.maximum(x, 0.5 / photons))
-    # Window on a subsample of the field's pixels (quantiles of all of them cost a sort).
-    sample = x[in_field][::5]
+    sample = _field_sample(x, in_field)
     ranks = [min(sample.size - 1, int(q * sample.size)) for q in _WINDOW_QUANTILES]
     low, high = np.partition(sample, ranks)[ranks]
-    x = np.clip((x - low) / max(high - low, 1e-6), 0, 1)
     contrast = uniform(rng, config.contrast)
-    x = np.clip((x - 0.5) * contrast + 0.5, 0, 1) ** uniform(rng, config.gamma)
+    # Window, then contrast about mid-grey: one affine map, one clip.
+    scale = contrast / max(high - low, 1e-6)
+    x = np.clip((x - low) * scale + 0.5 * (1 - contrast), 0, 1) ** uniform(rng, config.gamma)
     if rng.random() < config.p_invert:
         x = 1 - x
     if math.isfinite(field_radius):
-        # The intensifier's round field with a soft ~1 px edge over a dark surround.
-        edge = 1 / (1 + np.exp((radius - field_radius) / 0.7))
-        x = x * edge + rng.uniform(0.0, 0.08) * (1 - edge)
+        # The intensifier's round field with a soft ~2 px edge over a dark surround.
+        edge = np.clip((field_radius - radius) * 0.5 + 0.5, 0, 1)
+        surround = rng.uniform(0.0, 0.08)
+        x = (x - surround) * edge + surround
     levels = 255.0 if rng.random() < config.p_8bit else 65535.0
-    return torch.from_numpy(np.round(x * levels) / levels)[None].float()
+    return torch.from_numpy(np.round(x * levels) * (1 / levels))[None].float()

@@ -67,24 +67,31 @@ class Cup:
 def cup_line_integral(cup: Cup, rays: Rays) -> Tensor:
     """Attenuation line integral ``(N,)`` of the shell, liner and head along ``rays``."""
     centre, axis = cup.centre, cup.axes[:, 1]
-
-    def dome_ball(radius: float):
-        return clip_halfspace(sphere_interval(rays, centre, radius), rays, centre, axis)
-
-    outer, inner = dome_ball(cup.radius), dome_ball(cup.radius - cup.wall)
-    inner_length = length(inner)
-    shell = length(outer) - inner_length
-    if cup.porous_depth > 0:
-        core = dome_ball(cup.radius - cup.porous_depth)
-        shell = shell - (1.0 - cup.porous_density) * (length(outer) - length(core))
+    # All spheres of a cup share its centre: one closest-approach computation for all, and
+    # only the spheres the cup has.
+    radii = {"outer": cup.radius, "inner": cup.radius - cup.wall,
+             "core": cup.radius - cup.porous_depth, "liner": cup.liner_inner,
+             "head": cup.head_radius}
+    present = {"core": cup.porous_depth > 0, "liner": cup.liner_inner > 0,
+               "head": cup.head_radius > 0}
+    radii = {name: r for name, r in radii.items() if present.get(name, True)}
+    row = {name: i for i, name in enumerate(radii)}
+    balls = sphere_interval(rays, centre, torch.tensor(list(radii.values())))  # each (K, N)
+    dome = clip_halfspace(balls, rays, centre, axis)
+    outer = (dome[0][row["outer"]], dome[1][row["outer"]])
+    inner = (dome[0][row["inner"]], dome[1][row["inner"]])
+    lengths = length(dome)
+    shell = lengths[row["outer"]] - lengths[row["inner"]]
+    if "core" in row:  # the porous outer layer is less dense
+        shell = shell - (1.0 - cup.porous_density) * (lengths[row["outer"]] - lengths[row["core"]])
     for hole in cup.screw_holes:
         ball = sphere_interval(rays, hole[:3], hole[3])
         shell = shell - (length(intersect(outer, ball)) - length(intersect(inner, ball)))
     total = cup.mu_shell * shell
-    if cup.liner_inner > 0:
-        total = total + cup.mu_liner * (inner_length - length(dome_ball(cup.liner_inner)))
-    if cup.head_radius > 0:
-        total = total + cup.mu_head * length(sphere_interval(rays, centre, cup.head_radius))
+    if "liner" in row:
+        total = total + cup.mu_liner * (lengths[row["inner"]] - lengths[row["liner"]])
+    if "head" in row:  # the head is a whole sphere, not cut by the rim plane
+        total = total + cup.mu_head * (balls[1][row["head"]] - balls[0][row["head"]])
     return total
 
 
@@ -128,11 +135,11 @@ class Ellipsoid:
         return cls((start + end) / 2, frame_along(axis), semi, mu, **kwargs)
 
     def line_integral(self, rays: Rays) -> Tensor:
-        outer = length(ellipsoid_interval(rays, self.centre, self.axes, self.semi_axes))
         if self.hollow <= 0:
-            return self.mu * outer
-        inner = length(ellipsoid_interval(rays, self.centre, self.axes,
-                                          self.semi_axes * self.hollow))
+            return self.mu * length(ellipsoid_interval(rays, self.centre, self.axes,
+                                                       self.semi_axes))
+        outer, inner = length(ellipsoid_interval(rays, self.centre, self.axes, self.semi_axes,
+                                                 torch.tensor([1.0, self.hollow])))
         return self.mu * (outer - inner) + self.mu_inner * inner
 
     def part(self, supersample: int = 1) -> Part:

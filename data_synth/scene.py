@@ -187,15 +187,15 @@ def hip_parts(config: SynthConfig, rng: np.random.Generator, centre: Tensor, rad
     shaft_dir = _unit(-lateral * math.sin(np.deg2rad(rng.uniform(2, 10))), 1.0,
                       rng.uniform(-0.1, 0.1))
     metal: list[Part] = []
-    supersample = config.supersample
+    # The stem's outline carries no ground truth: one ray per pixel is enough.
     if stem:
         neck_r = rng.uniform(5.5, 7.5)
         metal.append(Ellipsoid.along(c, neck_base + neck_dir * 12, (neck_r, neck_r * 0.85),
-                                     mu_metal).part(supersample))
+                                     mu_metal).part())
         metal.append(Ellipsoid.along(neck_base - shaft_dir * 25 + neck_dir * 8,
                                      neck_base + shaft_dir * rng.uniform(110, 170),
                                      (rng.uniform(8, 11), rng.uniform(6, 8)),
-                                     mu_metal).part(supersample))
+                                     mu_metal).part())
     bones: list[Part] = []
     if rng.random() < config.p_bones:
         mu = uniform(rng, config.mu_bone)
@@ -218,8 +218,8 @@ def hip_parts(config: SynthConfig, rng: np.random.Generator, centre: Tensor, rad
             # hollow ring) below and medial.
             Ellipsoid(c - x_lat * rng.uniform(5, 25) - y_inf * rng.uniform(35, 55),
                       _rotz(lateral * rng.uniform(10, 35)),
-                      torch.tensor([rng.uniform(55, 75), rng.uniform(70, 90), 20.0]), mu,
-                      hollow=0.9, mu_inner=mu * 0.7),
+                      torch.tensor([rng.uniform(55, 75), rng.uniform(70, 90), 14.0]), mu * 0.8,
+                      hollow=0.9, mu_inner=mu * 0.5),
             Ellipsoid(c - x_lat * rng.uniform(30, 45) + y_inf * rng.uniform(40, 55),
                       _rotz(-lateral * rng.uniform(0, 30)),
                       torch.tensor([rng.uniform(38, 50), rng.uniform(30, 40), 16.0]), mu * 1.3,

@@ -32,7 +32,7 @@ def test_sphere_chords_match_pythagoras():
     # Distance of the sphere centre from each ray (float64), then 2 sqrt(r^2 - d^2).
     exact = detector_rays(geometry, u.double(), torch.zeros(4, dtype=torch.float64))
     offset = centre.double() - exact.source
-    along = exact.dirs @ offset
+    along = offset @ exact.dirs
     distance = torch.sqrt((offset * offset).sum() - along**2)
     expected = 2 * torch.sqrt((radius**2 - distance**2).clamp_min(0))
     torch.testing.assert_close(chord.double(), expected, atol=2e-3, rtol=0)
