@@ -216,39 +216,50 @@ def canonical_pose(pose: Tensor) -> Tensor:
     return torch.cat([theta[..., None], phi[..., None], pose[..., 2:]], -1)
 
 
-def _rim_with_jacobians(pose: Tensor, t: Tensor, radius: Tensor, geom: Tensor
-                        ) -> tuple[Tensor, Tensor, Tensor]:
-    """Projected rim points and their analytic derivatives.
+def _rim_with_jacobians(pose: Tensor, t: Tensor, radius: Tensor, geom: Tensor,
+                        pose_jacobian: bool = True) -> tuple[Tensor, Tensor | None, Tensor]:
+    """Projected rim points and their analytic derivatives (the solver's inner loop).
+
+    With ``e1 = R[:, 0] = (cos phi, sin phi, 0)`` and
+    ``e3 = R[:, 2] = (sin phi sin theta, -cos phi sin theta, cos theta)``, a rim point is
+    ``X = c + r cos t e1 + r sin t e3``; its pixel position is
+    ``x = (u0, v0) + f X_xy / (sdd - X_z)``, ``f = sdd / spacing``.
 
     Args:
         pose: ``(B, 5)`` rad / mm; t: ``(B, N)`` rim parameters; radius: ``(B,)`` mm;
-        geom: ``(B, 4)`` (sdd, spacing, u0, v0).
+        geom: ``(B, 4)`` (sdd, spacing, u0, v0); pose_jacobian: also return ``d x / d pose``.
     Returns:
-        ``x (B, N, 2)`` px, ``d x / d pose (B, N, 2, 5)``, ``d x / d t (B, N, 2)``.
+        ``x (B, N, 2)`` px, ``d x / d pose (B, N, 2, 5)`` (or None), ``d x / d t (B, N, 2)``.
     """
-    theta, phi = pose[:, 0], pose[:, 1]
-    ones = torch.ones_like(theta)
-    rot, d_rot_theta = torch.func.jvp(rotation, (theta, phi), (ones, torch.zeros_like(phi)))
-    d_rot_phi = torch.func.jvp(rotation, (theta, phi), (torch.zeros_like(theta), ones))[1]
-    r = radius[:, None, None]
-    local = torch.stack([torch.cos(t), torch.zeros_like(t), torch.sin(t)], -1) * r  # (B,N,3)
-    d_local = torch.stack([-torch.sin(t), torch.zeros_like(t), torch.cos(t)], -1) * r
-    points = pose[:, None, 2:5] + local @ rot.transpose(-1, -2)
-    d_points = torch.stack([  # (B, N, 3, 6): d X / d (theta, phi, k, l, h, t)
-        local @ d_rot_theta.transpose(-1, -2), local @ d_rot_phi.transpose(-1, -2),
-        *(torch.zeros_like(points) for _ in range(3)), d_local @ rot.transpose(-1, -2)], -1)
-    d_points[..., 0, 2] = 1.0
-    d_points[..., 1, 3] = 1.0
-    d_points[..., 2, 4] = 1.0
+    ct, st = torch.cos(pose[:, 0]), torch.sin(pose[:, 0])
+    cp, sp = torch.cos(pose[:, 1]), torch.sin(pose[:, 1])
+    zero = torch.zeros_like(ct)
+    e1 = torch.stack([cp, sp, zero], -1)[:, None]  # (B, 1, 3)
+    e3 = torch.stack([sp * st, -cp * st, ct], -1)[:, None]
+    rc = radius[:, None, None] * torch.cos(t)[..., None]  # (B, N, 1)
+    rs = radius[:, None, None] * torch.sin(t)[..., None]
+    points = pose[:, None, 2:5] + rc * e1 + rs * e3
     sdd, spacing, u0, v0 = (g[:, None] for g in geom.unbind(-1))
     depth = sdd - points[..., 2]
-    focal = sdd / spacing / depth  # (B, N)
-    x = torch.stack([u0 + focal * points[..., 0], v0 + focal * points[..., 1]], -1)
-    # d x / d X = focal [[1, 0, X_x / depth], [0, 1, X_y / depth]].
+    focal = (sdd / spacing / depth)[..., None]  # (B, N, 1)
     lateral = points[..., :2] / depth[..., None]
-    d_x = focal[..., None, None] * (d_points[..., :2, :]
-                                    + lateral[..., None] * d_points[..., 2:3, :])
-    return x, d_x[..., :5], d_x[..., 5]
+    x = torch.stack([u0, v0], -1) + focal * points[..., :2]
+
+    def pixels(d_points: Tensor) -> Tensor:
+        """d x for a (B, N, 3) change of the rim point: f (dX_xy + X_xy / depth dX_z)."""
+        return focal * (d_points[..., :2] + lateral * d_points[..., 2:])
+
+    d_t = pixels(rs * -e1 + rc * e3)
+    if not pose_jacobian:
+        return x, None, d_t
+    d_e3_theta = torch.stack([sp * ct, -cp * ct, -st], -1)[:, None]
+    d_e1_phi = torch.stack([-sp, cp, zero], -1)[:, None]
+    d_e3_phi = torch.stack([cp * st, sp * st, zero], -1)[:, None]
+    d_k = torch.cat([focal, torch.zeros_like(focal)], -1)
+    d_l = torch.cat([torch.zeros_like(focal), focal], -1)
+    d_pose = torch.stack([pixels(rs * d_e3_theta), pixels(rc * d_e1_phi + rs * d_e3_phi),
+                          d_k, d_l, focal * lateral], -1)
+    return x, d_pose, d_t
 
 
 def _initial_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor) -> Tensor:
@@ -291,11 +302,10 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
     root_w = weights.sqrt()
 
     def evaluate(p, tt, x, rw, g, r):
-        # Variable projection: move each landmark's rim parameter to its closest rim point
-        # first (a few 1D Gauss-Newton steps), so the pose step sees the profile objective.
-        for _ in range(2):
-            rim, _, jt = _rim_with_jacobians(p, tt, r, g)
-            tt = tt + ((x - rim) * jt).sum(-1) / (jt**2).sum(-1).clamp_min(1e-30)
+        # Variable projection: move each landmark's rim parameter towards its closest rim
+        # point first (a 1D Gauss-Newton step), so the pose step sees the profile objective.
+        rim, _, jt = _rim_with_jacobians(p, tt, r, g, pose_jacobian=False)
+        tt = tt + ((x - rim) * jt).sum(-1) / (jt**2).sum(-1).clamp_min(1e-30)
         rim, jp, jt = _rim_with_jacobians(p, tt, r, g)
         res = rw[..., None] * (x - rim)
         return res, rw[..., None, None] * jp, rw[..., None] * jt, (res**2).sum((-1, -2)), tt
@@ -306,14 +316,15 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
     for _ in range(max_iter):
         x, rw, g, r = (v[active] for v in (points, root_w, geom, radius))
         p, tt = pose[active], t[active]
-        jtj = torch.einsum("bnip,bniq->bpq", jp, jp)
-        grad_p = torch.einsum("bnip,bni->bp", jp, res)
+        flat = jp.flatten(1, 2)  # (B, 2N, 5)
+        jtj = flat.transpose(-1, -2) @ flat
+        grad_p = (flat.transpose(-1, -2) @ res.flatten(1, 2)[..., None]).squeeze(-1)
         d_t = (jt**2).sum(-1)  # (B, N)
         grad_t = (jt * res).sum(-1)
-        cross = torch.einsum("bnip,bni->bnp", jp, jt)  # (B, N, 5)
+        cross = (jp * jt[..., None]).sum(-2)  # (B, N, 5)
         d_damped = d_t * (1 + damping[:, None]) + 1e-12 * d_t.mean(-1, keepdim=True)
         schur = jtj + damping[:, None, None] * torch.diag_embed(jtj.diagonal(dim1=-2, dim2=-1))
-        schur = schur - torch.einsum("bnp,bnq->bpq", cross / d_damped[..., None], cross)
+        schur = schur - (cross / d_damped[..., None]).transpose(-1, -2) @ cross
         rhs = grad_p - (cross * (grad_t / d_damped)[..., None]).sum(1)
         step_p = torch.linalg.solve(schur, rhs[..., None]).squeeze(-1)
         step_t = (grad_t - (cross * step_p[:, None]).sum(-1)) / d_damped
@@ -383,7 +394,7 @@ class _RefinePose(torch.autograd.Function):
 
 
 def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tensor | float,
-                weights: Tensor | None = None, max_iter: int = 30, tol: float = 1e-6
+                weights: Tensor | None = None, max_iter: int = 10, tol: float = 1e-6
                 ) -> tuple[Tensor, Tensor]:
     """Maximum-likelihood pose: orthogonal-distance regression of the projected rim.
 
@@ -447,9 +458,9 @@ def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geomet
         geom = _batch_geometry(geometry, pose.shape[0], pose.dtype, pose.device)
         t = _initial_rim_parameters(pose, points, radius, geom)
         for _ in range(iterations):
-            rim, _, d_t = _rim_with_jacobians(pose, t, radius, geom)
+            rim, _, d_t = _rim_with_jacobians(pose, t, radius, geom, pose_jacobian=False)
             t = t + ((points - rim) * d_t).sum(-1) / (d_t**2).sum(-1).clamp_min(1e-30)
-        rim = _rim_with_jacobians(pose, t, radius, geom)[0]
+        rim = _rim_with_jacobians(pose, t, radius, geom, pose_jacobian=False)[0]
         return torch.linalg.vector_norm(points - rim, dim=-1)
 
 
@@ -462,7 +473,7 @@ def solve_pose(
     refine: bool = True,
     on_error: Literal["raise", "flag"] = "raise",
     ambiguity_tol_deg: float = 1.0,
-    max_iter: int = 30,
+    max_iter: int = 10,
 ) -> PoseSolution:
     """Cup pose from rim landmarks: ellipse fit, closed form, ML refinement, range choice.
 
