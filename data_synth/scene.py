@@ -202,6 +202,12 @@ def hip_parts(config: SynthConfig, rng: np.random.Generator, centre: Tensor, rad
         shaft_r = rng.uniform(13, 18)
         x_lat = _unit(lateral, 0, 0)
         y_inf = _unit(0, 1, 0)
+        jitter = rng.uniform(0.85, 1.15)
+
+        def offset(medial_inferior: tuple[float, float]) -> Tensor:
+            """Medial and inferior mm from the hip centre (scaled per patient)."""
+            return jitter * (-x_lat * medial_inferior[0] + y_inf * medial_inferior[1])
+
         shapes = [
             # Femoral shaft: a cortical tube around the marrow.
             Ellipsoid.along(neck_base - shaft_dir * 30, neck_base + shaft_dir * 320,
@@ -214,16 +220,19 @@ def hip_parts(config: SynthConfig, rng: np.random.Generator, centre: Tensor, rad
                       hollow=0.85, mu_inner=mu * 0.55),
             Ellipsoid(neck_base + shaft_dir * 45 - x_lat * 14, torch.eye(3),
                       torch.tensor([10.0, 14.0, 10.0]), mu, hollow=0.7, mu_inner=mu * 0.5),
-            # Ilium around and above the cup, pubis and ischium (with the obturator foramen, a
-            # hollow ring) below and medial.
-            Ellipsoid(c - x_lat * rng.uniform(5, 25) - y_inf * rng.uniform(35, 55),
+            # Ilium: a broad plate above and medial to the cup, whose lower edge is the
+            # acetabular roof over the dome.
+            Ellipsoid(c - x_lat * rng.uniform(15, 35) - y_inf * rng.uniform(60, 80),
                       _rotz(lateral * rng.uniform(10, 35)),
-                      torch.tensor([rng.uniform(55, 75), rng.uniform(70, 90), 14.0]), mu * 0.8,
-                      hollow=0.9, mu_inner=mu * 0.5),
-            Ellipsoid(c - x_lat * rng.uniform(30, 45) + y_inf * rng.uniform(40, 55),
-                      _rotz(-lateral * rng.uniform(0, 30)),
-                      torch.tensor([rng.uniform(38, 50), rng.uniform(30, 40), 16.0]), mu * 1.3,
-                      hollow=0.62, mu_inner=mu * 0.1),
+                      torch.tensor([rng.uniform(70, 90), rng.uniform(85, 105), 10.0]),
+                      mu * 0.9, hollow=0.93, mu_inner=mu * 0.45),
+            # Ischium below the cup and the pubic rami medial to it: overlapping cortical
+            # tubes, a ring of bone around the obturator foramen.
+            *(Ellipsoid.along(c + offset(start), c + offset(end), radii, mu * 1.2, hollow=0.6,
+                              mu_inner=mu * 0.4)
+              for start, end, radii in (((5, 15), (105, 35), (12.0, 10.0)),
+                                        ((0, 20), (30, 110), (17.0, 15.0)),
+                                        ((18, 100), (105, 45), (10.0, 9.0)))),
         ]
         bones = [shape.part() for shape in shapes]
     return metal, bones
