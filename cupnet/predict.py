@@ -115,6 +115,12 @@ class ResolvedGeometry:
     def to_json(self) -> dict[str, dict[str, float | str]]:
         return {k: {"value": self.values[k], "source": self.sources[k]} for k in self.values}
 
+    def geometry(self) -> Geometry:
+        """The scalar :class:`Geometry` of the image."""
+        v = self.values
+        return Geometry(v["sdd_mm"], v["pixel_spacing_mm"], v["principal_u_px"],
+                        v["principal_v_px"])
+
 
 def read_meta(path: Path) -> dict[str, dict[str, float]]:
     """meta.csv rows by image name: ``{image: {column: value}}`` (blank cells left out)."""
@@ -145,8 +151,10 @@ def meta_row(meta: dict[str, dict[str, float]], name: str) -> dict[str, float]:
 
 
 def resolve_geometry(frame: Frame, meta: dict[str, float], flags: dict[str, float],
-                     assume_defaults: bool) -> ResolvedGeometry:
-    """Each value from the first of: meta.csv row, command-line flag, DICOM tag, assumption."""
+                     assume_defaults: bool, file_values: dict[str, float] | None = None
+                     ) -> ResolvedGeometry:
+    """Each value from the first of: meta.csv row, command-line flag, DICOM tag, the landmark
+    file's own values (``file_values``), assumption, image centre (principal point)."""
     height, width = frame.image.shape  # type: ignore[union-attr]
     tags = {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm}
     assumed = {"sdd_mm": ASSUMED_SDD_MM, "cup_diameter_mm": ASSUMED_CUP_DIAMETER_MM,
@@ -155,7 +163,7 @@ def resolve_geometry(frame: Frame, meta: dict[str, float], flags: dict[str, floa
     geometry = ResolvedGeometry()
     for key in GEOMETRY_KEYS:
         for source, values in (("meta.csv", meta), ("command line", flags),
-                               ("DICOM tags", tags),
+                               ("DICOM tags", tags), ("landmark file", file_values or {}),
                                ("assumed", assumed if assume_defaults else {}),
                                ("image centre", centre)):
             if values.get(key) is not None:
@@ -177,10 +185,6 @@ def batch_geometry(geometries: list[ResolvedGeometry]) -> tuple[Geometry, torch.
 
 
 # -- detectors --------------------------------------------------------------------------------
-# names, images (H, W) in [0, 1], geometry (B,), cup diameters (B,) -> cups per image
-Detector = Callable[[list[str], list[np.ndarray], Geometry, torch.Tensor], list[list]]
-
-
 def _sha256(path: Path) -> str:
     digest = hashlib.sha256()
     with path.open("rb") as f:
@@ -189,59 +193,90 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def network_detector(checkpoint: Path | None, save_masks: bool) -> tuple[Detector, dict]:
-    """The CupNet detector (weights loaded without running code) and its description."""
-    from cupnet.model import DEFAULT_CHECKPOINT, load_model
+class NetworkDetector:
+    """CupNet on a batch of images (weights loaded without running code from the file)."""
 
-    model = load_model(checkpoint)
-    path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
+    def __init__(self, checkpoint: Path | None, save_masks: bool) -> None:
+        from cupnet.model import DEFAULT_CHECKPOINT, load_model
 
-    def detect(names: list[str], images: list[np.ndarray], geometry: Geometry,
-               diameter: torch.Tensor) -> list[list]:
-        return model.detect(images, geometry, diameter, return_masks=save_masks)
+        self.model = load_model(checkpoint)
+        self.save_masks = save_masks
+        path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
+        self.info = {"checkpoint": str(path), "sha256": _sha256(path),
+                     "config": dict(vars(self.model.config))}
 
-    return detect, {"checkpoint": str(path), "sha256": _sha256(path),
-                    "config": {k: v for k, v in vars(model.config).items()}}
+    def file_values(self, name: str) -> dict[str, float]:
+        return {}
+
+    def input_error(self, name: str) -> str | None:
+        return None
+
+    def __call__(self, frames: list[Frame], geometries: list[ResolvedGeometry]) -> list[list]:
+        """Cups of each image, ordered left to right on the image."""
+        geometry, diameter = batch_geometry(geometries)
+        found = self.model.detect([f.image for f in frames], geometry, diameter,
+                                  return_masks=self.save_masks)
+        return [sorted(cups, key=lambda c: float(c.ellipse[0]) if np.isfinite(c.ellipse[0])
+                       else math.inf) for cups in found]
 
 
-def landmark_detector(path: Path) -> tuple[Detector, dict]:
-    """Manual landmarks (both CONVENTIONS formats) solved with the pose solver, no network."""
-    from cupnet.io.landmarks import read_landmarks
-    from cupnet.model import CupDetection
-    from cupnet.pose import solve_pose
+class LandmarkDetector:
+    """Manual landmarks (either CONVENTIONS format) solved with the pose solver, no network.
 
-    landmark_sets = read_landmarks(path)
+    An image without landmarks in the file has no cup. The paper's format carries an SDD and
+    a radius per row: they count as the file's values, after the user's and the DICOM tags.
+    """
 
-    def detect(names: list[str], images: list[np.ndarray], geometry: Geometry,
-               diameter: torch.Tensor) -> list[list]:
+    def __init__(self, path: Path) -> None:
+        from cupnet.io.landmarks import read_landmarks
+
+        self.sets = read_landmarks(path)
+        self.info = {"landmarks": str(path), "sha256": _sha256(path)}
+
+    def cups_of(self, name: str) -> list:
+        """The image's :class:`cupnet.io.landmarks.LandmarkSet` s (frames: also their file's)."""
+        file_name = name.split("#", 1)[0]
+        for key in (name, file_name, Path(file_name).name):
+            if key in self.sets:
+                return self.sets[key]
+        return []
+
+    def input_error(self, name: str) -> str | None:
+        """The landmark file's error for an image all of whose rows are unreadable."""
+        cups = self.cups_of(name)
+        if cups and all(c.error is not None for c in cups):
+            return f"error: {cups[0].error}"
+        return None
+
+    def file_values(self, name: str) -> dict[str, float]:
+        cups = [c for c in self.cups_of(name) if c.error is None]
+        if not cups:
+            return {}
+        return {k: getattr(cups[0], k) for k in ("sdd_mm", "pixel_spacing_mm", "cup_diameter_mm")
+                if getattr(cups[0], k) is not None}
+
+    def __call__(self, frames: list[Frame], geometries: list[ResolvedGeometry]) -> list[list]:
+        from cupnet.model import CupDetection
+        from cupnet.solve_cli import solve_cup
+
         out: list[list] = []
-        for i, name in enumerate(names):
+        for frame, resolved in zip(frames, geometries, strict=True):
             cups = []
-            for points in landmark_points(landmark_sets, name):
-                sol = solve_pose(torch.as_tensor(points, dtype=torch.float64), geometry.index(i),
-                                 float(diameter[i]), on_error="flag")
-                ambiguous = bool(sol.ambiguous[0])
-                cups.append(CupDetection(
-                    pose=sol.pose[0].numpy(), alt_pose=sol.alt_pose[0].numpy() if ambiguous
-                    else None, ambiguous=ambiguous, ellipse=sol.ellipse[0].numpy(),
-                    landmarks=np.asarray(points, np.float64),
-                    weights=np.ones(len(points)), residual_px=float(sol.residual_px[0]),
-                    status=sol.status[0]))
+            for landmarks in self.cups_of(frame.name):
+                if landmarks.error is not None:
+                    nan = np.full(5, math.nan)
+                    cups.append(CupDetection(nan, None, False, nan, landmarks.points,
+                                             np.ones(len(landmarks.points)), math.nan,
+                                             status=f"error: {landmarks.error}"))
+                    continue
+                # Each cup its own diameter where the file's value is the one in use.
+                own = (resolved.sources["cup_diameter_mm"] == "landmark file"
+                       and landmarks.cup_diameter_mm is not None)
+                diameter = landmarks.cup_diameter_mm if own else resolved.values[
+                    "cup_diameter_mm"]
+                cups.append(solve_cup(landmarks, resolved.geometry(), diameter, refine=True))
             out.append(cups)
         return out
-
-    return detect, {"landmarks": str(path), "sha256": _sha256(path)}
-
-
-def landmark_points(landmark_sets: dict, name: str) -> list[np.ndarray]:
-    """The ``(N, 2)`` landmark arrays of each cup of an image (none: the file has no cup)."""
-    file_name = name.split("#", 1)[0]
-    for key in (name, file_name, Path(file_name).name):
-        if key in landmark_sets:
-            entry = landmark_sets[key]
-            return [np.asarray(cup.points, np.float64) for cup in
-                    (entry if isinstance(entry, list) else [entry])]
-    return []
 
 
 # -- rows -------------------------------------------------------------------------------------
@@ -426,7 +461,8 @@ def _batches(frames: Iterator[Frame], size: int) -> Iterator[list[Frame]]:
 class Predictor:
     """Processes batches of frames into image records (rows, geometry, overlay, masks)."""
 
-    def __init__(self, args: argparse.Namespace, detector: Detector, outputs: Outputs,
+    def __init__(self, args: argparse.Namespace, detector: NetworkDetector | LandmarkDetector,
+                 outputs: Outputs,
                  meta: dict[str, dict[str, float]]) -> None:
         self.args, self.detector, self.outputs, self.meta = args, detector, outputs, meta
         self.flags = _flags(args)
@@ -449,12 +485,15 @@ class Predictor:
         records: dict[int, dict] = {}
         ready: list[tuple[int, Frame, ResolvedGeometry]] = []
         for i, frame in enumerate(frames):
-            if frame.error is not None:
+            error = (f"error: {frame.error}" if frame.error is not None
+                     else self.detector.input_error(frame.name))
+            if error is not None:
                 records[i] = {"image": frame.name, "rows": [
-                    status_row(frame.name, f"error: {frame.error}", frame.seconds)]}
+                    status_row(frame.name, error, frame.seconds)]}
                 continue
             geometry = resolve_geometry(frame, meta_row(self.meta, frame.name), self.flags,
-                                        self.args.assume_defaults)
+                                        self.args.assume_defaults,
+                                        self.detector.file_values(frame.name))
             if geometry.missing:
                 records[i] = {"image": frame.name, "geometry": geometry.to_json(), "rows": [
                     status_row(frame.name, geometry.error(frame.tag_notes), frame.seconds)]}
@@ -475,10 +514,8 @@ class Predictor:
 
     def _detect(self, ready: list[tuple[int, Frame, ResolvedGeometry]]) -> list[list | str]:
         """Cups per image; where the batch fails, image by image, a failure an error status."""
-        geometry, diameter = batch_geometry([g for _, _, g in ready])
         try:
-            return self.detector([f.name for _, f, _ in ready], [f.image for _, f, _ in ready],
-                                 geometry, diameter)
+            return self.detector([f for _, f, _ in ready], [g for _, _, g in ready])
         except (RuntimeError, ValueError) as exc:
             if len(ready) == 1:
                 return [f"error: detection failed ({exc})"]
@@ -487,27 +524,25 @@ class Predictor:
     def _record(self, frame: Frame, geometry: ResolvedGeometry, cups: list,
                 compute_seconds: float) -> dict:
         start = time.perf_counter()
-        cups = sorted(cups, key=lambda c: float(c.ellipse[0]) if np.isfinite(c.ellipse[0])
-                      else math.inf)  # left to right on the image
         record = {"image": frame.name, "geometry": geometry.to_json()}
         out = self.outputs.out
         if not self.args.no_overlays:
             drawings = [CupDrawing(c.ellipse, c.landmarks, c.weights,
                                    pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose),
-                                   c.status) for j, c in enumerate(cups, 1)]
+                                   c.status) for j, c in enumerate(cups)]
             title = f"{frame.name}: " + (f"{len(cups)} cup(s)" if cups else "no_cup")
             record["overlay"] = f"overlays/{output_name(frame.name, '.png')}"
             write_png(out / record["overlay"], draw_overlay(frame.image, drawings, title))
         if self.args.save_masks:
             record["masks"] = []
-            for j, cup in enumerate(cups, 1):
+            for j, cup in enumerate(cups):
                 if cup.mask is None:
                     continue
                 rel = f"masks/{output_name(frame.name, f'_cup{j}.png')}"
                 write_png(out / rel, np.round(np.clip(cup.mask, 0, 1) * 255).astype(np.uint8))
                 record["masks"].append(rel)
         seconds = frame.seconds + compute_seconds + time.perf_counter() - start
-        record["rows"] = ([cup_row(frame.name, j, c, seconds) for j, c in enumerate(cups, 1)]
+        record["rows"] = ([cup_row(frame.name, j, c, seconds) for j, c in enumerate(cups)]
                           or [status_row(frame.name, "no_cup", seconds)])
         return record
 
@@ -546,17 +581,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"cupnet predict: error: {problem}", file=sys.stderr)
         return 2
     try:
-        if args.landmarks is not None:
-            detector, model_info = landmark_detector(args.landmarks)
-        else:
-            detector, model_info = network_detector(args.checkpoint, args.save_masks)
+        detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
+                    else NetworkDetector(args.checkpoint, args.save_masks))
     except (FileNotFoundError, ValueError, RuntimeError) as exc:
         print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {exc}",
               file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     arguments = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
-    header = {"software": _software(), "model": model_info, "arguments": arguments}
+    header = {"software": _software(), "model": detector.info, "arguments": arguments}
     outputs = Outputs(args.out, header)
     if args.resume:
         outputs.load_previous()

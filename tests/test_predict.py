@@ -14,6 +14,7 @@ from dicom_factory import write_dicom
 
 import cupnet.predict as predict
 from cupnet.cli import main
+from cupnet.geometry import Geometry, pose_to_radians, project_rim
 from cupnet.io.images import Frame, ImageSource
 from cupnet.model import CupNet, CupNetConfig, save_model
 
@@ -156,25 +157,20 @@ def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
     args = ["predict", str(images), "--out", str(out), "--checkpoint", str(blind_checkpoint),
             "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet",
             "--batch-size", "2", "--no-overlays"]
-    real = predict.network_detector
+    real = predict.NetworkDetector.__call__
     calls = []
 
-    def interrupted_on_second_batch(*a, **k):
-        detect, info = real(*a, **k)
+    def interrupted_on_second_batch(self, *args):
+        calls.append(args)
+        if len(calls) == 2:
+            raise KeyboardInterrupt  # Ctrl-C while the network runs
+        return real(self, *args)
 
-        def wrapped(*args):
-            calls.append(args[0])
-            if len(calls) == 2:
-                raise KeyboardInterrupt  # Ctrl-C while the network runs
-            return detect(*args)
-
-        return wrapped, info
-
-    monkeypatch.setattr(predict, "network_detector", interrupted_on_second_batch)
+    monkeypatch.setattr(predict.NetworkDetector, "__call__", interrupted_on_second_batch)
     assert main(args) == 130
     first = rows_by_image(read_csv(out / "results.csv"))
     assert set(first) == {"im0.png", "im1.png"}
-    monkeypatch.setattr(predict, "network_detector", real)
+    monkeypatch.setattr(predict.NetworkDetector, "__call__", real)
     assert main(args) == 2  # existing results: neither resumed nor overwritten silently
     assert main([*args, "--resume"]) == 0
     final = rows_by_image(read_csv(out / "results.csv"))
@@ -235,3 +231,66 @@ def test_overlay_ellipse_follows_the_conventions(shape: tuple[int, int], scale: 
     assert len(drawn) > 100
     assert dist.min(1).max() < tol  # every drawn pixel on the curve
     assert dist.min(0).max() < tol  # the whole curve drawn
+
+
+def rim_landmarks(pose_deg: list[float], diameter: float, geometry: Geometry,
+                  n: int = 24) -> np.ndarray:
+    """``(n, 2)`` pixels of the projected rim of a cup pose (public units)."""
+    t = torch.linspace(0, 2 * np.pi, n + 1, dtype=torch.float64)[:-1]
+    pose = pose_to_radians(torch.tensor([pose_deg], dtype=torch.float64))
+    return project_rim(pose, diameter / 2, geometry, t)[0].numpy()
+
+
+def test_landmarks_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
+    images = tmp_path / "images"
+    images.mkdir()
+    noise_png(images / "pelvis.png", size=512)
+    cv2.imwrite(str(images / "blank.png"), np.zeros((512, 512), np.uint16))
+    geometry = Geometry.for_image(512, 512, sdd=1000.0, pixel_spacing=0.4)
+    right, left = [25.0, 40.0, -60.0, 10.0, 300.0], [20.0, -35.0, 55.0, 15.0, 280.0]
+    lines = ["image,cup,u,v"]
+    for cup, pose in enumerate((right, left)):
+        points = rim_landmarks(pose, 52.0, geometry)
+        lines += [f"pelvis.png,{cup},{u:.9f},{v:.9f}" for u, v in points]
+    (tmp_path / "landmarks.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    assert main(["predict", str(images), "--out", str(out), "--landmarks",
+                 str(tmp_path / "landmarks.csv"), "--sdd", "1000", "--pixel-spacing", "0.4",
+                 "--cup-diameter", "52", "--quiet"]) == 0
+    by_image = rows_by_image(read_csv(out / "results.csv"))
+    assert [r["status"] for r in by_image["blank.png"]] == ["no_cup"]
+    rows = by_image["pelvis.png"]
+    assert [r["cup"] for r in rows] == ["0", "1"]
+    for row, truth in zip(rows, (right, left), strict=True):
+        assert row["status"] == "ok"
+        got = [float(row[c]) for c in predict.POSE_COLUMNS]
+        np.testing.assert_allclose(got, truth, atol=1e-3)
+    overlay = cv2.imread(str(out / "overlays" / "pelvis.png.png"))
+    assert overlay.shape == (512, 512, 3)
+    document = json.loads((out / "results.json").read_text())
+    assert document["model"]["landmarks"] == str(tmp_path / "landmarks.csv")
+
+
+def test_landmarks_in_the_paper_format_carry_geometry(tmp_path: Path) -> None:
+    # The paper's label.csv: pixels are millimetres, SDD and radius per row.
+    cv2.imwrite(str(tmp_path / "x.png"), np.zeros((300, 400), np.uint8))
+    geometry = Geometry.for_image(400, 300, sdd=1040.0, pixel_spacing=1.0)
+    pose = [30.0, 25.0, 20.0, -15.0, 400.0]
+    points = rim_landmarks(pose, 48.0, geometry, n=16)
+    header = "image_name,image_width,image_height,source_to_detection_distance,radius," \
+             "n_landmarks," + ",".join(f"landmark_{i}_x,landmark_{i}_y" for i in range(1, 17))
+    row = ",".join(["x.png", "400", "300", "1040", "24", "16",
+                    *(repr(float(c)) for c in points.reshape(-1))])
+    (tmp_path / "label.csv").write_text(f"{header}\n{row}\nbad.png,400,300,1040,24,16,1,2\n")
+    out = tmp_path / "out"
+    cv2.imwrite(str(tmp_path / "bad.png"), np.zeros((300, 400), np.uint8))
+    assert main(["predict", str(tmp_path), "--out", str(out), "--landmarks",
+                 str(tmp_path / "label.csv"), "--quiet", "--no-overlays"]) == 0
+    by_image = rows_by_image(read_csv(out / "results.csv"))
+    (row,) = by_image["x.png"]
+    np.testing.assert_allclose([float(row[c]) for c in predict.POSE_COLUMNS], pose, atol=1e-3)
+    assert "n_landmarks = 16 but 1 landmarks given" in by_image["bad.png"][0]["status"]
+    geometry_used = {r["image"]: r for r in json.loads(
+        (out / "results.json").read_text())["images"]}["x.png"]["geometry"]
+    assert geometry_used["sdd_mm"] == {"value": 1040.0, "source": "landmark file"}
+    assert geometry_used["cup_diameter_mm"] == {"value": 48.0, "source": "landmark file"}
