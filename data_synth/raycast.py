@@ -168,27 +168,31 @@ def render_parts(parts: list[Part], geometry: Geometry, width: int, height: int,
     """Sum of the parts' line integrals over the image: ``(height, width)`` float32.
 
     Each part is evaluated on its own pixel box only and averaged over its sub-pixel samples.
-    Parts without supersampling share one table of pixel-centre rays. ``out``
-    (``(height, width)``), when given, is added to in place and returned.
+    Parts without supersampling take their rays from one table of the whole image's
+    pixel-centre rays when their boxes add up to more than half the image.
+    ``out`` (``(height, width)``), when given, is added to in place and returned.
     """
     image = torch.zeros(height, width) if out is None else out
-    centre_rays: Rays | None = None
-    for part in parts:
-        box = pixel_box(part.bounds, geometry, width, height)
+    boxes = [pixel_box(part.bounds, geometry, width, height) for part in parts]
+    single_area = sum((b[1] - b[0]) * (b[3] - b[2]) for b, part in zip(boxes, parts, strict=True)
+                      if b is not None and part.supersample == 1)
+    table = None
+    if 2 * single_area > width * height:
+        u, v = subpixel_grid((0, width, 0, height), 1)
+        table = detector_rays(geometry, u, v)  # dirs (3, H, W)
+    for part, box in zip(parts, boxes, strict=True):
         if box is None:
             continue
         u_lo, u_hi, v_lo, v_hi = box
         n = part.supersample
-        if n == 1:
-            if centre_rays is None:
-                u, v = subpixel_grid((0, width, 0, height), 1)
-                centre_rays = detector_rays(geometry, u, v)  # dirs (3, H, W)
-            dirs = centre_rays.dirs[:, v_lo:v_hi, u_lo:u_hi].reshape(3, -1)
-            values = part.line_integral(Rays(centre_rays.source, dirs))
-            image[v_lo:v_hi, u_lo:u_hi] += values.reshape(v_hi - v_lo, u_hi - u_lo)
-            continue
-        u, v = subpixel_grid(box, n)
-        values = part.line_integral(detector_rays(geometry, u.reshape(-1), v.reshape(-1)))
-        values = torch.nn.functional.avg_pool2d(values.reshape(u.shape)[None, None], n)
-        image[v_lo:v_hi, u_lo:u_hi] += values[0, 0]
+        if n == 1 and table is not None:
+            rays = Rays(table.source, table.dirs[:, v_lo:v_hi, u_lo:u_hi].reshape(3, -1))
+            shape = (v_hi - v_lo, u_hi - u_lo)
+        else:
+            u, v = subpixel_grid(box, n)
+            rays, shape = detector_rays(geometry, u.reshape(-1), v.reshape(-1)), u.shape
+        values = part.line_integral(rays).reshape(shape)
+        if n > 1:
+            values = torch.nn.functional.avg_pool2d(values[None, None], n)[0, 0]
+        image[v_lo:v_hi, u_lo:u_hi] += values
     return image
