@@ -583,8 +583,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
                     else NetworkDetector(args.checkpoint, args.save_masks))
-    except (FileNotFoundError, ValueError, RuntimeError) as exc:
-        print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {exc}",
+    except Exception as exc:  # any unreadable model or landmark file stops the run here
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {reason}",
               file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)

@@ -294,3 +294,23 @@ def test_landmarks_in_the_paper_format_carry_geometry(tmp_path: Path) -> None:
         (out / "results.json").read_text())["images"]}["x.png"]["geometry"]
     assert geometry_used["sdd_mm"] == {"value": 1040.0, "source": "landmark file"}
     assert geometry_used["cup_diameter_mm"] == {"value": 48.0, "source": "landmark file"}
+
+
+class _RunsCode:
+    """Pickles to a call of ``Path.touch``: loading it unsafely would create the marker."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_checkpoint_cannot_run_code(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    marker = tmp_path / "code_ran"
+    torch.save({"weight": _RunsCode(marker)}, tmp_path / "evil.pt")
+    noise_png(tmp_path / "a.png")
+    assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "out"),
+                 "--checkpoint", str(tmp_path / "evil.pt"), "--cup-diameter", "52"]) == 2
+    assert not marker.exists()
+    assert "cannot load" in capsys.readouterr().err
