@@ -26,6 +26,9 @@ CACHE_DIR = Path(os.environ.get("CUPNET_CACHE", Path.home() / ".cache" / "cupnet
 # DiffDRR's density maps HU -800 (air) .. max to 0 .. 1, so water (0 HU) is ~0.2 in a typical
 # CT; water attenuates ~0.02 / mm at the ~60 keV effective energy of fluoroscopy.
 ATTENUATION_PER_DENSITY = 0.1
+# A user's CT becomes a bank of this many views of this size (px): about a minute, once.
+USER_BANK_VIEWS = 24
+USER_BANK_SIZE = 192
 
 
 @lru_cache(maxsize=4)
@@ -51,7 +54,8 @@ def bank_path(anatomy_bank: str | None, anatomy_ct: str | None) -> Path:
         if not cached.exists():
             from data_synth.build_bank import build_bank, load_ct, save_bank
 
-            save_bank(build_bank(load_ct(ct), n=24, size=192, seed=0), cached)
+            save_bank(build_bank(load_ct(ct), n=USER_BANK_VIEWS, size=USER_BANK_SIZE, seed=0),
+                      cached)
         return cached
     if not SHIPPED_BANK.exists():
         # A checkout without the asset: render a small bank once (about a minute).

@@ -1,0 +1,43 @@
+"""Anatomy bank: the shipped bank, and a bank rendered once from a user's CT and cached."""
+
+from __future__ import annotations
+
+import nibabel as nib
+import numpy as np
+import torch
+
+import data_synth.anatomy as anatomy
+from data_synth import SynthConfig, synthesize
+
+
+def test_shipped_bank_is_small_and_plausible():
+    assert anatomy.SHIPPED_BANK.stat().st_size < 20e6
+    maps = anatomy.load_bank(str(anatomy.SHIPPED_BANK))
+    assert maps.ndim == 4 and maps.shape[1] == 1 and len(maps) >= 16
+    # Water-equivalent attenuation of a trunk: a few units, never negative.
+    assert maps.min() >= 0 and 1 < float(maps.mean()) < 8
+
+
+def test_user_ct_is_rendered_once_and_cached(tmp_path, monkeypatch):
+    import data_synth.build_bank as build_bank
+
+    monkeypatch.setattr(anatomy, "CACHE_DIR", tmp_path / "cache")
+    # A small bank of a coarse CT keeps the test to a second or two.
+    monkeypatch.setattr(anatomy, "USER_BANK_VIEWS", 3)
+    monkeypatch.setattr(anatomy, "USER_BANK_SIZE", 48)
+    monkeypatch.setattr(build_bank, "VOXEL_MM", (8.0, 8.0, 8.0))
+    volume = np.full((24, 24, 20), -1000, dtype=np.int16)
+    volume[4:20, 4:20, 2:18] = 40  # soft tissue
+    volume[10:14, 10:14, 2:18] = 900  # a bone column
+    ct = tmp_path / "ct.nii.gz"
+    nib.save(nib.Nifti1Image(volume, np.diag([8.0, 8.0, 8.0, 1.0])), ct)
+    config = SynthConfig(image_size=(64, 64), anatomy_ct=str(ct), p_anatomy=1.0)
+    first = synthesize(config, 0, 0)
+    cached = list((tmp_path / "cache").glob("ct.nii.gz-*.npz"))
+    assert len(cached) == 1
+    mtime = cached[0].stat().st_mtime_ns
+    second = synthesize(config, 0, 0)
+    assert cached[0].stat().st_mtime_ns == mtime  # reused, not rendered again
+    assert torch.equal(first["image"], second["image"])
+    maps = anatomy.load_bank(str(cached[0]))
+    assert maps.max() > 0  # the CT's body shows in its renders
