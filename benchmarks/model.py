@@ -28,10 +28,16 @@ NAMES = ("theta", "phi", "k", "l", "h")
 TARGETS = (1.0, 1.0, 1.0, 1.0, 8.0)
 
 
-def samples(config: str, seed: int, count: int) -> list[dict]:
+def samples(config: str, seed: int, count: int, sizes: list[int] | None = None) -> list[dict]:
+    """``count`` fresh samples, split evenly over square image ``sizes`` (None: the config's)."""
     from data_synth import SynthDataset
 
-    return list(SynthDataset(synth_config(config), seed=seed, length=count))
+    sizes = sizes or [None]
+    out = []
+    for i, size in enumerate(sizes):
+        share = count // len(sizes) + (i < count % len(sizes))
+        out += list(SynthDataset(synth_config(config, size), seed=seed + i, length=share))
+    return out
 
 
 def geometry_of(sample: dict) -> Geometry:
@@ -83,7 +89,9 @@ def main() -> None:
                         help="more checkpoints to compare on the same set, as NAME=PATH")
     parser.add_argument("--eval-config", default="configs/synth_eval.yaml")
     parser.add_argument("--speed-config", default="configs/synth_speed.yaml")
-    parser.add_argument("--images", type=int, default=100)
+    parser.add_argument("--images", type=int, default=90)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[512, 768, 1024],
+                        help="square sizes (px) of the accuracy images, in equal shares")
     parser.add_argument("--seed", type=int, default=20_261_123)
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args()
@@ -103,7 +111,7 @@ def main() -> None:
                   "`CupNet.detect` end to end (locator, 2 refiner passes, landmarks, pose with "
                   "ML refinement).\n\n" + speed)
 
-    eval_set = samples(args.eval_config, args.seed, args.images)
+    eval_set = samples(args.eval_config, args.seed, args.images, args.sizes)
     models = {"shipped (end to end)": model}
     for item in args.ablation:
         name, path = item.split("=", 1)
@@ -119,7 +127,9 @@ def main() -> None:
     print(text)
     write_section("model_accuracy", "## CupNet accuracy\n\n"
                   f"`python benchmarks/model.py`: {args.images} fresh DRRs from "
-                  f"`{args.eval_config}` (seed {args.seed}), MAE over detected true cups "
+                  f"`{args.eval_config}` (CT background on every image) at "
+                  f"{', '.join(map(str, args.sizes))} px (seed {args.seed}), MAE over detected "
+                  "true cups "
                   f"(deg, deg, mm, mm, mm); targets {TARGETS}.\n\n" + text)
 
 

@@ -66,6 +66,8 @@ class CupNetConfig:
         detect_threshold: probability threshold of the locator's components.
         min_cup_area: smallest component (locator px) that counts as a cup.
         refine_passes: stage-2 passes at inference (each re-frames on the last ellipse).
+        locator_scale: the first pass frames the locator's blob enlarged by this factor and
+            made round (axis ratio >= 0.8, no stretch), as in training's coarse frames.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -82,6 +84,7 @@ class CupNetConfig:
     detect_threshold: float = 0.5
     min_cup_area: float = 4.0
     refine_passes: int = 2
+    locator_scale: float = 1.15
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -249,6 +252,12 @@ class CupNet(nn.Module):
                 scores[i, c] = score
         return ellipses, scores
 
+    def first_pass_ellipses(self, rough: Tensor) -> Tensor:
+        """Locator ellipses ``(K, 5)`` -> the ellipses the first refiner pass is framed on."""
+        major = rough[:, 2:3] * self.config.locator_scale
+        minor = torch.maximum(rough[:, 3:4] * self.config.locator_scale, 0.8 * major)
+        return torch.cat([rough[:, :2], major, minor, rough[:, 4:]], -1)
+
     def frames(self, ellipses: Tensor) -> Tensor:
         """Crop frames ``(..., 5)`` of (rough) ellipses ``(..., 5)``, see :func:`frame_ellipse`."""
         cfg = self.config
@@ -299,7 +308,9 @@ class CupNet(nn.Module):
             raise ValueError(f"images must be (B, 1, H, W), got {tuple(images.shape)}")
         locator_logits, letterbox = self.locate(list(image_list))
         if crop_frames is None:
-            crop_frames = self.frames(self.ellipses_from_locator(locator_logits, letterbox)[0])
+            rough = self.ellipses_from_locator(locator_logits, letterbox)[0]
+            crop_frames = self.frames(self.first_pass_ellipses(rough.flatten(0, 1))
+                                      ).reshape(rough.shape)
         batch = locator_logits.shape[0]
         cup_index = torch.isfinite(crop_frames).all(-1).nonzero()  # (K, 2)
         frames = crop_frames[cup_index[:, 0], cup_index[:, 1]].to(locator_logits.device)
@@ -350,7 +361,7 @@ class CupNet(nn.Module):
         locator_logits, letterbox = self.locate(image_list)
         rough, scores = self.ellipses_from_locator(locator_logits, letterbox)
         cup_index = torch.isfinite(rough).all(-1).nonzero()
-        frames = self.frames(rough[cup_index[:, 0], cup_index[:, 1]])
+        frames = self.frames(self.first_pass_ellipses(rough[cup_index[:, 0], cup_index[:, 1]]))
         results: list[list[CupDetection]] = [[] for _ in range(batch)]
         if len(cup_index) == 0:
             self.train(was_training)

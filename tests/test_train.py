@@ -43,7 +43,7 @@ def test_jitter_keeps_axes_ordered_and_skips_missing_cups():
     torch.manual_seed(0)
     ellipse = torch.tensor([[[100.0, 120.0, 40.0, 39.0, 10.0], [math.nan] * 5]]).double()
     out = jittered_ellipses(ellipse.expand(64, 2, 5), torch.tensor([[True, False]]).expand(64, 2),
-                            0.15, 0.2, 15.0, 0.4)
+                            0.5, 0.15, 0.3, 0.05, 0.1, 8.0, 0.2)
     assert (out[:, 0, 2] >= out[:, 0, 3]).all() and torch.isnan(out[:, 1]).all()
 
 

@@ -30,28 +30,37 @@ def batch_geometry(geometry: Tensor) -> Geometry:
     return Geometry(*geometry.double().unbind(-1))
 
 
-def jittered_ellipses(ellipse: Tensor, valid: Tensor, shift: float, scale: float, angle: float,
-                      ratio: float) -> Tensor:
-    """True ellipses perturbed like the locator's and the first pass's errors, to frame crops.
+def jittered_ellipses(ellipse: Tensor, valid: Tensor, coarse: float, coarse_shift: float,
+                      coarse_scale: float, fine_shift: float, fine_scale: float,
+                      fine_angle: float, fine_ratio: float) -> Tensor:
+    """True ellipses perturbed like the ellipses crops are framed on at inference.
 
-    Each cup draws a magnitude ``m ~ U(0, 1)^2`` (many near-exact frames as in the second
-    pass, some coarse ones as from the locator), then uniform perturbations up to ``m`` times:
-    ``shift * a`` per centre axis, ``scale`` (log) of both axes, ``ratio`` (log) of ``b``
-    alone, ``angle`` degrees.
+    A fraction ``coarse`` of the cups get a first-pass frame, as from the locator's blob: the
+    centre moved by up to ``coarse_shift * a`` per axis, the size scaled by up to
+    ``exp(+-coarse_scale)``, any orientation and a roundish axis ratio in [0.6, 1] (so the
+    crop is not stretched). The others get a second-pass frame, as from the first pass's
+    fit: with a magnitude ``m ~ U(0, 1)^2``, the centre moved by up to ``m fine_shift a``,
+    both axes scaled by up to ``exp(+-m fine_scale)``, ``b`` alone by ``exp(+-m fine_ratio)``,
+    the angle turned by up to ``m fine_angle`` degrees.
 
     Args:
         ellipse: ``(B, C, 5)`` true ellipses, image pixels; valid: ``(B, C)`` bool.
     Returns:
         ``(B, C, 5)``, NaN where not valid.
     """
-    m = torch.rand_like(ellipse[..., :1]) ** 2
     u = 2 * torch.rand_like(ellipse) - 1  # (B, C, 5) in [-1, 1]
-    a = ellipse[..., 2:3]
-    centre = ellipse[..., :2] + m * u[..., :2] * shift * a
-    axes = ellipse[..., 2:4] * torch.exp(m * u[..., 2:3] * scale)
-    axes = torch.cat([axes[..., :1], axes[..., 1:] * torch.exp(m * u[..., 3:4] * ratio)], -1)
+    a, b = ellipse[..., 2:3], ellipse[..., 3:4]
+    is_coarse = torch.rand_like(a) < coarse
+    m = torch.rand_like(a) ** 2
+    shift = torch.where(is_coarse, coarse_shift, m * fine_shift) * a
+    centre = ellipse[..., :2] + u[..., :2] * shift
+    major = a * torch.exp(u[..., 2:3] * torch.where(is_coarse, coarse_scale, m * fine_scale))
+    minor_fine = b * torch.exp(u[..., 2:3] * m * fine_scale + u[..., 3:4] * m * fine_ratio)
+    minor = torch.where(is_coarse, major * (0.8 + 0.2 * u[..., 3:4]), minor_fine)
+    alpha = torch.where(is_coarse, 90 * (u[..., 4:] + 1), ellipse[..., 4:] + m * u[..., 4:]
+                        * fine_angle)
+    axes = torch.cat([major, minor], -1)
     axes = torch.cat([axes.max(-1, keepdim=True).values, axes.min(-1, keepdim=True).values], -1)
-    alpha = ellipse[..., 4:] + m * u[..., 4:] * angle
     out = torch.cat([centre, axes, alpha], -1)
     return torch.where(valid[..., None], out, torch.full_like(out, math.nan))
 
@@ -98,8 +107,8 @@ class CupNetModule(L.LightningModule):
         ellipse_weight, pose_weight: their full weights (``pose_weight: 0`` trains on
             segmentation (and ellipse) alone: the ablation).
         locator_weight: weight of the locator's segmentation loss.
-        jitter_shift, jitter_scale, jitter_angle, jitter_ratio: crop framing errors (see
-            :func:`jittered_ellipses`).
+        coarse_fraction, coarse_shift, coarse_scale, fine_shift, fine_scale, fine_angle,
+            fine_ratio: crop framing errors (see :func:`jittered_ellipses`).
         crops_per_cup: differently jittered crops per cup and image (synthesis costs more
             than a crop's training step, so each image is used several times).
         refine_pose: train through the solver's ML refinement (else its closed form).
@@ -119,10 +128,13 @@ class CupNetModule(L.LightningModule):
         ellipse_weight: float = 0.5,
         pose_weight: float = 0.2,
         locator_weight: float = 0.5,
-        jitter_shift: float = 0.15,
-        jitter_scale: float = 0.2,
-        jitter_angle: float = 15.0,
-        jitter_ratio: float = 0.4,
+        coarse_fraction: float = 0.4,
+        coarse_shift: float = 0.15,
+        coarse_scale: float = 0.3,
+        fine_shift: float = 0.05,
+        fine_scale: float = 0.08,
+        fine_angle: float = 8.0,
+        fine_ratio: float = 0.25,
         crops_per_cup: int = 2,
         refine_pose: bool = False,
         torch_threads: int | None = None,
@@ -141,8 +153,8 @@ class CupNetModule(L.LightningModule):
         valid = batch["cup_valid"].bool().repeat(1, hp.crops_per_cup)
         geometry = batch_geometry(batch["geometry"])
         rough = jittered_ellipses(batch["ellipse"].double().repeat(1, hp.crops_per_cup, 1), valid,
-                                  hp.jitter_shift, hp.jitter_scale, hp.jitter_angle,
-                                  hp.jitter_ratio)
+                                  hp.coarse_fraction, hp.coarse_shift, hp.coarse_scale,
+                                  hp.fine_shift, hp.fine_scale, hp.fine_angle, hp.fine_ratio)
         out = self.model(images, geometry, batch["cup_diameter"].repeat(1, hp.crops_per_cup),
                          crop_frames=self.model.frames(rough), refine_pose=hp.refine_pose)
         locator_target = resample_batch(batch["mask"], out.letterbox, cfg.locator_size)
