@@ -1,8 +1,9 @@
 """Overlay images for checking results by eye: fitted rim ellipse, landmarks, pose as text.
 
 Drawn with OpenCV on a contrast-stretched 8-bit copy of the image, scaled so the longer side
-is at most ``max_side`` pixels (writing stays fast on 4096 px images); coordinates are drawn
-with sub-pixel precision.
+lies between ``min_side`` (small images are enlarged, so the text stays readable) and
+``max_side`` pixels (writing stays fast on 4096 px images); coordinates are drawn with
+sub-pixel precision.
 """
 
 from __future__ import annotations
@@ -76,28 +77,31 @@ def _fixed(value: float) -> int:
 
 
 def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
-                 max_side: int = 1024) -> np.ndarray:
+                 max_side: int = 1024, min_side: int = 768) -> np.ndarray:
     """Overlay of the cups on ``image``.
 
     Args:
         image: ``(H, W)`` float in [0, 1].
         cups: what to draw, in original-image pixels.
         title: first text line (image name and status).
-        max_side: the overlay's longer side at most (pixels).
+        max_side, min_side: bounds of the overlay's longer side (pixels).
     Returns:
-        ``(h, w, 3)`` uint8 BGR, ``h, w`` = ``H, W`` scaled by ``min(1, max_side / max(H, W))``.
+        ``(h, w, 3)`` uint8 BGR: ``H, W`` scaled by ``clip(L, min_side, max_side) / L`` with
+        ``L = max(H, W)``.
     """
-    scale = min(1.0, max_side / max(image.shape))
+    longer = max(image.shape)
+    scale = min(max_side, max(min_side, longer)) / longer
     gray = display_image(image)
-    if scale < 1.0:
+    if scale != 1.0:
         size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
-        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA if scale < 1
+                          else cv2.INTER_LINEAR)
     canvas = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
     unit = max(canvas.shape[:2]) / 512  # line widths and text grow with the overlay
     thickness = max(1, round(unit))
     # Pixel centres sit at integers in both images: u' = (u + 0.5) * scale - 0.5.
     to_view = lambda p: (np.asarray(p, np.float64) + 0.5) * scale - 0.5  # noqa: E731
-    for index, cup in enumerate(cups, 1):
+    for index, cup in enumerate(cups):  # numbered from 0, as the cup column of results.csv
         colour = STATUS_COLOURS.get(cup.status, ERROR_COLOUR)
         if cup.ellipse is not None and np.isfinite(cup.ellipse).all():
             cx, cy = to_view(cup.ellipse[:2])
@@ -119,9 +123,25 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
     return canvas
 
 
+def _wrap(line: str, width: int, font_scale: float, thickness: int) -> list[str]:
+    """Greedy word wrap of one line to ``width`` pixels (continuations indented)."""
+    words, out = line.split(" "), []
+    current = words[0]
+    for word in words[1:]:
+        candidate = f"{current} {word}"
+        if cv2.getTextSize(candidate, _FONT, font_scale, thickness)[0][0] > width:
+            out.append(current)
+            current = f"    {word}"
+        else:
+            current = candidate
+    return [*out, current]
+
+
 def _draw_text_block(canvas: np.ndarray, lines: list[str], font_scale: float,
                      thickness: int) -> None:
     """Lines of text at the top left on a dark band, readable on any image."""
+    lines = [part for line in lines for part in _wrap(line, canvas.shape[1] - 12, font_scale,
+                                                      thickness)]
     if not lines:
         return
     (_, height), baseline = cv2.getTextSize("Ag", _FONT, font_scale, thickness)

@@ -100,7 +100,7 @@ def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
     assert document["summary"]["images"] == 6 and document["summary"]["errors"] >= 4
     for name in ("a16.png", "c.dcm"):
         overlay = out / records[name]["overlay"]
-        assert cv2.imread(str(overlay)).shape == (160, 160, 3)
+        assert cv2.imread(str(overlay)).shape == (768, 768, 3)  # enlarged to stay readable
         for mask in records[name].get("masks", []):
             assert cv2.imread(str(out / mask), cv2.IMREAD_UNCHANGED).shape == (160, 160)
 
@@ -205,9 +205,10 @@ def test_folder_without_images_and_bad_checkpoint(tmp_path: Path, capsys: pytest
     assert "checkpoint not found" in capsys.readouterr().err
 
 
-# A 1024 px wide overlay draws 2 px wide lines: the tolerance is half the width + 1 px.
-@pytest.mark.parametrize(("shape", "scale", "tol"), [((200, 300), 1.0, 1.5),
-                                                     ((1024, 2048), 0.5, 2.0)])
+# Overlays over 768 px draw 2 px wide lines: the tolerance is half the width + 1 px.
+@pytest.mark.parametrize(("shape", "scale", "tol"), [((600, 900), 1.0, 2.0),
+                                                     ((1024, 2048), 0.5, 2.0),
+                                                     ((200, 256), 3.0, 2.0)])
 def test_overlay_ellipse_follows_the_conventions(shape: tuple[int, int], scale: float,
                                                  tol: float) -> None:
     """OpenCV draws the rim where cupnet.ellipse.ellipse_points puts it (alpha from +u to +v)."""
@@ -215,7 +216,7 @@ def test_overlay_ellipse_follows_the_conventions(shape: tuple[int, int], scale: 
     from cupnet.overlay import CupDrawing, draw_overlay
 
     # The same place on the overlay in both cases: original pixels scaled by 1 / scale.
-    ellipse = np.array([170.0, 120.0, 60.0, 25.0, 30.0])
+    ellipse = np.array([370.0, 220.0, 60.0, 25.0, 30.0])
     ellipse[:2] = (ellipse[:2] + 0.5) / scale - 0.5
     ellipse[2:4] /= scale
     canvas = draw_overlay(np.zeros(shape), [CupDrawing(ellipse, None, None, [])], "",
@@ -223,7 +224,7 @@ def test_overlay_ellipse_follows_the_conventions(shape: tuple[int, int], scale: 
     assert canvas.shape[:2] == (round(shape[0] * scale), round(shape[1] * scale))
     green = (canvas[..., 1] > 100) & (canvas[..., 1] > canvas[..., 2] + 50)
     drawn = np.argwhere(green)[:, ::-1].astype(float)  # (u, v)
-    drawn = drawn[np.linalg.norm(drawn - [170, 120], axis=1) > 24]  # not the cup's label
+    drawn = drawn[np.linalg.norm(drawn - [370, 220], axis=1) > 24]  # not the cup's label
     curve = ellipse_points(torch.tensor(ellipse), torch.linspace(0, 2 * np.pi, 2000,
                                                                  dtype=torch.float64)).numpy()
     curve = (curve + 0.5) * scale - 0.5  # original pixels -> overlay pixels
@@ -266,7 +267,7 @@ def test_landmarks_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
         got = [float(row[c]) for c in predict.POSE_COLUMNS]
         np.testing.assert_allclose(got, truth, atol=1e-3)
     overlay = cv2.imread(str(out / "overlays" / "pelvis.png.png"))
-    assert overlay.shape == (512, 512, 3)
+    assert overlay.shape == (768, 768, 3)
     document = json.loads((out / "results.json").read_text())
     assert document["model"]["landmarks"] == str(tmp_path / "landmarks.csv")
 
