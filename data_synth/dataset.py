@@ -90,11 +90,13 @@ def opening_mask(conics: Tensor, ellipses: Tensor, width: int, height: int) -> T
         # Thinner than a few pixels the first-order distance fails: count sub-pixels instead.
         n = 1 if b >= THIN_ELLIPSE_PX else THIN_SUPERSAMPLE
         u, v = subpixel_grid(box, n, torch.float64)
-        points = torch.stack([u, v, torch.ones_like(u)], -1)
-        gradient = points @ conic  # half the gradient of p^T C p in its first two entries
-        value = (gradient * points).sum(-1)
+        (a_uu, a_uv, a_u), (_, a_vv, a_v), (_, _, a_1) = conic.tolist()
+        # Half the gradient of p^T C p, then its value p^T C p = (g_u u + g_v v) + (...).
+        g_u = a_uu * u + a_uv * v + a_u
+        g_v = a_uv * u + a_vv * v + a_v
+        value = g_u * u + g_v * v + (a_u * u + a_v * v + a_1)
         if n == 1:
-            distance = value / (2 * gradient[..., :2].norm(dim=-1)).clamp_min(1e-12)
+            distance = value / (2 * torch.sqrt(g_u * g_u + g_v * g_v)).clamp_min(1e-12)
             coverage = (0.5 - distance).clamp(0, 1).float()
         else:
             inside = (value < 0).float()[None, None]

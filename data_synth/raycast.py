@@ -6,8 +6,9 @@ interval ``[t0, t1]`` where the ray is inside it (empty when ``t1 <= t0``); inte
 solids intersect by ``max``/``min``, and the line integral of a solid of attenuation ``mu`` is
 ``mu * (t1 - t0)^+``. Exact up to float rounding: no voxels, so edges carry no staircase.
 
-Rendering evaluates each :class:`Part` only over the pixels its 3D bounding box projects to,
-supersampled on an ``n x n`` grid inside each pixel and averaged (area anti-aliasing).
+Rendering evaluates each :class:`Part` only over the pixels its 3D bounding box projects to;
+a part that asks for supersampling is averaged over an ``n x n`` grid inside each pixel
+where it has an edge (area anti-aliasing).
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ from torch import Tensor
 from cupnet.geometry import Geometry
 
 Interval = tuple[Tensor, Tensor]
+# Attenuation range over a 3 x 3 neighbourhood above which a supersampled part resamples a
+# pixel (an edge): ~0.1 mm of titanium, invisible after the image formation.
+EDGE_RANGE = 0.02
 
 
 @dataclass
@@ -187,12 +191,35 @@ def render_parts(parts: list[Part], geometry: Geometry, width: int, height: int,
         n = part.supersample
         if n == 1 and table is not None:
             rays = Rays(table.source, table.dirs[:, v_lo:v_hi, u_lo:u_hi].reshape(3, -1))
-            shape = (v_hi - v_lo, u_hi - u_lo)
         else:
-            u, v = subpixel_grid(box, n)
-            rays, shape = detector_rays(geometry, u.reshape(-1), v.reshape(-1)), u.shape
-        values = part.line_integral(rays).reshape(shape)
+            u, v = subpixel_grid(box, 1)
+            rays = detector_rays(geometry, u.reshape(-1), v.reshape(-1))
+        values = part.line_integral(rays).reshape(v_hi - v_lo, u_hi - u_lo)
         if n > 1:
-            values = torch.nn.functional.avg_pool2d(values[None, None], n)[0, 0]
+            values = refine_edges(part, geometry, box, values, n)
         image[v_lo:v_hi, u_lo:u_hi] += values
     return image
+
+
+def refine_edges(part: Part, geometry: Geometry, box: tuple[int, int, int, int],
+                 values: Tensor, n: int) -> Tensor:
+    """Replace the pixel-centre ``values`` ``(h, w)`` of edge pixels by ``n x n`` averages.
+
+    A pixel whose 3 x 3 neighbourhood spans more than ``EDGE_RANGE`` holds an edge (or a steep
+    slope); elsewhere the line integral is smooth and its centre value is its area average to
+    second order. Supersampling only there costs a fraction of supersampling the whole box.
+    """
+    padded = values[None, None]
+    spread = (torch.nn.functional.max_pool2d(padded, 3, 1, 1)
+              + torch.nn.functional.max_pool2d(-padded, 3, 1, 1))[0, 0]
+    rows, cols = torch.nonzero(spread > EDGE_RANGE, as_tuple=True)
+    if rows.numel() == 0:
+        return values
+    offsets = (torch.arange(n, dtype=torch.float32) + 0.5) / n - 0.5
+    off_v, off_u = (g.reshape(-1) for g in torch.meshgrid(offsets, offsets, indexing="ij"))
+    u = (box[0] + cols)[:, None] + off_u  # (M, n^2)
+    v = (box[2] + rows)[:, None] + off_v
+    fine = part.line_integral(detector_rays(geometry, u.reshape(-1), v.reshape(-1)))
+    values = values.clone()
+    values[rows, cols] = fine.reshape(-1, n * n).mean(-1)
+    return values
