@@ -1,7 +1,8 @@
 """``cupnet predict IMAGES --out DIR``: cup poses of every image, as CSV, JSON and overlays.
 
 Per image (a DICOM multi-frame run gives one per frame): read it, resolve its geometry
-(``--meta`` row > command-line flags > DICOM tags > ``--assume-defaults``), detect the cups
+(``--meta`` row > command-line flags > DICOM tags > the landmark file's own values >
+``--assume-defaults``; the principal point defaults to the image centre), detect the cups
 with the network (or take manual landmarks with ``--landmarks``), solve each pose, and write
 one ``results.csv`` row per cup (a status row for images without one). ``results.json`` adds
 the geometry used, the assumptions made and the software and model versions.
@@ -557,7 +558,7 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     lines = [
         f"{'interrupted' if interrupted else 'done'}: {summary['images']} images, "
         f"{summary['cups']} cups found ({summary['ok']} ok, {summary['ambiguous']} ambiguous), "
-        f"{summary['no_cup']} without a cup, {summary['errors']} failed",
+        f"{summary['no_cup']} without a cup, {summary['errors']} error rows",
     ]
     lines += [f"  {n} x {reason}" for reason, n in sorted(summary["error_reasons"].items(),
                                                           key=lambda kv: -kv[1])[:5]]
