@@ -96,5 +96,5 @@ def test_edge_refinement_matches_full_supersampling():
     u, v = subpixel_grid((0, 96, 0, 80), 3)
     full = cup_line_integral(cup, detector_rays(geometry, u.reshape(-1), v.reshape(-1)))
     full = torch.nn.functional.avg_pool2d(full.reshape(u.shape)[None, None], 3)[0, 0]
-    assert (refined - full).abs().max() < 0.01
-    assert (refined - full).abs().mean() < 1e-4
+    assert (refined - full).abs().max() < 1e-3
+    assert (refined - full).abs().mean() < 1e-5
