@@ -126,11 +126,16 @@ def test_broken_files_name_the_problem(tmp_path: Path, name: str, content: bytes
         read_image(path)
 
 
-def test_truncated_png_and_dicom(tmp_path: Path) -> None:
+def test_truncated_png_jpeg_and_dicom(tmp_path: Path) -> None:
     cv2.imwrite(str(tmp_path / "full.png"), np.round(gradient() * 65535).astype(np.uint16))
     data = (tmp_path / "full.png").read_bytes()
     (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
     assert "corrupt or truncated PNG" in read_frames(tmp_path / "cut.png")[0].error
+    cv2.imwrite(str(tmp_path / "full.jpg"), np.round(gradient() * 255).astype(np.uint8))
+    assert read_frames(tmp_path / "full.jpg")[0].error is None
+    data = (tmp_path / "full.jpg").read_bytes()
+    (tmp_path / "cut.jpg").write_bytes(data[: len(data) * 2 // 3])
+    assert "truncated JPEG" in read_frames(tmp_path / "cut.jpg")[0].error
     write_dicom(tmp_path / "full.dcm", np.ones((64, 64), np.uint16))
     data = (tmp_path / "full.dcm").read_bytes()
     (tmp_path / "cut.dcm").write_bytes(data[: len(data) - 4000])

@@ -33,6 +33,7 @@ RASTER_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 DICOM_SUFFIXES = (".dcm", ".dicom")
 SUPPORTED_SUFFIXES = RASTER_SUFFIXES + DICOM_SUFFIXES
 _DICOM_MAGIC_OFFSET = 128
+_JPEG_END = b"\xff\xd9"
 # Relative difference between row and column spacing below which pixels count as square.
 _SQUARE_TOL = 1e-3
 
@@ -279,7 +280,12 @@ def _read_raster(path: Path, page: int | None) -> np.ndarray:
                 return to_unit_range(np.asarray(im))
         except (OSError, ValueError, EOFError) as exc:
             raise ImageReadError(f"corrupt or truncated TIFF ({exc})") from exc
-    decoded = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
+    data = np.fromfile(path, np.uint8)
+    # libjpeg decodes a cut-off JPEG into a partly grey image without failing: require the
+    # end-of-image marker (some writers pad after it, so look at the last kilobyte).
+    if suffix in (".jpg", ".jpeg") and _JPEG_END not in data[-1024:].tobytes():
+        raise ImageReadError("truncated JPEG data (no end-of-image marker)")
+    decoded = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if decoded is None:
         raise ImageReadError(f"corrupt or truncated {suffix.lstrip('.').upper()} data")
     return to_unit_range(decoded)
