@@ -84,7 +84,7 @@ class SynthConfig:
     # Image formation.
     energy_factor: Range = _range((0.75, 1.3), 0.05)
     photons: Range = _range((300.0, 20000.0), 1.0)
-    electronic_noise: Range = _range((0.0, 0.01), 0.0)
+    electronic_noise: Range = _range((0.0, 0.003), 0.0)
     veiling_glare: Range = _range((0.005, 0.05), 0.0)
     blur_sigma_px: Range = _range((0.2, 1.0), 0.0)
     scatter_fraction: Range = _range((0.0, 0.3), 0.0, 1.0)

@@ -137,8 +137,13 @@ def synthesize(config: SynthConfig, seed_or_generator: int | np.random.Generator
         ``rim (2, 64, 2)`` px; ``cup_diameter (2,)`` mm; ``cup_valid (2,)`` bool. Slots that
         hold no cup are zero with ``cup_valid`` False. Truth is float64. ``index ()`` int64.
     """
-    rng = (seed_or_generator if isinstance(seed_or_generator, np.random.Generator)
-           else sample_rng(seed_or_generator, index))
+    if isinstance(seed_or_generator, np.random.Generator):
+        rng = seed_or_generator
+    elif isinstance(seed_or_generator, int) and seed_or_generator >= 0 and index >= 0:
+        rng = sample_rng(seed_or_generator, index)
+    else:
+        raise ValueError("synthesize needs a non-negative integer seed and index or a "
+                         f"numpy Generator, got {seed_or_generator!r} and index {index!r}")
     with single_thread(), torch.no_grad():
         return _synthesize(config, rng, index)
 

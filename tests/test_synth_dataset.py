@@ -102,3 +102,16 @@ def test_bilateral_cups_sit_on_opposite_hips():
         assert (k1 > k0) == (phi0 > 0)
         assert sample["cup_diameter"][0] == sample["cup_diameter"][1]
         assert sample["mask"].sum() > 0
+
+
+def test_seed_errors_and_generator_input():
+    import numpy as np
+
+    config = SynthConfig(**SMALL)
+    with pytest.raises(ValueError, match="seed"):
+        synthesize(config, -1, 0)
+    with pytest.raises(ValueError, match="seed"):
+        SynthDataset(config, seed=-3)
+    a = synthesize(config, np.random.default_rng([2, 5]))
+    b = synthesize(config, 2, 5)
+    assert torch.equal(a["image"], b["image"]) and torch.equal(a["pose"], b["pose"])
