@@ -96,7 +96,6 @@ def run(args: argparse.Namespace) -> int:
         for old in images.glob("synth_*.*"):
             old.unlink()
     images.mkdir(parents=True, exist_ok=True)
-    nominal_diameter = sum(config.cup_diameter_mm) / 2
 
     with open(out / "meta.csv", "w", newline="") as meta_file, \
             open(out / "truth.csv", "w", newline="") as truth_file:
@@ -114,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
             else:
                 write_dicom(images / name, pixels, sdd, spacing)
             valid = sample["cup_valid"]
-            diameter = float(sample["cup_diameter"][0]) if valid[0] else nominal_diameter
+            diameter = float(sample["cup_diameter"][0])  # the image's, with a cup or without
             meta.writerow([name, _fmt(sdd), _fmt(spacing), _fmt(diameter), _fmt(u0), _fmt(v0)])
             for cup in range(int(valid.sum())):
                 truth.writerow([name, cup, *map(_fmt, sample["pose"][cup].tolist()),

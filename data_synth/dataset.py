@@ -135,7 +135,9 @@ def synthesize(config: SynthConfig, seed_or_generator: int | np.random.Generator
         ``geometry (4,)`` (sdd mm, spacing mm/px, u0 px, v0 px); ``pose (2, 5)`` (theta deg,
         phi deg, k, l, h mm); ``ellipse (2, 5)`` (cx, cy, a, b px, alpha deg);
         ``rim (2, 64, 2)`` px; ``cup_diameter (2,)`` mm; ``cup_valid (2,)`` bool. Slots that
-        hold no cup are zero with ``cup_valid`` False. Truth is float64. ``index ()`` int64.
+        hold no cup have zero pose, ellipse and rim and ``cup_valid`` False; their
+        ``cup_diameter`` is the image's (the diameter a user would give, as in meta.csv), so
+        it is never 0. Truth is float64. ``index ()`` int64.
     """
     if isinstance(seed_or_generator, np.random.Generator):
         rng = seed_or_generator
@@ -169,7 +171,7 @@ def _synthesize(config: SynthConfig, rng: np.random.Generator, index: int) -> di
     pose = torch.zeros(MAX_CUPS, 5, dtype=torch.float64)
     ellipse = torch.zeros(MAX_CUPS, 5, dtype=torch.float64)
     rim = torch.zeros(MAX_CUPS, RIM_POINTS, 2, dtype=torch.float64)
-    diameter = torch.zeros(MAX_CUPS, dtype=torch.float64)
+    diameter = torch.full((MAX_CUPS,), scene.nominal_diameter, dtype=torch.float64)
     valid = torch.zeros(MAX_CUPS, dtype=torch.bool)
     mask = torch.zeros(height, width)
     if n:

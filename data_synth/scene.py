@@ -35,6 +35,8 @@ class Scene:
         field_radius: radius of the image intensifier's circular field (px, inf: none).
         poses: ``(n, 5)`` float64 public units, ``n`` in ``0..MAX_CUPS``.
         diameters: ``(n,)`` float64 cup outer diameters.
+        nominal_diameter: the image's cup diameter as a user would give it (mm), also for an
+            image without a cup.
         metal: implant parts (shells, liners, heads, stems).
         bones: procedural pelvis and femur parts.
     """
@@ -45,6 +47,7 @@ class Scene:
     field_radius: float
     poses: Tensor
     diameters: Tensor
+    nominal_diameter: float
     metal: list[Part]
     bones: list[Part]
 
@@ -265,6 +268,7 @@ def sample_scene(config: SynthConfig, rng: np.random.Generator) -> Scene:
         if not no_cup:
             metal += [cup_part(cup, config.supersample), *stem_metal]
         bones += hip_bones
+    nominal = float(diameters[0])
     if no_cup:  # the hip stays (native bone), the implant goes
         poses, diameters = poses[:0], diameters[:0]
-    return Scene(geometry, width, height, field_radius, poses, diameters, metal, bones)
+    return Scene(geometry, width, height, field_radius, poses, diameters, nominal, metal, bones)

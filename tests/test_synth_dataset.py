@@ -88,6 +88,8 @@ def test_no_cup_images():
     sample = synthesize(SynthConfig(**SMALL, p_no_cup=1.0), 3, 0)
     assert not sample["cup_valid"].any()
     assert sample["mask"].sum() == 0 and sample["pose"].abs().sum() == 0
+    # The diameter a user would give stays, so a detector can run on the image.
+    assert (sample["cup_diameter"] >= 44).all()
 
 
 def test_bilateral_cups_sit_on_opposite_hips():
