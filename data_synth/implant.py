@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -102,13 +103,13 @@ def cup_part(cup: Cup, supersample: int) -> Part:
     return Part(lambda rays: cup_line_integral(cup, rays), bounds, supersample)
 
 
-def frame_along(direction: Tensor) -> Tensor:
+def frame_along(direction: np.ndarray) -> np.ndarray:
     """``(3, 3)`` rotation whose first column is the unit ``direction (3,)``."""
-    first = direction / direction.norm()
-    helper = torch.tensor([0.0, 0.0, 1.0]) if first[2].abs() < 0.9 else torch.tensor([1.0, 0, 0])
-    second = torch.linalg.cross(first, helper)
-    second = second / second.norm()
-    return torch.stack([first, second, torch.linalg.cross(first, second)], -1)
+    first = direction / np.linalg.norm(direction)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(first[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    second = np.cross(first, helper)
+    second = second / np.linalg.norm(second)
+    return np.stack([first, second, np.cross(first, second)], -1)
 
 
 @dataclass
@@ -116,7 +117,8 @@ class Ellipsoid:
     """A solid ellipsoid ``centre + axes @ diag(semi_axes) @ unit ball`` of attenuation ``mu``.
 
     ``hollow`` in ``[0, 1)``: the inner ellipsoid scaled by ``hollow`` has ``mu_inner``
-    instead (a bone's cortex around its marrow, a stem's neck around nothing: 0).
+    instead (a bone's cortex around its marrow). ``centre (3,)`` mm, ``axes (3, 3)`` (columns
+    the principal directions) and ``semi_axes (3,)`` mm may be given as arrays or tensors.
     """
 
     centre: Tensor
@@ -126,12 +128,19 @@ class Ellipsoid:
     hollow: float = 0.0
     mu_inner: float = 0.0
 
+    def __post_init__(self) -> None:
+        # Scenes are sampled in numpy (small-array maths costs ~5x less there); rays are torch.
+        for name in ("centre", "axes", "semi_axes"):
+            setattr(self, name, torch.as_tensor(np.asarray(getattr(self, name)),
+                                                dtype=torch.float32))
+
     @classmethod
-    def along(cls, start: Tensor, end: Tensor, radii: tuple[float, float], mu: float,
+    def along(cls, start: np.ndarray, end: np.ndarray, radii: tuple[float, float], mu: float,
               **kwargs: float) -> Ellipsoid:
-        """The ellipsoid spanning the segment ``start -> end`` with cross-section ``radii``."""
+        """The ellipsoid spanning the segment ``start -> end`` (mm) with cross-section
+        ``radii``."""
         axis = end - start
-        semi = torch.tensor([float(axis.norm()) / 2, *radii])
+        semi = np.array([np.linalg.norm(axis) / 2, *radii])
         return cls((start + end) / 2, frame_along(axis), semi, mu, **kwargs)
 
     def line_integral(self, rays: Rays) -> Tensor:

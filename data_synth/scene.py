@@ -168,9 +168,9 @@ def sample_cup(config: SynthConfig, rng: np.random.Generator, pose: Tensor, diam
     return cup
 
 
-def _unit(*xyz: float) -> Tensor:
-    v = torch.tensor(xyz, dtype=torch.float32)
-    return v / v.norm()
+def _unit(*xyz: float) -> np.ndarray:
+    v = np.array(xyz)
+    return v / np.linalg.norm(v)
 
 
 def hip_parts(config: SynthConfig, rng: np.random.Generator, centre: Tensor, radius: float,
@@ -183,7 +183,7 @@ def hip_parts(config: SynthConfig, rng: np.random.Generator, centre: Tensor, rad
     Returns:
         ``(metal, bones)`` parts.
     """
-    c = centre.float()
+    c = centre.numpy()
     neck_angle = np.deg2rad(rng.uniform(38, 55))  # from the shaft: the neck-shaft angle's rest
     neck_dir = _unit(lateral * math.sin(neck_angle), math.cos(neck_angle), rng.uniform(-0.2, 0.2))
     neck_base = c + neck_dir * rng.uniform(35, 50)
@@ -207,7 +207,7 @@ def hip_parts(config: SynthConfig, rng: np.random.Generator, centre: Tensor, rad
         y_inf = _unit(0, 1, 0)
         jitter = rng.uniform(0.85, 1.15)
 
-        def offset(medial_inferior: tuple[float, float]) -> Tensor:
+        def offset(medial_inferior: tuple[float, float]) -> np.ndarray:
             """Medial and inferior mm from the hip centre (scaled per patient)."""
             return jitter * (-x_lat * medial_inferior[0] + y_inf * medial_inferior[1])
 
@@ -218,16 +218,16 @@ def hip_parts(config: SynthConfig, rng: np.random.Generator, centre: Tensor, rad
             # Femoral neck remnant, greater and lesser trochanter.
             Ellipsoid.along(c + neck_dir * 12, neck_base, (15.0, 14.0), mu, hollow=0.8,
                             mu_inner=mu * 0.5),
-            Ellipsoid(neck_base + x_lat * 14 - y_inf * 6, torch.eye(3),
-                      torch.tensor([20.0, 26.0, 20.0]) * rng.uniform(0.85, 1.15), mu,
+            Ellipsoid(neck_base + x_lat * 14 - y_inf * 6, np.eye(3),
+                      np.array([20.0, 26.0, 20.0]) * rng.uniform(0.85, 1.15), mu,
                       hollow=0.85, mu_inner=mu * 0.55),
-            Ellipsoid(neck_base + shaft_dir * 45 - x_lat * 14, torch.eye(3),
-                      torch.tensor([10.0, 14.0, 10.0]), mu, hollow=0.7, mu_inner=mu * 0.5),
+            Ellipsoid(neck_base + shaft_dir * 45 - x_lat * 14, np.eye(3),
+                      np.array([10.0, 14.0, 10.0]), mu, hollow=0.7, mu_inner=mu * 0.5),
             # Ilium: a broad plate above and medial to the cup, whose lower edge is the
             # acetabular roof over the dome.
             Ellipsoid(c - x_lat * rng.uniform(15, 35) - y_inf * rng.uniform(60, 80),
                       _rotz(lateral * rng.uniform(10, 35)),
-                      torch.tensor([rng.uniform(70, 90), rng.uniform(85, 105), 10.0]),
+                      np.array([rng.uniform(70, 90), rng.uniform(85, 105), 10.0]),
                       mu * 0.9, hollow=0.93, mu_inner=mu * 0.45),
             # Ischium below the cup and the pubic rami medial to it: overlapping cortical
             # tubes, a ring of bone around the obturator foramen.
@@ -241,10 +241,9 @@ def hip_parts(config: SynthConfig, rng: np.random.Generator, centre: Tensor, rad
     return metal, bones
 
 
-def _rotz(degrees: float) -> Tensor:
+def _rotz(degrees: float) -> np.ndarray:
     a = math.radians(degrees)
-    return torch.tensor([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0],
-                         [0, 0, 1]], dtype=torch.float32)
+    return np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
 
 
 def sample_scene(config: SynthConfig, rng: np.random.Generator) -> Scene:
