@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import nibabel as nib
 import numpy as np
+import pytest
 import torch
 
 import data_synth.anatomy as anatomy
@@ -18,7 +19,38 @@ def test_shipped_bank_is_small_and_plausible():
     assert maps.min() >= 0 and 1 < float(maps.mean()) < 8
 
 
-def test_user_ct_is_rendered_once_and_cached(tmp_path, monkeypatch):
+def write_ct(folder, kind):
+    """A 24 x 24 x 20 CT (8 mm voxels): a soft-tissue box around a bone column."""
+    volume = np.full((24, 24, 20), -1000, dtype=np.int16)
+    volume[4:20, 4:20, 2:18] = 40
+    volume[10:14, 10:14, 2:18] = 900
+    if kind == "nifti":
+        path = folder / "ct.nii.gz"
+        nib.save(nib.Nifti1Image(volume, np.diag([8.0, 8.0, 8.0, 1.0])), path)
+        return path
+    import SimpleITK as sitk
+
+    path = folder / "ct_dicom"
+    path.mkdir()
+    image = sitk.GetImageFromArray(np.ascontiguousarray(volume.transpose(2, 1, 0)))
+    image.SetSpacing((8.0, 8.0, 8.0))
+    writer = sitk.ImageFileWriter()
+    writer.KeepOriginalImageUIDOn()
+    for k in range(image.GetDepth()):
+        piece = image[:, :, k]
+        position = image.TransformIndexToPhysicalPoint((0, 0, k))
+        for tag, value in (("0020|0032", "\\".join(map(str, position))), ("0020|0013", str(k)),
+                           ("0008|0060", "CT"), ("0020|0037", "1\\0\\0\\0\\1\\0"),
+                           ("0020|000d", "1.2.826.0.1.3680043.2.1125.2"),
+                           ("0020|000e", "1.2.826.0.1.3680043.2.1125.1")):
+            piece.SetMetaData(tag, value)
+        writer.SetFileName(str(path / f"{k:03d}.dcm"))
+        writer.Execute(piece)
+    return path
+
+
+@pytest.mark.parametrize("kind", ["nifti", "dicom"])
+def test_user_ct_is_rendered_once_and_cached(tmp_path, monkeypatch, kind):
     import data_synth.build_bank as build_bank
 
     monkeypatch.setattr(anatomy, "CACHE_DIR", tmp_path / "cache")
@@ -26,15 +58,11 @@ def test_user_ct_is_rendered_once_and_cached(tmp_path, monkeypatch):
     monkeypatch.setattr(anatomy, "USER_BANK_VIEWS", 3)
     monkeypatch.setattr(anatomy, "USER_BANK_SIZE", 48)
     monkeypatch.setattr(build_bank, "VOXEL_MM", (8.0, 8.0, 8.0))
-    volume = np.full((24, 24, 20), -1000, dtype=np.int16)
-    volume[4:20, 4:20, 2:18] = 40  # soft tissue
-    volume[10:14, 10:14, 2:18] = 900  # a bone column
-    ct = tmp_path / "ct.nii.gz"
-    nib.save(nib.Nifti1Image(volume, np.diag([8.0, 8.0, 8.0, 1.0])), ct)
+    ct = write_ct(tmp_path, kind)
     config = SynthConfig(image_size=(64, 64), anatomy_ct=str(ct), p_anatomy=1.0)
     first = synthesize(config, 0, 0)
-    cached = list((tmp_path / "cache").glob("ct.nii.gz-*.npz"))
-    assert len(cached) == 1
+    cached = list((tmp_path / "cache").glob("*.npz"))
+    assert len(cached) == 1 and cached[0].name.startswith(ct.name)
     mtime = cached[0].stat().st_mtime_ns
     second = synthesize(config, 0, 0)
     assert cached[0].stat().st_mtime_ns == mtime  # reused, not rendered again
