@@ -125,7 +125,9 @@ def form_image(line_integral: Tensor, field_radius: float, config: SynthConfig,
     contrast = uniform(rng, config.contrast)
     # Window, then contrast about mid-grey: one affine map, one clip.
     scale = contrast / max(high - low, 1e-6)
-    x = np.clip((x - low) * scale + 0.5 * (1 - contrast), 0, 1) ** uniform(rng, config.gamma)
+    x = np.clip((x - low) * scale + 0.5 * (1 - contrast), 1e-12, 1)
+    # Gamma as exp(g log x): numpy's float32 power with a fractional exponent is ~7x slower.
+    x = np.exp(uniform(rng, config.gamma) * np.log(x))
     if rng.random() < config.p_invert:
         x = 1 - x
     if math.isfinite(field_radius):
