@@ -109,6 +109,7 @@ class Matched:
         seconds: seconds per predicted image (its first row).
         errors: images whose prediction is an error row.
         ambiguous: matched cups the solver flagged ambiguous.
+        unpredicted: truth images without any prediction row (left out).
     """
 
     images: list[str]
@@ -122,17 +123,25 @@ class Matched:
     seconds: np.ndarray
     errors: int
     ambiguous: int
+    unpredicted: int
 
 
 def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]],
                truth_ellipse: np.ndarray) -> Matched:
-    """Pairs of predicted and true cups per image by ellipse centre (Hungarian assignment)."""
-    usable = np.isfinite(_array(truth_rows, POSE)).all(1) & np.isfinite(truth_ellipse).all(1)
-    truth_rows_ok = np.flatnonzero(usable).tolist()
+    """Pairs of predicted and true cups per image by ellipse centre (Hungarian assignment).
+
+    Only images with a prediction row count; truth images without one are counted apart
+    (``unpredicted``), so evaluating part of a set does not read as missed cups.
+    """
     pred_by_image: dict[str, list[dict[str, str]]] = {}
     first_rows: dict[str, dict[str, str]] = {}
     for row in pred_rows:
         first_rows.setdefault(row["image"], row)
+    predicted = np.array([r["image"] in first_rows for r in truth_rows], dtype=bool)
+    usable = (np.isfinite(_array(truth_rows, POSE)).all(1) & np.isfinite(truth_ellipse).all(1)
+              & predicted)
+    truth_rows_ok = np.flatnonzero(usable).tolist()
+    for row in pred_rows:
         if row["status"] in FOUND and np.isfinite(_array([row], ELLIPSE[:2])).all():
             pred_by_image.setdefault(row["image"], []).append(row)
     truth_by_image: dict[str, list[int]] = {}
@@ -163,6 +172,7 @@ def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]]
         n_images=len(evaluated),
         seconds=seconds[np.isfinite(seconds)],
         errors=sum(r["status"].startswith("error") for r in evaluated),
+        unpredicted=len({r["image"] for r in truth_rows} - set(first_rows)),
         ambiguous=sum(p["status"] == "ambiguous" for p, _ in pairs),
     )
 
@@ -236,6 +246,7 @@ def compute_metrics(matched: Matched) -> dict:
         "false_positives": matched.n_pred - n,
         "error_images": matched.errors,
         "ambiguous_matched": matched.ambiguous,
+        "truth_images_not_predicted": matched.unpredicted,
         "gross_failures": gross,
         "gross_failure_rate": gross / n if n else None,
         "seconds_per_image": float(matched.seconds.mean()) if matched.seconds.size else None,
@@ -285,6 +296,9 @@ def metrics_table(metrics: dict) -> str:
         f"{metrics['gross_failures']} ({'-' if gross is None else f'{100 * gross:.1f} %'}) | "
         f"{metrics['error_images']} | {_fmt(metrics['seconds_per_image'])} |",
     ]
+    if metrics["truth_images_not_predicted"]:
+        lines.append(f"\n{metrics['truth_images_not_predicted']} truth image(s) without a "
+                     "prediction row were left out.")
     return "\n".join(lines)
 
 

@@ -21,6 +21,7 @@ TRUTH = {
     "b.png": [[10.0, 89.0, 0.0, 0.0, 400.0, 512.0, 512.0, 70.0, 12.0, 179.0]],
     "c.png": [[45.0, 10.0, 20.0, -30.0, 150.0, 600.0, 400.0, 50.0, 35.0, 100.0]],  # missed
     "d.png": [],  # no cup, none predicted
+    "e.png": [[30.0, 20.0, 0.0, 0.0, 300.0, 400.0, 400.0, 50.0, 40.0, 0.0]],  # not predicted
 }
 OFFSET = np.array([2.0, -3.0, 1.5, -0.5, 10.0])  # the known pose error
 
@@ -45,6 +46,8 @@ def predicted_rows() -> list[dict]:
     """Every cup off by OFFSET, its ellipse 2 px longer; cups of a.png in reverse order."""
     rows = []
     for image, cups in TRUTH.items():
+        if image == "e.png":
+            continue
         if image in ("c.png", "d.png"):
             rows.append({"image": image, "status": "no_cup", "seconds": 0.5})
             continue
@@ -69,6 +72,7 @@ def test_known_perturbation_gives_known_errors(tmp_path: Path) -> None:
     assert metrics["detection_rate"] == pytest.approx(0.75)
     assert metrics["false_positives"] == 1
     assert metrics["images"] == 4 and metrics["seconds_per_image"] == pytest.approx(0.5)
+    assert metrics["truth_images_not_predicted"] == 1  # e.png: left out, not a missed cup
     for i, name in enumerate(POSE):
         stats = metrics["perspective"][name]
         for key in ("mae", "median", "p95"):
