@@ -315,3 +315,31 @@ def test_checkpoint_cannot_run_code(tmp_path: Path, capsys: pytest.CaptureFixtur
                  "--checkpoint", str(tmp_path / "evil.pt"), "--cup-diameter", "52"]) == 2
     assert not marker.exists()
     assert "cannot load" in capsys.readouterr().err
+
+
+def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
+    """The shipped checkpoint on a synthetic bilateral image (two rows) and a blank one."""
+    from data_synth.config import SynthConfig
+    from data_synth.dataset import synthesize
+
+    config = SynthConfig(p_bilateral=1.0, p_no_cup=0.0, photons=(5000.0, 20000.0))
+    sample = next(s for s in (synthesize(config, 11, i) for i in range(20))
+                  if bool(s["cup_valid"].all()))
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "bilateral.png"),
+                np.round(sample["image"][0].numpy() * 65535).astype(np.uint16))
+    cv2.imwrite(str(images / "blank.png"), np.zeros(config.image_size[::-1], np.uint16))
+    sdd, spacing, u0, v0 = sample["geometry"].tolist()
+    out = tmp_path / "out"
+    assert main(["predict", str(images), "--out", str(out), "--sdd", str(sdd),
+                 "--pixel-spacing", str(spacing), "--principal-point", str(u0), str(v0),
+                 "--cup-diameter", str(float(sample["cup_diameter"][0])), "--quiet"]) == 0
+    by_image = rows_by_image(read_csv(out / "results.csv"))
+    assert [r["status"] for r in by_image["blank.png"]] == ["no_cup"]
+    rows = by_image["bilateral.png"]
+    assert [r["cup"] for r in rows] == ["0", "1"]
+    # Left to right: each row's ellipse centre near the true cup on its side.
+    true_u = sorted(sample["ellipse"][:, 0].tolist())
+    for row, u in zip(rows, true_u, strict=True):
+        assert abs(float(row["ellipse_cx_px"]) - u) < 10
