@@ -29,4 +29,3 @@ def test_demo_runs_all_three_steps(tmp_path: Path, capsys: pytest.CaptureFixture
     # A second demo into the same folder must not silently replace the first.
     assert main(args) == 2
     assert "--overwrite" in capsys.readouterr().err
-    assert main([*args, "--overwrite"]) == 0
