@@ -8,7 +8,10 @@ images are repeated to reach the count (decoding, network and pose cost do not d
 which image it is). Each configuration (overlays off, then on) runs ``cupnet predict`` in a
 fresh process, which first pays its one-off start (imports, model load, first-call set-up of
 PyTorch) on one image; the run itself is then timed end to end (reading, network, pose,
-writing CSV/JSON and overlays). Peak memory is the process's maximum resident set size.
+writing CSV/JSON and overlays). Peak memory is the process's maximum resident set size. The
+CPU time the run used (all threads) is reported too: on a machine whose cores are shared it
+is steadier than wall time, and ``cores / (CPU s per image)`` bounds the throughput the run
+would reach with the cores to itself.
 """
 
 from __future__ import annotations
@@ -34,12 +37,15 @@ CHILD = """
 import json, resource, sys, time
 from cupnet.cli import main
 warm, run = json.loads(sys.argv[1])
+def cpu():
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
 t0 = time.perf_counter()
 assert main(warm) == 0
-t1 = time.perf_counter()
+t1, c1 = time.perf_counter(), cpu()
 assert main(run) == 0
-t2 = time.perf_counter()
-print(json.dumps({"startup_s": t1 - t0, "run_s": t2 - t1,
+t2, c2 = time.perf_counter(), cpu()
+print(json.dumps({"startup_s": t1 - t0, "run_s": t2 - t1, "cpu_s": c2 - c1,
                   "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
@@ -116,10 +122,13 @@ def main() -> None:
             results[overlays] = measure(images, meta, out, overlays, args.checkpoint)
     rows = []
     for overlays, r in results.items():
+        cpu_per_image = r["cpu_s"] / r["images"]
         rows.append(["on" if overlays else "off", r["images"], r["cups"], r["errors"],
-                     r["run_s"], r["images"] / r["run_s"], r["peak_rss_mb"], r["startup_s"]])
+                     r["run_s"], r["images"] / r["run_s"], cpu_per_image,
+                     os.cpu_count() / cpu_per_image, r["peak_rss_mb"], r["startup_s"]])
     table = markdown_table(["overlays", "images", "cups found", "error rows", "run (s)",
-                            "images / s", "peak memory (MB)", "process start-up (s)"], rows)
+                            "images / s", "CPU s / image", "images / s if cores were free",
+                            "peak memory (MB)", "process start-up (s)"], rows)
     body = "\n".join([
         "## cupnet predict: throughput and memory",
         "",
@@ -128,7 +137,8 @@ def main() -> None:
         f"Folder: {args.images} PNGs, {SIZE} x {SIZE}, 16-bit (synthetic, CT anatomy); "
         f"model: {args.checkpoint or 'shipped default'}; batch size 8. 'run' is end to end "
         "(reading, network, pose, CSV/JSON, overlays when on) after the process's one-off "
-        "start-up (imports, model load, first-call set-up), which is listed apart.",
+        "start-up (imports, model load, first-call set-up), which is listed apart. 'if cores "
+        "were free': CPU cores / CPU seconds per image, an upper bound.",
         "",
         table,
     ])
