@@ -26,8 +26,9 @@ import platform
 import sys
 import tempfile
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -61,6 +62,9 @@ ELLIPSE_COLUMNS = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_
 # the last rewrite took, so rewriting stays a small share of the run on huge folders.
 FLUSH_SECONDS = 2.0
 FLUSH_RATIO = 20.0
+# Batches whose detection runs at once, each on --threads PyTorch threads: on 2 cores the
+# network of one batch runs while the other core reads images and draws overlays.
+BATCHES_IN_FLIGHT = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -93,8 +97,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs")
     parser.add_argument("--batch-size", type=int, default=8, help="images per network batch")
     parser.add_argument("--threads", type=int, default=1,
-                        help="PyTorch threads for the network (default 1: reading and writing "
-                             "run beside it, and a busy machine does not stall it)")
+                        help="PyTorch threads per network batch (default 1: two batches, "
+                             "reading and writing run side by side, and a busy machine does not "
+                             "stall it)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -464,8 +469,21 @@ def _batches(frames: Iterator[Frame], size: int) -> Iterator[list[Frame]]:
         yield batch
 
 
+@dataclass
+class Batch:
+    """A batch between :meth:`Predictor.prepare` and :meth:`Predictor.finish`."""
+
+    size: int
+    records: dict[int, dict] = field(default_factory=dict)
+    ready: list[tuple[int, Frame, ResolvedGeometry]] = field(default_factory=list)
+
+
 class Predictor:
-    """Processes batches of frames into image records (rows, geometry, overlay, masks)."""
+    """Turns batches of frames into image records (rows, geometry, overlay, masks).
+
+    :meth:`prepare` and :meth:`finish` run in the caller's thread, :meth:`detect` may run in
+    a worker, so the network of one batch overlaps the overlays of the previous one.
+    """
 
     def __init__(self, args: argparse.Namespace, detector: NetworkDetector | LandmarkDetector,
                  outputs: Outputs,
@@ -486,37 +504,46 @@ class Predictor:
             tqdm.write(f"assuming {REQUIRED[key][0]} = {text} where not given "
                        "(--assume-defaults)", file=sys.stderr)
 
-    def process(self, frames: list[Frame]) -> list[dict]:
-        """Image records of a batch, in input order."""
-        records: dict[int, dict] = {}
-        ready: list[tuple[int, Frame, ResolvedGeometry]] = []
+    def prepare(self, frames: list[Frame]) -> Batch:
+        """Read errors and geometry of a batch: records of the images that fail, and the
+        images ready for detection."""
+        batch = Batch(len(frames))
         for i, frame in enumerate(frames):
             error = (f"error: {frame.error}" if frame.error is not None
                      else self.detector.input_error(frame.name))
             if error is not None:
-                records[i] = {"image": frame.name, "rows": [
+                batch.records[i] = {"image": frame.name, "rows": [
                     status_row(frame.name, error, frame.seconds)]}
                 continue
             geometry = resolve_geometry(frame, meta_row(self.meta, frame.name), self.flags,
                                         self.args.assume_defaults,
                                         self.detector.file_values(frame.name))
             if geometry.missing:
-                records[i] = {"image": frame.name, "geometry": geometry.to_json(), "rows": [
-                    status_row(frame.name, geometry.error(frame.tag_notes), frame.seconds)]}
+                batch.records[i] = {"image": frame.name, "geometry": geometry.to_json(),
+                                    "rows": [status_row(frame.name,
+                                                        geometry.error(frame.tag_notes),
+                                                        frame.seconds)]}
                 continue
             self._note_assumptions(geometry, frame.image.shape[1])
-            ready.append((i, frame, geometry))
-        if ready:
-            start = time.perf_counter()
-            detections = self._detect(ready)
-            share = (time.perf_counter() - start) / len(ready)
-            for (i, frame, geo), cups in zip(ready, detections, strict=True):
-                if isinstance(cups, str):
-                    records[i] = {"image": frame.name, "geometry": geo.to_json(), "rows": [
-                        status_row(frame.name, cups, frame.seconds + share)]}
-                else:
-                    records[i] = self._record(frame, geo, cups, share)
-        return [records[i] for i in range(len(frames))]
+            batch.ready.append((i, frame, geometry))
+        return batch
+
+    def detect(self, batch: Batch) -> tuple[list[list | str], float]:
+        """Cups of the batch's ready images and the seconds it took (runs in a worker)."""
+        start = time.perf_counter()
+        detections = self._detect(batch.ready) if batch.ready else []
+        return detections, time.perf_counter() - start
+
+    def finish(self, batch: Batch, detections: list[list | str], seconds: float) -> list[dict]:
+        """Image records of a batch in input order: rows, overlays, masks."""
+        share = seconds / max(1, len(batch.ready))
+        for (i, frame, geo), cups in zip(batch.ready, detections, strict=True):
+            if isinstance(cups, str):
+                batch.records[i] = {"image": frame.name, "geometry": geo.to_json(), "rows": [
+                    status_row(frame.name, cups, frame.seconds + share)]}
+            else:
+                batch.records[i] = self._record(frame, geo, cups, share)
+        return [batch.records[i] for i in range(batch.size)]
 
     def _detect(self, ready: list[tuple[int, Frame, ResolvedGeometry]]) -> list[list | str]:
         """Cups per image; where the batch fails, image by image, a failure an error status."""
@@ -578,7 +605,7 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
 def run(args: argparse.Namespace) -> int:
     # One intra-op thread by default: measured on the 2-core machine, 2 threads made the
     # network ~15x slower whenever another process used a core (OpenMP threads wait on each
-    # other), while 1 thread leaves the second core to the reader threads and the overlays.
+    # other); parallelism comes from BATCHES_IN_FLIGHT batches and the reader threads instead.
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, args.threads))  # _check_args reports a bad value
     try:
@@ -619,15 +646,28 @@ def _run(args: argparse.Namespace) -> int:
     interrupted = False
     bar = tqdm(total=len(todo), unit="file", disable=args.quiet, desc="cupnet predict")
     frames = iter_frames(todo, skip=done)
+    pool = ThreadPoolExecutor(BATCHES_IN_FLIGHT, thread_name_prefix="cupnet-detect")
+    in_flight: deque[tuple[list[Frame], Batch, Future]] = deque()
+
+    def complete() -> None:
+        files, batch, future = in_flight.popleft()
+        for record in predictor.finish(batch, *future.result()):
+            outputs.add(record)
+        bar.update(sum(f.last_of_source for f in files))
+        outputs.flush()
+
     try:
-        for batch in _batches(frames, args.batch_size):
-            for record in predictor.process([f for f in batch if not f.skipped]):
-                outputs.add(record)
-            bar.update(sum(f.last_of_source for f in batch))
-            outputs.flush()
+        for files in _batches(frames, args.batch_size):
+            batch = predictor.prepare([f for f in files if not f.skipped])
+            in_flight.append((files, batch, pool.submit(predictor.detect, batch)))
+            while len(in_flight) >= BATCHES_IN_FLIGHT:
+                complete()
+        while in_flight:
+            complete()
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        pool.shutdown(wait=False, cancel_futures=True)
         frames.close()
         bar.close()
     summary = summarise(outputs.records.values())
