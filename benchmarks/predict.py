@@ -135,7 +135,8 @@ def main() -> None:
         f"`.venv/bin/python -m benchmarks.predict --images {args.images}` on {machine()}; "
         f"load average {load:.1f} when started (the machine's cores may be shared). "
         f"Folder: {args.images} PNGs, {SIZE} x {SIZE}, 16-bit (synthetic, CT anatomy); "
-        f"model: {args.checkpoint or 'shipped default'}; batch size 8. 'run' is end to end "
+        f"model: {args.checkpoint or 'shipped default'}; predict's defaults (batches of 8, "
+        "two in flight, one PyTorch thread each). 'run' is end to end "
         "(reading, network, pose, CSV/JSON, overlays when on) after the process's one-off "
         "start-up (imports, model load, first-call set-up), which is listed apart. 'if cores "
         "were free': CPU cores / CPU seconds per image, an upper bound.",
