@@ -667,11 +667,12 @@ def _run(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         interrupted = True
     finally:
+        # Also on an unexpected error: what finished is written before it propagates.
         pool.shutdown(wait=False, cancel_futures=True)
         frames.close()
         bar.close()
-    summary = summarise(outputs.records.values())
-    outputs.flush(summary, force=True)
+        summary = summarise(outputs.records.values())
+        outputs.flush(summary, force=True)
     _print_summary(summary, args.out, not args.no_overlays, time.perf_counter() - start,
                    interrupted)
     return 130 if interrupted else 0
