@@ -103,6 +103,15 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
     to_view = lambda p: (np.asarray(p, np.float64) + 0.5) * scale - 0.5  # noqa: E731
     for index, cup in enumerate(cups):  # numbered from 0, as the cup column of results.csv
         colour = STATUS_COLOURS.get(cup.status, ERROR_COLOUR)
+        # Landmarks first and small, so the fitted ellipse drawn over them stays visible.
+        if cup.landmarks is not None:
+            weights = np.ones(len(cup.landmarks)) if cup.weights is None else cup.weights
+            for (u, v), w in zip(to_view(cup.landmarks), weights, strict=True):
+                if not (np.isfinite(u) and np.isfinite(v)):
+                    continue
+                shade = tuple(int(c * (0.3 + 0.7 * float(np.clip(w, 0, 1)))) for c in (255, 80, 0))
+                cv2.circle(canvas, (_fixed(u), _fixed(v)), _fixed(thickness), shade, -1,
+                           cv2.LINE_AA, _SHIFT)
         if cup.ellipse is not None and np.isfinite(cup.ellipse).all():
             cx, cy = to_view(cup.ellipse[:2])
             axes = (_fixed(cup.ellipse[2] * scale), _fixed(cup.ellipse[3] * scale))
@@ -110,14 +119,6 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
                         colour, thickness, cv2.LINE_AA, _SHIFT)
             cv2.putText(canvas, str(index), (round(cx), round(cy)), _FONT, 0.5 * unit, colour,
                         thickness, cv2.LINE_AA)
-        if cup.landmarks is not None:
-            weights = np.ones(len(cup.landmarks)) if cup.weights is None else cup.weights
-            for (u, v), w in zip(to_view(cup.landmarks), weights, strict=True):
-                if not (np.isfinite(u) and np.isfinite(v)):
-                    continue
-                shade = tuple(int(c * (0.3 + 0.7 * float(np.clip(w, 0, 1)))) for c in (255, 80, 0))
-                cv2.circle(canvas, (_fixed(u), _fixed(v)), _fixed(1.5 * thickness), shade, -1,
-                           cv2.LINE_AA, _SHIFT)
     lines = [title] + [line for cup in cups for line in cup.lines]
     _draw_text_block(canvas, lines, 0.4 * unit, thickness)
     return canvas
