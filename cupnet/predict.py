@@ -38,7 +38,7 @@ from tqdm import tqdm
 
 from cupnet import __version__
 from cupnet.geometry import Geometry
-from cupnet.io.images import Frame, find_images, iter_frames
+from cupnet.io.images import Frame, ImageSource, find_images, iter_frames
 from cupnet.overlay import CupDrawing, draw_overlay, pose_lines, write_png
 
 # Geometry values an image needs, with what they are called in messages and which flag sets
@@ -68,7 +68,8 @@ BATCHES_IN_FLIGHT = 2
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("images", help="a folder, an image / DICOM file, or a glob (quote it)")
+    parser.add_argument("images", nargs="+",
+                        help="folders, image / DICOM files or globs (several may be given)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--recursive", action="store_true", help="include subfolders")
     parser.add_argument("--meta", type=Path,
@@ -440,6 +441,25 @@ def _flags(args: argparse.Namespace) -> dict[str, float]:
     return {k: v for k, v in flags.items() if v is not None}
 
 
+def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSource]:
+    """The inputs of every spec (folder, file or glob), each file once.
+
+    Names are relative to their spec's folder; where two specs give the same name (a shell
+    expanding ``*/a.png``), the later file is named by its path so results stay apart.
+    """
+    sources: dict[str, ImageSource] = {}
+    seen: set[Path] = set()
+    for spec in specs:
+        for source in find_images(spec, recursive, exclude=out):
+            path = source.path.resolve()
+            if path in seen:
+                continue
+            seen.add(path)
+            name = source.name if source.name not in sources else source.path.as_posix()
+            sources[name] = ImageSource(source.path, name)
+    return list(sources.values())
+
+
 def _check_args(args: argparse.Namespace) -> str | None:
     if args.resume and args.overwrite:
         return "--resume and --overwrite exclude each other"
@@ -618,7 +638,7 @@ def _run(args: argparse.Namespace) -> int:
     problem = _check_args(args)
     if problem is None:
         try:
-            sources = find_images(args.images, args.recursive, exclude=args.out)
+            sources = gather_images(args.images, args.recursive, args.out)
             meta = read_meta(args.meta) if args.meta is not None else {}
         except (FileNotFoundError, ValueError) as exc:
             problem = str(exc)

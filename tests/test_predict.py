@@ -343,3 +343,19 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
     true_u = sorted(sample["ellipse"][:, 0].tolist())
     for row, u in zip(rows, true_u, strict=True):
         assert abs(float(row["ellipse_cx_px"]) - u) < 10
+
+
+def test_several_inputs_as_a_shell_expands_them(tmp_path: Path, blind_checkpoint: Path) -> None:
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        noise_png(tmp_path / folder / "x.png", size=64)
+    noise_png(tmp_path / "a" / "y.png", size=64)
+    out = tmp_path / "out"
+    specs = [str(tmp_path / "a" / "x.png"), str(tmp_path / "b" / "x.png"), str(tmp_path / "a"),
+             f"{tmp_path}/a/*.png"]
+    assert main(["predict", *specs, "--out", str(out), "--checkpoint", str(blind_checkpoint),
+                 "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52",
+                 "--quiet", "--no-overlays"]) == 0
+    names = list(rows_by_image(read_csv(out / "results.csv")))
+    # Each file once; the second x.png is named by its path, not merged with the first.
+    assert names == ["x.png", (tmp_path / "b" / "x.png").as_posix(), "y.png"]
