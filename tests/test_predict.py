@@ -359,3 +359,22 @@ def test_several_inputs_as_a_shell_expands_them(tmp_path: Path, blind_checkpoint
     names = list(rows_by_image(read_csv(out / "results.csv")))
     # Each file once; the second x.png is named by its path, not merged with the first.
     assert names == ["x.png", (tmp_path / "b" / "x.png").as_posix(), "y.png"]
+
+
+def test_assumptions_printed_once_and_recorded(tmp_path: Path, blind_checkpoint: Path,
+                                               capsys: pytest.CaptureFixture) -> None:
+    for i in range(3):
+        noise_png(tmp_path / f"im{i}.png", size=100)
+    out = tmp_path / "out"
+    assert main(["predict", str(tmp_path), "--out", str(out), "--checkpoint",
+                 str(blind_checkpoint), "--sdd", "1000", "--assume-defaults", "--quiet",
+                 "--no-overlays"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("assuming cup diameter = 52 mm") == 1
+    assert err.count("assuming pixel spacing") == 1 and "assuming source" not in err
+    document = json.loads((out / "results.json").read_text())
+    assert set(document["assumptions"]) == {"cup_diameter_mm", "pixel_spacing_mm"}
+    geometry = document["images"][0]["geometry"]
+    assert geometry["pixel_spacing_mm"] == {"value": predict.ASSUMED_DETECTOR_WIDTH_MM / 100,
+                                            "source": "assumed"}
+    assert geometry["sdd_mm"]["source"] == "command line"
