@@ -14,7 +14,7 @@ from cupnet.crops import ellipse_to_view, resample_batch
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
-from cupnet.model import CupDetection, CupNet, CupNetConfig, save_model
+from cupnet.model import CupDetection, CupNet, CupNetConfig, load_model, save_model
 from train.losses import (
     POSE_SCALE,
     ellipse_loss,
@@ -114,6 +114,8 @@ class CupNetModule(L.LightningModule):
         refine_pose: train through the solver's ML refinement (else its closed form).
         torch_threads: intra-op threads (None: torch's default); 1 suits a shared CPU,
             where the data worker takes the other core.
+        init_weights: a checkpoint whose network weights start this run (fine-tuning; a
+            resume with ``--ckpt_path`` restores the old run's hyper-parameters instead).
         export_path: where :meth:`on_fit_end` writes the model as safetensors + JSON.
     """
 
@@ -138,11 +140,14 @@ class CupNetModule(L.LightningModule):
         crops_per_cup: int = 2,
         refine_pose: bool = False,
         torch_threads: int | None = None,
+        init_weights: str | None = None,
         export_path: str | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
         self.model = CupNet(CupNetConfig.from_dict(model or {}))
+        if init_weights:
+            self.model.load_state_dict(load_model(init_weights).state_dict())
 
     def losses(self, batch: dict, step: int) -> dict[str, Tensor]:
         """All loss terms of one batch and their weighted total (``"loss"``)."""
