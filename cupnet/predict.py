@@ -17,17 +17,14 @@ does not grow with the number of images.
 from __future__ import annotations
 
 import argparse
-import csv
 import hashlib
 import json
 import math
-import os
 import platform
 import sys
-import tempfile
 import time
 from collections import Counter, deque
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,25 +36,29 @@ from tqdm import tqdm
 from cupnet import __version__
 from cupnet.geometry import Geometry
 from cupnet.io.images import Frame, ImageSource, find_images, iter_frames
+from cupnet.io.meta import (
+    GEOMETRY_KEYS,
+    REQUIRED,
+    add_geometry_arguments,
+    geometry_flags,
+    meta_row,
+    read_meta,
+)
+from cupnet.io.results import (
+    atomic_write,
+    cup_row,
+    read_results_csv,
+    status_row,
+    write_results_csv,
+)
 from cupnet.overlay import CupDrawing, draw_overlay, pose_lines, write_png
 
-# Geometry values an image needs, with what they are called in messages and which flag sets
-# them; the principal point defaults to the image centre (CONVENTIONS) and is never missing.
-REQUIRED = {
-    "sdd_mm": ("source-to-detector distance", "--sdd"),
-    "pixel_spacing_mm": ("pixel spacing", "--pixel-spacing"),
-    "cup_diameter_mm": ("cup diameter", "--cup-diameter"),
-}
-GEOMETRY_KEYS = (*REQUIRED, "principal_u_px", "principal_v_px")
 # --assume-defaults: the paper's SDD, a common cup size, and a mid-size detector whose width
 # spans the image (so the spacing scales with the image size).
 ASSUMED_SDD_MM = 1040.0
 ASSUMED_CUP_DIAMETER_MM = 52.0
 ASSUMED_DETECTOR_WIDTH_MM = 300.0
 
-POSE_COLUMNS = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
-ELLIPSE_COLUMNS = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_px",
-                   "ellipse_angle_deg")
 # Outputs are rewritten at most every FLUSH_SECONDS, and at least FLUSH_RATIO times as long as
 # the last rewrite took, so rewriting stays a small share of the run on huge folders.
 FLUSH_SECONDS = 2.0
@@ -72,15 +73,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folders, image / DICOM files or globs (several may be given)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--recursive", action="store_true", help="include subfolders")
-    parser.add_argument("--meta", type=Path,
-                        help="meta.csv: image,sdd_mm,pixel_spacing_mm,cup_diameter_mm"
-                             "[,principal_u_px,principal_v_px]; wins over flags and tags")
-    parser.add_argument("--sdd", type=float, metavar="MM", help="source-to-detector distance")
-    parser.add_argument("--pixel-spacing", type=float, metavar="MM",
-                        help="detector pixel spacing (mm/px at the detector)")
-    parser.add_argument("--cup-diameter", type=float, metavar="MM", help="cup outer diameter")
-    parser.add_argument("--principal-point", type=float, nargs=2, metavar=("U", "V"),
-                        help="principal point in pixels (default: the image centre)")
+    add_geometry_arguments(parser)
     parser.add_argument("--assume-defaults", action="store_true",
                         help=f"fill missing values (SDD {ASSUMED_SDD_MM:g} mm, cup "
                              f"{ASSUMED_CUP_DIAMETER_MM:g} mm, pixel spacing = "
@@ -130,34 +123,6 @@ class ResolvedGeometry:
         v = self.values
         return Geometry(v["sdd_mm"], v["pixel_spacing_mm"], v["principal_u_px"],
                         v["principal_v_px"])
-
-
-def read_meta(path: Path) -> dict[str, dict[str, float]]:
-    """meta.csv rows by image name: ``{image: {column: value}}`` (blank cells left out)."""
-    with path.open(newline="") as f:
-        reader = csv.DictReader(f)
-        if reader.fieldnames is None or "image" not in reader.fieldnames:
-            raise ValueError(f"{path}: meta.csv needs an 'image' column")
-        unknown = set(reader.fieldnames) - {"image", *GEOMETRY_KEYS}
-        if unknown:
-            raise ValueError(f"{path}: unknown meta.csv column(s) {sorted(unknown)}")
-        rows: dict[str, dict[str, float]] = {}
-        for line, row in enumerate(reader, 2):
-            try:
-                rows[row["image"]] = {k: float(v) for k, v in row.items()
-                                      if k != "image" and v not in (None, "")}
-            except ValueError as exc:
-                raise ValueError(f"{path}, line {line}: {exc}") from exc
-    return rows
-
-
-def meta_row(meta: dict[str, dict[str, float]], name: str) -> dict[str, float]:
-    """The meta.csv row of an image: by its name, else its file name (frames: their file's)."""
-    file_name = name.split("#", 1)[0]
-    for key in (name, file_name, Path(file_name).name):
-        if key in meta:
-            return meta[key]
-    return {}
 
 
 def resolve_geometry(frame: Frame, meta: dict[str, float], flags: dict[str, float],
@@ -289,71 +254,6 @@ class LandmarkDetector:
         return out
 
 
-# -- rows -------------------------------------------------------------------------------------
-def _finite(values: Iterable[float]) -> list[float | None]:
-    return [float(v) if v is not None and math.isfinite(float(v)) else None for v in values]
-
-
-def cup_row(name: str, index: int, cup, seconds: float) -> dict:
-    """One results.csv row of a detected cup (public units; None for blank cells)."""
-    row = {"image": name, "cup": index, "status": cup.status}
-    row.update(zip(POSE_COLUMNS, _finite(cup.pose), strict=True))
-    row.update(zip(ELLIPSE_COLUMNS, _finite(cup.ellipse), strict=True))
-    row["residual_px"] = _finite([cup.residual_px])[0]
-    row["seconds"] = seconds
-    alt = cup.alt_pose if cup.alt_pose is not None else [None] * 5
-    row.update(zip(("alt_" + c for c in POSE_COLUMNS), _finite(alt), strict=True))
-    return row
-
-
-def status_row(name: str, status: str, seconds: float) -> dict:
-    """The row of an image without a cup result: ``no_cup`` or ``error: <reason>``."""
-    return {"image": name, "cup": None, "status": status, "seconds": seconds}
-
-
-def result_columns() -> list[str]:
-    return ["image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px", "seconds",
-            *("alt_" + c for c in POSE_COLUMNS)]
-
-
-# -- output -----------------------------------------------------------------------------------
-def _atomic_write(path: Path, write: Callable) -> None:
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False,
-                                     newline="") as tmp:
-        write(tmp)
-    os.replace(tmp.name, path)
-
-
-def _cell(value: object) -> object:
-    if value is None:
-        return ""
-    return f"{value:.6g}" if isinstance(value, float) else value
-
-
-def write_results_csv(path: Path, records: Iterable[dict]) -> None:
-    """All rows of the records, atomically (a reader never sees a half-written file)."""
-    columns = result_columns()
-
-    def write(f) -> None:
-        writer = csv.DictWriter(f, columns, extrasaction="ignore")
-        writer.writeheader()
-        for record in records:
-            for row in record["rows"]:
-                writer.writerow({k: _cell(row.get(k)) for k in columns})
-
-    _atomic_write(path, write)
-
-
-def read_results_csv(path: Path) -> dict[str, list[dict]]:
-    """Rows of an existing results.csv by image (values as strings; blank cells None)."""
-    by_image: dict[str, list[dict]] = {}
-    with path.open(newline="") as f:
-        for row in csv.DictReader(f):
-            by_image.setdefault(row["image"], []).append(
-                {k: (v if v != "" else None) for k, v in row.items()})
-    return by_image
-
-
 @dataclass
 class Outputs:
     """Everything written under the output folder, kept and flushed together."""
@@ -397,7 +297,7 @@ class Outputs:
         document = {**self.header, "assumptions": self.assumptions,
                     "summary": summary or summarise(self.records.values()),
                     "images": list(self.records.values())}
-        _atomic_write(self.json_path, lambda f: json.dump(document, f, indent=1, default=_json))
+        atomic_write(self.json_path, lambda f: json.dump(document, f, indent=1, default=_json))
         write_results_csv(self.csv_path, self.records.values())
         self.last_flush = time.monotonic()
         self.flush_interval = max(FLUSH_SECONDS, FLUSH_RATIO * (self.last_flush - start))
@@ -433,14 +333,6 @@ def output_name(name: str, suffix: str) -> str:
 
 
 # -- the run ----------------------------------------------------------------------------------
-def _flags(args: argparse.Namespace) -> dict[str, float]:
-    flags = {"sdd_mm": args.sdd, "pixel_spacing_mm": args.pixel_spacing,
-             "cup_diameter_mm": args.cup_diameter}
-    if args.principal_point is not None:
-        flags["principal_u_px"], flags["principal_v_px"] = args.principal_point
-    return {k: v for k, v in flags.items() if v is not None}
-
-
 def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSource]:
     """The inputs of every spec (folder, file or glob), each file once.
 
@@ -467,7 +359,7 @@ def _check_args(args: argparse.Namespace) -> str | None:
         return "--batch-size must be >= 1"
     if args.threads < 1:
         return "--threads must be >= 1"
-    for key, value in _flags(args).items():
+    for key, value in geometry_flags(args).items():
         if key in REQUIRED and not (math.isfinite(value) and value > 0):
             return f"{REQUIRED[key][1]} must be a positive number of mm, got {value}"
     existing = [p.name for p in (args.out / "results.csv", args.out / "results.json")
@@ -509,7 +401,7 @@ class Predictor:
                  outputs: Outputs,
                  meta: dict[str, dict[str, float]]) -> None:
         self.args, self.detector, self.outputs, self.meta = args, detector, outputs, meta
-        self.flags = _flags(args)
+        self.flags = geometry_flags(args)
 
     def _note_assumptions(self, geometry: ResolvedGeometry, width: int) -> None:
         for key, source in geometry.sources.items():

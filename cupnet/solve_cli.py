@@ -17,52 +17,47 @@ import torch
 
 from cupnet.geometry import Geometry
 from cupnet.io.landmarks import LandmarkSet, read_landmarks
+from cupnet.io.meta import REQUIRED, add_geometry_arguments, geometry_flags, meta_row, read_meta
+from cupnet.io.results import cup_row, status_row, write_results_csv
 from cupnet.model import CupDetection
 from cupnet.pose import solve_pose
-from cupnet.predict import cup_row, meta_row, read_meta, status_row, write_results_csv
-
-# value key -> (name in messages, flag, LandmarkSet attribute)
-GEOMETRY_VALUES = {
-    "sdd_mm": ("source-to-detector distance", "--sdd", "sdd_mm"),
-    "pixel_spacing_mm": ("pixel spacing", "--pixel-spacing", "pixel_spacing_mm"),
-    "cup_diameter_mm": ("cup diameter", "--cup-diameter", "cup_diameter_mm"),
-}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("landmarks", type=Path,
                         help="landmark file: image,u,v (long format) or the paper's label.csv")
     parser.add_argument("--out", type=Path, required=True, help="results.csv to write")
-    parser.add_argument("--meta", type=Path, help="meta.csv with per-image geometry")
-    parser.add_argument("--sdd", type=float, metavar="MM", help="source-to-detector distance")
-    parser.add_argument("--pixel-spacing", type=float, metavar="MM",
-                        help="detector pixel spacing, mm/px (the paper's format: 1)")
-    parser.add_argument("--cup-diameter", type=float, metavar="MM", help="cup outer diameter")
-    parser.add_argument("--principal-point", type=float, nargs=2, metavar=("U", "V"),
-                        help="principal point in pixels (default: the image centre)")
+    add_geometry_arguments(parser)
     parser.add_argument("--closed-form", action="store_true",
                         help="skip the maximum-likelihood refinement")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
 
 
-def geometry_of(cup: LandmarkSet, meta: dict[str, float], flags: dict[str, float | None]
+def geometry_of(cup: LandmarkSet, meta: dict[str, float], flags: dict[str, float]
                 ) -> tuple[Geometry, float] | str:
-    """The cup's geometry and diameter, or an error status naming what is missing."""
+    """The cup's geometry and diameter, or an error status naming what is missing.
+
+    Each value from the first of: the meta.csv row, the command line, the landmark file;
+    the principal point from meta.csv, the command line, else the image centre.
+    """
     values: dict[str, float] = {}
     missing = []
-    for key, (name, flag, attribute) in GEOMETRY_VALUES.items():
-        for source in (meta.get(key), flags.get(key), getattr(cup, attribute)):
+    for key, (name, flag) in REQUIRED.items():
+        for source in (meta.get(key), flags.get(key), getattr(cup, key)):
             if source is not None:
                 values[key] = float(source)
                 break
         else:
             missing.append(f"{name} ({flag} or meta.csv {key})")
-    principal = [meta.get("principal_u_px"), meta.get("principal_v_px")]
-    if None in principal:
-        principal = flags.get("principal_point") or [None, None]
-    if None in principal and cup.width is not None and cup.height is not None:
-        principal = [(cup.width - 1) / 2, (cup.height - 1) / 2]
-    if None in principal:
+    for source in (meta, flags):
+        if "principal_u_px" in source and "principal_v_px" in source:
+            principal = [source["principal_u_px"], source["principal_v_px"]]
+            break
+    else:
+        principal = None
+        if cup.width is not None and cup.height is not None:
+            principal = [(cup.width - 1) / 2, (cup.height - 1) / 2]
+    if principal is None:
         missing.append("principal point (--principal-point or meta.csv principal_u_px, "
                        "principal_v_px; no image size to take its centre from)")
     if missing:
@@ -93,8 +88,7 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         print(f"cupnet solve: {exc}", file=sys.stderr)
         return 2
-    flags = {"sdd_mm": args.sdd, "pixel_spacing_mm": args.pixel_spacing,
-             "cup_diameter_mm": args.cup_diameter, "principal_point": args.principal_point}
+    flags = geometry_flags(args)
     records, failures, solved = [], 0, 0
     for image, cups in landmark_sets.items():
         rows = []

@@ -16,6 +16,7 @@ import cupnet.predict as predict
 from cupnet.cli import main
 from cupnet.geometry import Geometry, pose_to_radians, project_rim
 from cupnet.io.images import Frame, ImageSource
+from cupnet.io.results import POSE_COLUMNS, RESULT_COLUMNS
 from cupnet.model import CupNet, CupNetConfig, save_model
 
 
@@ -43,7 +44,7 @@ def noise_png(path: Path, dtype: type = np.uint16, size: int = 160) -> Path:
 def read_csv(path: Path) -> list[dict[str, str]]:
     with path.open(newline="") as f:
         reader = csv.DictReader(f)
-        assert reader.fieldnames == predict.result_columns()
+        assert reader.fieldnames == list(RESULT_COLUMNS)
         return list(reader)
 
 
@@ -264,7 +265,7 @@ def test_landmarks_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
     assert [r["cup"] for r in rows] == ["0", "1"]
     for row, truth in zip(rows, (right, left), strict=True):
         assert row["status"] == "ok"
-        got = [float(row[c]) for c in predict.POSE_COLUMNS]
+        got = [float(row[c]) for c in POSE_COLUMNS]
         np.testing.assert_allclose(got, truth, atol=1e-3)
     overlay = cv2.imread(str(out / "overlays" / "pelvis.png.png"))
     assert overlay.shape == (768, 768, 3)
@@ -289,7 +290,7 @@ def test_landmarks_in_the_paper_format_carry_geometry(tmp_path: Path) -> None:
                  str(tmp_path / "label.csv"), "--quiet", "--no-overlays"]) == 0
     by_image = rows_by_image(read_csv(out / "results.csv"))
     (row,) = by_image["x.png"]
-    np.testing.assert_allclose([float(row[c]) for c in predict.POSE_COLUMNS], pose, atol=1e-3)
+    np.testing.assert_allclose([float(row[c]) for c in POSE_COLUMNS], pose, atol=1e-3)
     assert "n_landmarks = 16 but 1 landmarks given" in by_image["bad.png"][0]["status"]
     geometry_used = {r["image"]: r for r in json.loads(
         (out / "results.json").read_text())["images"]}["x.png"]["geometry"]

@@ -1,0 +1,81 @@
+"""``results.csv`` of CONVENTIONS: columns, rows, atomic writing and reading back.
+
+One row per detected cup; an image without a cup result gets one status row
+(``no_cup`` or ``error: <reason>``). Shared by ``cupnet predict`` and ``cupnet solve``.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import tempfile
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+POSE_COLUMNS = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
+ELLIPSE_COLUMNS = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_px",
+                   "ellipse_angle_deg")
+ALT_COLUMNS = tuple("alt_" + c for c in POSE_COLUMNS)
+RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px",
+                  "seconds", *ALT_COLUMNS)
+
+
+def _finite(values: Iterable[Any]) -> list[float | None]:
+    return [float(v) if v is not None and math.isfinite(float(v)) else None for v in values]
+
+
+def cup_row(name: str, index: int, cup: Any, seconds: float) -> dict:
+    """One row of a detected cup (a :class:`cupnet.model.CupDetection`; public units, None for
+    blank cells)."""
+    row = {"image": name, "cup": index, "status": cup.status}
+    row.update(zip(POSE_COLUMNS, _finite(cup.pose), strict=True))
+    row.update(zip(ELLIPSE_COLUMNS, _finite(cup.ellipse), strict=True))
+    row["residual_px"] = _finite([cup.residual_px])[0]
+    row["seconds"] = seconds
+    alt = cup.alt_pose if cup.alt_pose is not None else [None] * 5
+    row.update(zip(ALT_COLUMNS, _finite(alt), strict=True))
+    return row
+
+
+def status_row(name: str, status: str, seconds: float) -> dict:
+    """The row of an image without a cup result: ``no_cup`` or ``error: <reason>``."""
+    return {"image": name, "cup": None, "status": status, "seconds": seconds}
+
+
+def atomic_write(path: Path, write: Callable[[Any], None]) -> None:
+    """Write a text file through ``write(f)`` so a reader never sees it half-written."""
+    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False,
+                                     newline="") as tmp:
+        write(tmp)
+    os.replace(tmp.name, path)
+
+
+def _cell(value: object) -> object:
+    if value is None:
+        return ""
+    return f"{value:.6g}" if isinstance(value, float) else value
+
+
+def write_results_csv(path: Path, records: Iterable[dict]) -> None:
+    """All rows (``record["rows"]``) of the records, atomically."""
+
+    def write(f: Any) -> None:
+        writer = csv.DictWriter(f, RESULT_COLUMNS, extrasaction="ignore")
+        writer.writeheader()
+        for record in records:
+            for row in record["rows"]:
+                writer.writerow({k: _cell(row.get(k)) for k in RESULT_COLUMNS})
+
+    atomic_write(path, write)
+
+
+def read_results_csv(path: Path) -> dict[str, list[dict]]:
+    """Rows of an existing results.csv by image (values as strings; blank cells None)."""
+    by_image: dict[str, list[dict]] = {}
+    with path.open(newline="") as f:
+        for row in csv.DictReader(f):
+            by_image.setdefault(row["image"], []).append(
+                {k: (v if v != "" else None) for k, v in row.items()})
+    return by_image
