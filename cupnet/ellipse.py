@@ -181,12 +181,13 @@ def _fit_problems(points: Tensor, weights: Tensor) -> list[str]:
     evals = torch.linalg.eigvalsh(cov)
     flat = evals[:, 0] <= _COLLINEAR_RATIO * evals[:, 1].clamp_min(1e-300)
     reasons = []
-    for i in range(points.shape[0]):
-        if bad_value[i]:
+    # Python lists: indexing tensors element by element costs more than the fit itself.
+    for bad, count, line in zip(bad_value.tolist(), counts.tolist(), flat.tolist(), strict=True):
+        if bad:
             reasons.append("non-finite or negative landmark coordinates or weights")
-        elif counts[i] < MIN_POINTS:
-            reasons.append(f"too few points: {int(counts[i])} < {MIN_POINTS}")
-        elif flat[i]:
+        elif count < MIN_POINTS:
+            reasons.append(f"too few points: {count} < {MIN_POINTS}")
+        elif line:
             reasons.append("points are collinear or coincide")
         else:
             reasons.append("ok")

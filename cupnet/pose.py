@@ -445,7 +445,7 @@ def _select(solutions: Tensor, ambiguity_tol: float) -> tuple[Tensor, Tensor, Te
 
 
 def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geometry,
-                  iterations: int = 4) -> Tensor:
+                  iterations: int = 3) -> Tensor:
     """Distance of each landmark to the projected rim (its closest rim point), pixels.
 
     Args:
@@ -502,10 +502,11 @@ def solve_pose(
         if problem is not None and status[i] == "ok":
             status[i] = f"error: {problem}"
     small = (fit.params[:, 2] < MIN_AXIS_PX).tolist()
+    major = fit.params[:, 2].tolist()
     for i in range(batch):
         if status[i] == "ok" and small[i]:
             status[i] = (f"error: ellipse too small to solve (semi-major axis "
-                         f"{float(fit.params[i, 2]):.3g} px < {MIN_AXIS_PX} px)")
+                         f"{major[i]:.3g} px < {MIN_AXIS_PX} px)")
     _raise_first(status, on_error)
 
     ok = torch.tensor([s == "ok" for s in status], device=device)
@@ -528,12 +529,13 @@ def solve_pose(
 
     h = pose[:, 4].detach()
     sdd = _batch_geometry(safe_geometry, batch, dtype, device)[:, 0]
-    for i in range(batch):
-        if status[i] == "ok" and not (0 < float(h[i]) < float(sdd[i])):
-            status[i] = (f"error: solved h = {float(h[i]):.1f} mm lies outside (0, SDD = "
-                         f"{float(sdd[i]):.0f} mm): check cup diameter, SDD and pixel spacing")
-        elif status[i] == "ok" and not bool(torch.isfinite(pose[i]).all()):
+    finite = torch.isfinite(pose).all(-1).tolist()
+    for i, (h_i, sdd_i) in enumerate(zip(h.tolist(), sdd.tolist(), strict=True)):
+        if status[i] == "ok" and not finite[i]:
             status[i] = "error: pose solver did not converge"
+        elif status[i] == "ok" and not (0 < h_i < sdd_i):
+            status[i] = (f"error: solved h = {h_i:.1f} mm lies outside (0, SDD = "
+                         f"{sdd_i:.0f} mm): check cup diameter, SDD and pixel spacing")
     _raise_first(status, on_error)
     valid = torch.tensor([s == "ok" for s in status], device=device)
     ambiguous = ambiguous & valid
