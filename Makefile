@@ -23,6 +23,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks.numsim
+	$(BIN)/python -m benchmarks.solver_speed
+	$(BIN)/python -m benchmarks.synth
+	$(BIN)/python -m benchmarks.model
+	$(BIN)/python -m benchmarks.predict
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
