@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import math
 from pathlib import Path
@@ -11,7 +12,7 @@ import pytest
 import torch
 
 from cupnet.model import load_model
-from train.cli import lightning_args, main
+from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule
 from train.losses import pose_errors, ramp, wrap_angle
 from train.module import CupNetModule, jittered_ellipses
@@ -23,6 +24,15 @@ SMOKE = ROOT / "configs" / "smoke.yaml"
 def test_cli_implies_fit():
     assert lightning_args(["--config", "c.yaml"]) == ["fit", "--config", "c.yaml"]
     assert lightning_args(["validate", "-c", "c.yaml"]) == ["validate", "-c", "c.yaml"]
+
+
+@pytest.mark.parametrize("argv", [["--config", "c.yaml", "--trainer.max_steps", "3"],
+                                  ["fit", "-c", "c.yaml"], ["-h"]])
+def test_cupnet_train_hands_every_argument_to_lightning(argv):
+    # The `cupnet` dispatcher parses a sub-command's arguments with its add_arguments().
+    parser = argparse.ArgumentParser(prog="cupnet train")
+    add_arguments(parser)
+    assert parser.parse_args(argv).argv == argv
 
 
 def test_phi_errors_wrap_at_180_degrees():

@@ -24,6 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("argv", nargs=argparse.REMAINDER,
                         help="LightningCLI arguments, e.g. --config configs/cpu.yaml "
                              "(or: fit -c configs/cpu.yaml --ckpt_path <checkpoint>)")
+    # Every argument, options and -h included, belongs to LightningCLI: argparse would
+    # otherwise reject a leading option such as --config before filling the REMAINDER.
+    parser.prefix_chars = "\0"
 
 
 def main(argv: list[str]) -> None:
