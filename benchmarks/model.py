@@ -22,8 +22,7 @@ from benchmarks.report import machine, markdown_table, write_section  # noqa: E4
 from cupnet.geometry import Geometry  # noqa: E402
 from cupnet.model import DEFAULT_CHECKPOINT, CupNet, load_model  # noqa: E402
 from train.data import synth_config  # noqa: E402
-from train.losses import pose_errors  # noqa: E402
-from train.module import match_detections  # noqa: E402
+from train.module import score_detections  # noqa: E402
 
 NAMES = ("theta", "phi", "k", "l", "h")
 TARGETS = (1.0, 1.0, 1.0, 1.0, 8.0)
@@ -65,18 +64,12 @@ def accuracy(model: CupNet, data: list[dict]) -> dict[str, float]:
     for s in data:
         dets = model.detect(s["image"][None], geometry_of(s), float(s["cup_diameter"][0]),
                             return_masks=False)[0]
-        valid = s["cup_valid"].numpy().astype(bool)
-        matched = match_detections(dets, s["ellipse"].numpy(), valid)
-        false_pos += len(dets) - sum(m is not None for m in matched)
-        for c, det in enumerate(matched):
-            if not valid[c]:
-                continue
-            total += 1
-            if det is not None and np.isfinite(det.pose).all():
-                found += 1
-                err = pose_errors(torch.from_numpy(det.pose)[None],
-                                  s["pose"][c].double()[None])[0]
-                errors.append(err.abs().numpy())
+        e, f, t, fp = score_detections(dets, s["pose"].double().numpy(), s["ellipse"].numpy(),
+                                       s["cup_valid"].numpy().astype(bool))
+        errors += e
+        found += f
+        total += t
+        false_pos += fp
     mae = np.mean(errors, 0) if errors else np.full(5, np.nan)
     out = {f"mae_{n}": float(v) for n, v in zip(NAMES, mae, strict=True)}
     out.update(detected=found / max(total, 1), cups=total, false_positives=false_pos)

@@ -95,6 +95,30 @@ def match_detections(detections: list[CupDetection], ellipse: np.ndarray, valid:
     return out
 
 
+def score_detections(detections: list[CupDetection], truth_pose: np.ndarray,
+                     truth_ellipse: np.ndarray, valid: np.ndarray
+                     ) -> tuple[list[np.ndarray], int, int, int]:
+    """Score one image's detections against its true cups.
+
+    Args:
+        detections: the image's detections; truth_pose: ``(C, 5)`` public units;
+        truth_ellipse: ``(C, 5)`` px; valid: ``(C,)`` bool.
+    Returns:
+        absolute pose errors ``(5,)`` of each true cup detected with a pose, the number of such
+        cups, the number of true cups, and the detections matching no true cup.
+    """
+    matched = match_detections(detections, truth_ellipse, valid)
+    errors, found = [], 0
+    for c, det in enumerate(matched):
+        if valid[c] and det is not None and np.isfinite(det.pose).all():
+            found += 1
+            err = pose_errors(torch.from_numpy(np.asarray(det.pose, np.float64))[None],
+                              torch.from_numpy(np.asarray(truth_pose[c], np.float64))[None])[0]
+            errors.append(err.abs().numpy())
+    false_positives = len(detections) - sum(m is not None for m in matched)
+    return errors, found, int(valid.sum()), false_positives
+
+
 class CupNetModule(L.LightningModule):
     """CupNet training: locator + refiner segmentation, then ellipse and pose losses.
 
@@ -207,17 +231,11 @@ class CupNetModule(L.LightningModule):
         errors, found, total = [], 0, 0
         truth_pose = batch["pose"].double().cpu().numpy()
         for b, dets in enumerate(detections):
-            valid = batch["cup_valid"][b].cpu().numpy().astype(bool)
-            matched = match_detections(dets, batch["ellipse"][b].cpu().numpy(), valid)
-            for c, det in enumerate(matched):
-                if not valid[c]:
-                    continue
-                total += 1
-                if det is not None and np.isfinite(det.pose).all():
-                    found += 1
-                    err = pose_errors(torch.from_numpy(det.pose)[None],
-                                      torch.from_numpy(truth_pose[b, c])[None])[0]
-                    errors.append(err.abs().numpy())
+            e, f, t, _ = score_detections(dets, truth_pose[b], batch["ellipse"][b].cpu().numpy(),
+                                          batch["cup_valid"][b].cpu().numpy().astype(bool))
+            errors += e
+            found += f
+            total += t
         size = batch["image"].shape[0]
         detected = found / max(total, 1)
         self.log("val/detected", detected, batch_size=size)
