@@ -40,13 +40,6 @@ def coefficients_to_conic(coeffs: Tensor) -> Tensor:
     return torch.stack(rows, -2)
 
 
-def conic_to_coefficients(conic: Tensor) -> Tensor:
-    """``(..., 3, 3)`` conic -> ``(..., 6)`` coefficients ``(A, B, C, D, E, F)``."""
-    return torch.stack(
-        [conic[..., 0, 0], 2 * conic[..., 0, 1], conic[..., 1, 1], 2 * conic[..., 0, 2],
-         2 * conic[..., 1, 2], conic[..., 2, 2]], -1)
-
-
 def conic_to_params(conic: Tensor) -> Tensor:
     """Ellipse parameters of a conic.
 

@@ -12,13 +12,10 @@ pose maths default to float64.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
-
-POSE_NAMES = ("theta", "phi", "k", "l", "h")
 
 
 @dataclass(frozen=True)
@@ -73,16 +70,6 @@ class Geometry:
             raise ValueError(f"pixel spacing must be finite and > 0 mm/px, got {spacing}")
         if not (torch.isfinite(u0).all() and torch.isfinite(v0).all()):
             raise ValueError("principal point must be finite")
-
-    def index(self, i: int) -> Geometry:
-        """The geometry of batch item ``i`` (fields that are scalars are shared)."""
-
-        def pick(v: float | Tensor) -> float:
-            t = torch.as_tensor(v)
-            return float(t.reshape(-1)[i] if t.numel() > 1 else t)
-
-        return Geometry(*(pick(v) for v in (self.sdd, self.pixel_spacing, self.principal_u,
-                                            self.principal_v)))
 
 
 def rotation(theta: Tensor, phi: Tensor) -> Tensor:
@@ -231,11 +218,3 @@ def pose_to_degrees(pose: Tensor) -> Tensor:
 def pose_to_radians(pose: Tensor) -> Tensor:
     """``(..., 5)`` pose with degrees (public units) -> radians inside the library."""
     return torch.cat([torch.deg2rad(pose[..., :2]), pose[..., 2:]], -1)
-
-
-def magnification(h: Tensor, sdd: Tensor | float) -> Tensor:
-    """Magnification ``sdd / (sdd - h)`` of a point at height ``h`` above the detector."""
-    return sdd / (sdd - h)
-
-
-DEG = math.pi / 180.0
