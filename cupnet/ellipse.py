@@ -142,19 +142,44 @@ class EllipseFit:
     status: list[str]
 
 
-def _polish(scatter: Tensor, constraint: Tensor, vec: Tensor, steps: int = 2) -> Tensor:
-    """Rayleigh-quotient iterations on the pencil ``(scatter, constraint)``.
+class _PencilEigenvector(torch.autograd.Function):
+    """Unit eigenvector ``v`` of the pencil ``S v = lambda C v`` nearest a starting vector,
+    by Rayleigh-quotient iteration; backward by the implicit function theorem.
 
-    Removes the ridge's bias from the eigenvector (``(B, 3, 1)``), so points exactly on an
-    ellipse give it to machine precision. At convergence the iteration's derivative with
-    respect to its input vanishes, so gradients through it are those of the exact solution.
+    Differentiating ``S v = lambda C v`` with ``|v| = 1`` gives the bordered system
+    ``[[S - lambda C, v], [v^T, 0]] (dv, 0) = (-(dS - dlambda C) v, 0)``, with
+    ``dlambda = v^T dS v / v^T C v``. The bordered matrix is symmetric and well conditioned
+    where ``lambda`` is simple, unlike the near-singular ``S - lambda C`` the iteration
+    solves, whose own backward would lose most digits at convergence.
     """
-    for _ in range(steps):
-        rayleigh = (vec.transpose(-1, -2) @ scatter @ vec) / (
-            vec.transpose(-1, -2) @ constraint @ vec)
-        vec = torch.linalg.solve(scatter - rayleigh * constraint, constraint @ vec)
-        vec = vec / torch.linalg.vector_norm(vec, dim=-2, keepdim=True)
-    return vec
+
+    @staticmethod
+    def forward(ctx, scatter: Tensor, constraint: Tensor, vec: Tensor,  # type: ignore[override]
+                steps: int) -> Tensor:
+        for _ in range(steps):
+            rayleigh = (vec.transpose(-1, -2) @ scatter @ vec) / (
+                vec.transpose(-1, -2) @ constraint @ vec)
+            step, info = torch.linalg.solve_ex(scatter - rayleigh * constraint, constraint @ vec)
+            step = step / torch.linalg.vector_norm(step, dim=-2, keepdim=True)
+            # An exactly singular pencil means the quotient is already the eigenvalue to the
+            # last digit: that item has converged, so it keeps its vector.
+            usable = (info == 0)[:, None, None] & torch.isfinite(step).all(-2, keepdim=True)
+            vec = torch.where(usable, step, vec)
+        ctx.save_for_backward(scatter, constraint, vec)
+        return vec
+
+    @staticmethod
+    def backward(ctx, grad_vec: Tensor):  # type: ignore[override]
+        scatter, constraint, vec = ctx.saved_tensors
+        vt = vec.transpose(-1, -2)
+        c_vec = constraint @ vec
+        rayleigh = (vt @ scatter @ vec) / (vt @ c_vec)
+        bordered = torch.cat([torch.cat([scatter - rayleigh * constraint, vec], -1),
+                              torch.cat([vt, torch.zeros_like(vt[..., :1])], -1)], -2)
+        rhs = torch.cat([grad_vec, torch.zeros_like(grad_vec[..., :1, :])], -2)
+        z = torch.linalg.solve(bordered, rhs)[..., :3, :]
+        along = (z.transpose(-1, -2) @ c_vec) / (vt @ c_vec)
+        return -z @ vt + along * (vec @ vt), None, None, None
 
 
 def _fit_problems(points: Tensor, weights: Tensor) -> list[str]:
@@ -259,7 +284,10 @@ def fit_ellipse(
     top = vecs[..., -1:]  # the single positive eigenvalue is the largest
     quad_coef = torch.linalg.solve_triangular(chol.transpose(-1, -2), top, upper=True)
     if valid.any():  # polishing a stand-in block could meet an exactly singular system
-        polished = _polish(reduced[valid], constraint, quad_coef[valid])
+        # Rayleigh-quotient polish removes the ridge's bias, so points exactly on an
+        # ellipse give it to machine precision; gradients come from the exact eigenvector.
+        polished = _PencilEigenvector.apply(reduced[valid], constraint,
+                                            quad_coef[valid].detach(), 3)
         quad_coef = quad_coef.clone()
         quad_coef[valid] = polished
     lin_coef = lin_from_quad @ quad_coef

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import torch
 from torch import Tensor
@@ -216,50 +216,81 @@ def canonical_pose(pose: Tensor) -> Tensor:
     return torch.cat([theta[..., None], phi[..., None], pose[..., 2:]], -1)
 
 
-def _rim_with_jacobians(pose: Tensor, t: Tensor, radius: Tensor, geom: Tensor,
-                        pose_jacobian: bool = True) -> tuple[Tensor, Tensor | None, Tensor]:
-    """Projected rim points and their analytic derivatives (the solver's inner loop).
+class _Rim(NamedTuple):
+    """Projected rim points and what the solver's derivatives need (all per landmark)."""
+
+    x: Tensor  # (B, N, 2) px
+    d_t: Tensor  # (B, N, 2) d x / d t
+    focal: Tensor  # (B, N, 1) sdd / spacing / depth, px per mm
+    lateral: Tensor  # (B, N, 2) X_xy / depth
+    rc: Tensor  # (B, N, 1) r cos t
+    rs: Tensor  # (B, N, 1) r sin t
+
+
+def _rim(pose: Tensor, t: Tensor, radius: Tensor, geom: Tensor) -> _Rim:
+    """Projected rim points and their derivative along the rim (the solver's inner loop).
 
     With ``e1 = R[:, 0] = (cos phi, sin phi, 0)`` and
     ``e3 = R[:, 2] = (sin phi sin theta, -cos phi sin theta, cos theta)``, a rim point is
     ``X = c + r cos t e1 + r sin t e3``; its pixel position is
-    ``x = (u0, v0) + f X_xy / (sdd - X_z)``, ``f = sdd / spacing``.
+    ``x = (u0, v0) + f X_xy / (sdd - X_z)``, ``f = sdd / spacing``, so a change ``dX`` of
+    the rim point moves it by ``focal (dX_xy + lateral dX_z)`` pixels.
 
     Args:
         pose: ``(B, 5)`` rad / mm; t: ``(B, N)`` rim parameters; radius: ``(B,)`` mm;
-        geom: ``(B, 4)`` (sdd, spacing, u0, v0); pose_jacobian: also return ``d x / d pose``.
-    Returns:
-        ``x (B, N, 2)`` px, ``d x / d pose (B, N, 2, 5)`` (or None), ``d x / d t (B, N, 2)``.
+        geom: ``(B, 4)`` (sdd, spacing, u0, v0).
     """
     ct, st = torch.cos(pose[:, 0]), torch.sin(pose[:, 0])
     cp, sp = torch.cos(pose[:, 1]), torch.sin(pose[:, 1])
-    zero = torch.zeros_like(ct)
-    e1 = torch.stack([cp, sp, zero], -1)[:, None]  # (B, 1, 3)
+    e1 = torch.stack([cp, sp, torch.zeros_like(ct)], -1)[:, None]  # (B, 1, 3)
     e3 = torch.stack([sp * st, -cp * st, ct], -1)[:, None]
     rc = radius[:, None, None] * torch.cos(t)[..., None]  # (B, N, 1)
     rs = radius[:, None, None] * torch.sin(t)[..., None]
     points = pose[:, None, 2:5] + rc * e1 + rs * e3
     sdd, spacing, u0, v0 = (g[:, None] for g in geom.unbind(-1))
     depth = sdd - points[..., 2]
-    focal = (sdd / spacing / depth)[..., None]  # (B, N, 1)
+    focal = (sdd / spacing / depth)[..., None]
     lateral = points[..., :2] / depth[..., None]
     x = torch.stack([u0, v0], -1) + focal * points[..., :2]
+    d_rim = rc * e3 - rs * e1
+    d_t = focal * (d_rim[..., :2] + lateral * d_rim[..., 2:])
+    return _Rim(x, d_t, focal, lateral, rc, rs)
 
-    def pixels(d_points: Tensor) -> Tensor:
-        """d x for a (B, N, 3) change of the rim point: f (dX_xy + X_xy / depth dX_z)."""
-        return focal * (d_points[..., :2] + lateral * d_points[..., 2:])
 
-    d_t = pixels(rs * -e1 + rc * e3)
-    if not pose_jacobian:
-        return x, None, d_t
-    d_e3_theta = torch.stack([sp * ct, -cp * ct, -st], -1)[:, None]
-    d_e1_phi = torch.stack([-sp, cp, zero], -1)[:, None]
-    d_e3_phi = torch.stack([cp * st, sp * st, zero], -1)[:, None]
-    d_k = torch.cat([focal, torch.zeros_like(focal)], -1)
-    d_l = torch.cat([torch.zeros_like(focal), focal], -1)
-    d_pose = torch.stack([pixels(rs * d_e3_theta), pixels(rc * d_e1_phi + rs * d_e3_phi),
-                          d_k, d_l, focal * lateral], -1)
-    return x, d_pose, d_t
+def _closest_rim_parameters(pose: Tensor, t: Tensor, points: Tensor, radius: Tensor,
+                            geom: Tensor) -> tuple[Tensor, _Rim]:
+    """One Gauss-Newton step of each landmark's rim parameter towards its closest rim point.
+
+    Returns the new ``t`` ``(B, N)`` and the rim there.
+    """
+    rim = _rim(pose, t, radius, geom)
+    t = t + ((points - rim.x) * rim.d_t).sum(-1) / (rim.d_t**2).sum(-1).clamp_min(1e-30)
+    return t, _rim(pose, t, radius, geom)
+
+
+def _normal_jacobian(pose: Tensor, rim: _Rim) -> tuple[Tensor, Tensor]:
+    """Unit normals of the projected rim and the pose Jacobian of the rim along them.
+
+    At a landmark's closest rim point the distance changes only through the rim's normal
+    motion (its tangential motion is absorbed by ``t``), so the profile Jacobian is
+    ``n^T d x / d pose`` and never needs the ``(B, N, 2, 5)`` full Jacobian.
+
+    Returns: normals ``(B, N, 2)`` and ``(B, N, 5)`` px per (rad, rad, mm, mm, mm).
+    """
+    ct, st = torch.cos(pose[:, 0]), torch.sin(pose[:, 0])
+    cp, sp = torch.cos(pose[:, 1]), torch.sin(pose[:, 1])
+    zero = torch.zeros_like(ct)
+    normal = torch.stack([-rim.d_t[..., 1], rim.d_t[..., 0]], -1)
+    normal = normal / torch.linalg.vector_norm(normal, dim=-1, keepdim=True).clamp_min(1e-300)
+    # n^T d x / d X for a rim point X, (B, N, 3).
+    pull = rim.focal * torch.cat([normal, (normal * rim.lateral).sum(-1, keepdim=True)], -1)
+    directions = torch.stack([torch.stack([sp * ct, -cp * ct, -st], -1),  # d e3 / d theta
+                              torch.stack([-sp, cp, zero], -1),  # d e1 / d phi
+                              torch.stack([cp * st, sp * st, zero], -1)], -1)  # d e3 / d phi
+    along = pull @ directions  # (B, N, 3)
+    jacobian = torch.cat([rim.rs * along[..., :1],
+                          rim.rc * along[..., 1:2] + rim.rs * along[..., 2:], pull], -1)
+    return normal, jacobian
 
 
 def _initial_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor) -> Tensor:
@@ -290,10 +321,13 @@ def _odr_objective(pose: Tensor, t: Tensor, points: Tensor, weights: Tensor, geo
 def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tensor,
                          geom: Tensor, radius: Tensor, max_iter: int, tol: float
                          ) -> tuple[Tensor, Tensor]:
-    """Orthogonal-distance regression of the rim: LM over the pose and one rim parameter per
-    landmark, ``min sum_i w_i |x_i - rim(pose, t_i)|^2``, the maximum-likelihood estimate
-    for Gaussian landmark noise. The ``t`` block of the normal equations is diagonal, so each
-    step eliminates it (Schur complement) and solves a 5x5 system.
+    """Orthogonal-distance regression of the rim: ``min sum_i w_i |x_i - rim(pose, t_i)|^2``
+    over the pose and one rim parameter per landmark, the maximum-likelihood estimate for
+    Gaussian landmark noise.
+
+    Variable projection: each evaluation first moves every ``t_i`` to its closest rim point,
+    so the pose step is a 5-parameter Levenberg-Marquardt step on the signed distances (the
+    Schur complement of the diagonal ``t`` block, in closed form).
 
     Items that have converged leave the working set. Every tensor has a leading batch dim.
     Returns the pose ``(B, 5)`` and rim parameters ``(B, N)``.
@@ -302,48 +336,39 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
     root_w = weights.sqrt()
 
     def evaluate(p, tt, x, rw, g, r):
-        # Variable projection: move each landmark's rim parameter towards its closest rim
-        # point first (a 1D Gauss-Newton step), so the pose step sees the profile objective.
-        rim, _, jt = _rim_with_jacobians(p, tt, r, g, pose_jacobian=False)
-        tt = tt + ((x - rim) * jt).sum(-1) / (jt**2).sum(-1).clamp_min(1e-30)
-        rim, jp, jt = _rim_with_jacobians(p, tt, r, g)
-        res = rw[..., None] * (x - rim)
-        return res, rw[..., None, None] * jp, rw[..., None] * jt, (res**2).sum((-1, -2)), tt
+        tt, rim = _closest_rim_parameters(p, tt, x, r, g)
+        normal, jac = _normal_jacobian(p, rim)
+        offset = x - rim.x
+        res = rw * (offset * normal).sum(-1)  # signed weighted distances (B, N)
+        cost = (rw**2 * (offset**2).sum(-1)).sum(-1)
+        return res, rw[..., None] * jac, cost, tt
 
-    res, jp, jt, cost, t = evaluate(pose, t, points, root_w, geom, radius)
+    res, jac, cost, t = evaluate(pose, t, points, root_w, geom, radius)
     damping = torch.full(pose.shape[:1], 1e-3, dtype=pose.dtype, device=pose.device)
     active = torch.arange(pose.shape[0], device=pose.device)
     for _ in range(max_iter):
         x, rw, g, r = (v[active] for v in (points, root_w, geom, radius))
         p, tt = pose[active], t[active]
-        flat = jp.flatten(1, 2)  # (B, 2N, 5)
-        jtj = flat.transpose(-1, -2) @ flat
-        grad_p = (flat.transpose(-1, -2) @ res.flatten(1, 2)[..., None]).squeeze(-1)
-        d_t = (jt**2).sum(-1)  # (B, N)
-        grad_t = (jt * res).sum(-1)
-        cross = (jp * jt[..., None]).sum(-2)  # (B, N, 5)
-        d_damped = d_t * (1 + damping[:, None]) + 1e-12 * d_t.mean(-1, keepdim=True)
-        schur = jtj + damping[:, None, None] * torch.diag_embed(jtj.diagonal(dim1=-2, dim2=-1))
-        schur = schur - (cross / d_damped[..., None]).transpose(-1, -2) @ cross
-        rhs = grad_p - (cross * (grad_t / d_damped)[..., None]).sum(1)
-        step_p = torch.linalg.solve(schur, rhs[..., None]).squeeze(-1)
-        step_t = (grad_t - (cross * step_p[:, None]).sum(-1)) / d_damped
-        trial = evaluate(p + step_p, tt + step_t, x, rw, g, r)
+        jtj = jac.transpose(-1, -2) @ jac
+        rhs = (jac.transpose(-1, -2) @ res[..., None]).squeeze(-1)
+        damped = jtj + damping[:, None, None] * torch.diag_embed(jtj.diagonal(dim1=-2, dim2=-1))
+        step, _ = torch.linalg.solve_ex(damped, rhs[..., None])
+        step = step.squeeze(-1)
+        trial = evaluate(p + step, tt, x, rw, g, r)
         # Accept ties within round-off, so the last digits still converge.
-        better = torch.isfinite(trial[3]) & (trial[3] <= cost * (1 + 1e-13))
-        pose[active] = torch.where(better[:, None], p + step_p, p)
-        t[active] = torch.where(better[:, None], trial[4], tt)
+        better = torch.isfinite(trial[2]) & (trial[2] <= cost * (1 + 1e-13))
+        pose[active] = torch.where(better[:, None], p + step, p)
+        t[active] = torch.where(better[:, None], trial[3], tt)
         # Converged when the step is statistically negligible: the cost decrease the
         # linear model promises is below tol noise variances (sigma^2 ~ cost / N). The floor
         # lets exact, noise-free landmarks stop at a residual of ~1e-10 px.
-        predicted = (step_p * rhs).sum(-1) + (step_t * (grad_t - (cross * step_p[:, None]).sum(-1))
-                                              ).sum(-1)
+        predicted = (step * rhs).sum(-1)
         floor = tol * cost / res.shape[1] + 1e-20 * res.shape[1]
         damping = torch.where(better, damping / 4, damping * 4)
-        keep = (predicted > floor) & (damping < 1e12)
-        res, jp, jt = (torch.where(better.view(-1, *[1] * (a.ndim - 1)), b_, a)[keep]
-                       for a, b_ in zip((res, jp, jt), trial[:3], strict=True))
-        cost = torch.where(better, trial[3], cost)[keep]
+        keep = ((predicted > floor) | ~torch.isfinite(predicted)) & (damping < 1e12)
+        res, jac = (torch.where(better.view(-1, *[1] * (a.ndim - 1)), b_, a)[keep]
+                    for a, b_ in zip((res, jac), trial[:2], strict=True))
+        cost = torch.where(better, trial[2], cost)[keep]
         damping, active = damping[keep], active[keep]
         if active.numel() == 0:
             break
@@ -458,10 +483,8 @@ def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geomet
         geom = _batch_geometry(geometry, pose.shape[0], pose.dtype, pose.device)
         t = _initial_rim_parameters(pose, points, radius, geom)
         for _ in range(iterations):
-            rim, _, d_t = _rim_with_jacobians(pose, t, radius, geom, pose_jacobian=False)
-            t = t + ((points - rim) * d_t).sum(-1) / (d_t**2).sum(-1).clamp_min(1e-30)
-        rim = _rim_with_jacobians(pose, t, radius, geom, pose_jacobian=False)[0]
-        return torch.linalg.vector_norm(points - rim, dim=-1)
+            t, rim = _closest_rim_parameters(pose, t, points, radius, geom)
+        return torch.linalg.vector_norm(points - rim.x, dim=-1)
 
 
 def solve_pose(
