@@ -3,7 +3,8 @@
 Landmarks: the paper's protocol (see ``benchmarks/numsim.py``), 100 per cup, 1 px Gaussian
 noise. Reports wall-clock poses/s and poses per CPU-second (all threads of the process),
 best of ``--repeats`` runs, for: the direct ellipse fit alone, fit + closed form, and the full
-solver (fit + closed form + maximum-likelihood refinement).
+solver (fit + closed form + maximum-likelihood refinement), eager and with its inner loop
+through ``torch.compile`` (``compiled=True``; compilation happens in the warm-up call).
 
 Run: ``.venv/bin/python -m benchmarks.solver_speed``
 """
@@ -49,6 +50,8 @@ def main() -> None:
             "fit + closed form": lambda p=points: solve_pose(p, GEOMETRY, DIAMETER, refine=False,
                                                              on_error="flag"),
             "full solver": lambda p=points: solve_pose(p, GEOMETRY, DIAMETER, on_error="flag"),
+            "full solver, compiled": lambda p=points: solve_pose(p, GEOMETRY, DIAMETER,
+                                                                 on_error="flag", compiled=True),
         }
         for threads in args.threads:
             torch.set_num_threads(threads)
@@ -63,7 +66,9 @@ def main() -> None:
         f"Command: `.venv/bin/python -m benchmarks.solver_speed`; {machine()}. 100 landmarks "
         "per cup, 1 px noise, the paper's pose ranges; float64. `poses/CPU-s` divides by the "
         "CPU time of all the process's threads, the fairer figure when other work shares "
-        "the machine.",
+        "the machine. `compiled`: `solve_pose(..., compiled=True)`, the refinement's inner "
+        "loop fused by `torch.compile` (a one-off compilation of about a minute, cached on "
+        "disk; not timed).",
         "",
         markdown_table(["batch", "threads", "stage", "poses/s", "poses/CPU-s"], rows),
     ])

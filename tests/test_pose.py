@@ -102,7 +102,33 @@ def test_cramer_rao_bound_matches_the_spread_of_the_ml_estimate(generator):
     assert ((ratio > 0.85) & (ratio < 1.15)).all(), ratio
 
 
-def test_gradcheck_refined_pose_wrt_points_and_weights(generator):
+def test_curvature_correction_removes_most_of_the_thin_ellipse_bias(generator):
+    # theta = 8 deg: the rim's tips bend on a radius of ~0.7 px, below the 1 px noise, and
+    # plain ML inflates the ellipse there (h too large, theta too small).
+    truth = torch.tensor([[8.0, 30.0, 20.0, -10.0, 300.0]], dtype=torch.float64)
+    points = rim_landmarks(truth, GEOMETRY) + torch.randn(300, 100, 2, generator=generator,
+                                                          dtype=torch.float64)
+    t = torch.arange(100, dtype=torch.float64) * (2 * math.pi / 100)
+    bound = cramer_rao_bound(pose_to_radians(truth), 25.0, GEOMETRY, t, 1.0)[0]
+    bias = {c: (solve_pose(points, GEOMETRY, 50.0, corrected=c).pose - truth).mean(0) / bound
+            for c in (False, True)}
+    assert bias[False][4] > 1.2  # the plain ML bias this corrects, in CRB units
+    keep = [0, 2, 3, 4]  # phi has no bias to remove
+    assert (bias[True][keep].abs() < 0.5 * bias[False][keep].abs()).all(), bias
+    assert bias[True].abs().max() < 0.8, bias
+
+
+def test_compiled_solver_matches_the_eager_one(generator):
+    truth = paper_poses(64, generator)
+    points = rim_landmarks(truth, GEOMETRY) + torch.randn(64, 100, 2, generator=generator,
+                                                          dtype=torch.float64)
+    eager = solve_pose(points, GEOMETRY, 50.0)
+    fused = solve_pose(points, GEOMETRY, 50.0, compiled=True)
+    assert torch.allclose(fused.pose, eager.pose, rtol=0, atol=1e-6, equal_nan=True)
+
+
+@pytest.mark.parametrize("corrected", [True, False])
+def test_gradcheck_refined_pose_wrt_points_and_weights(generator, corrected):
     truth = torch.tensor([[35.0, 20.0, 10.0, 5.0, 250.0]], dtype=torch.float64)
     geometry = Geometry(1040.0, 1.0, 0.0, 0.0)
     t = torch.arange(8, dtype=torch.float64) * (2 * math.pi / 8)
@@ -116,7 +142,8 @@ def test_gradcheck_refined_pose_wrt_points_and_weights(generator):
     del t
 
     def refined(p: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        return refine_pose(start, p, geometry, 25.0, w, max_iter=100, tol=1e-30)[0]
+        return refine_pose(start, p, geometry, 25.0, w, max_iter=100, tol=1e-30,
+                           corrected=corrected)[0]
 
     assert torch.autograd.gradcheck(refined, (points, weights), atol=1e-6, rtol=1e-4)
 
