@@ -455,6 +455,7 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
         return jtj, rhs, cost, decrement, tt
 
     jtj, rhs, cost, decrement, t = evaluate(pose, t, pts, weights, root_w, geom, radius)
+    lowest, dof = cost, ((weights > 0).sum(-1) - 5).clamp_min(1)
     damping = torch.full(pose.shape[:1], 1e-3, dtype=pose.dtype, device=pose.device)
     active = torch.arange(pose.shape[0], device=pose.device)
     for _ in range(max_iter):
@@ -464,9 +465,14 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
         damped = jtj + damping[:, None, None] * torch.diag_embed(jtj.diagonal(dim1=-2, dim2=-1))
         step = torch.linalg.solve_ex(damped, rhs[..., None])[0].squeeze(-1)
         trial = evaluate(p + step, tt, x, w, rw, g, r)
-        # Accept ties within round-off, so the last digits still converge.
+        # Accept ties within round-off, so the last digits still converge. Steps towards the
+        # corrected root may raise the cost, but only within two noise variances of the
+        # lowest cost seen (the root lies about a standard deviation from the ML pose; on
+        # near-degenerate ellipses it can run off, and this keeps the pose beside the ML one).
+        within = trial[2] <= lowest + 2 * lowest / dof
         better = torch.isfinite(trial[2]) & (
-            (trial[2] <= cost * (1 + 1e-13)) | (corrected & (trial[3] < decrement)))
+            (trial[2] <= cost * (1 + 1e-13)) | (corrected & (trial[3] < decrement) & within))
+        lowest = torch.where(better, torch.minimum(lowest, trial[2]), lowest)
         pose[active] = torch.where(better[:, None], p + step, p)
         t[active] = torch.where(better[:, None], trial[4], tt)
         # Converged when the step is statistically negligible: the cost decrease the
@@ -479,7 +485,7 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
         jtj, rhs, cost, decrement = (
             torch.where(better.view(-1, *[1] * (a.ndim - 1)), b_, a)[keep]
             for a, b_ in zip((jtj, rhs, cost, decrement), trial[:4], strict=True))
-        damping, active = damping[keep], active[keep]
+        damping, active, lowest, dof = damping[keep], active[keep], lowest[keep], dof[keep]
         if active.numel() == 0:
             break
     return pose, t
