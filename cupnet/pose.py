@@ -880,6 +880,7 @@ def solve_pose_paper(points: Tensor, geometry: Geometry, cup_diameter: Tensor | 
     """
     radius = torch.as_tensor(cup_diameter, dtype=points.dtype) / 2
     observed = fit_ellipse(points).params
+    sdd = geometry.tensors(points.dtype, points.device)[0]
     pose = paper_start(observed, geometry, radius).requires_grad_(True)
     optimiser = torch.optim.Adam([pose], lr=lr)
     best = torch.full(points.shape[:1], math.inf, dtype=points.dtype)
@@ -890,6 +891,12 @@ def solve_pose_paper(points: Tensor, geometry: Geometry, cup_diameter: Tensor | 
         loss.sum().backward()
         optimiser.step()
         with torch.no_grad():
+            # Keep the pose in its ranges: phi wraps (the ellipse's orientation repeats every
+            # 180 deg, and from the fixed 40 deg start a negative inclination is nearer
+            # across +90 deg); theta and h are clamped (h between detector and source).
+            pose[:, 1] = torch.remainder(pose[:, 1] + 90.0, 180.0) - 90.0
+            pose[:, 0].clamp_(0.0, 90.0)
+            pose[:, 4] = torch.minimum(pose[:, 4].clamp_min(1.0), sdd - 1.0)
             improved = loss < best * (1 - 1e-6)
             used = torch.where(improved, torch.full_like(used, step + 1), used)
             best = torch.minimum(best, loss.detach())
