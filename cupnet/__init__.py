@@ -17,6 +17,7 @@ _EXPORTS = {
     "solve_pose": "cupnet.pose",
     "PoseSolution": "cupnet.pose",
     "load_model": "cupnet.model",
+    "CupDetection": "cupnet.detection",
 }
 __all__ = ["__version__", *_EXPORTS]
 

@@ -36,6 +36,7 @@ from cupnet.crops import (
     resample_batch,
     to_image,
 )
+from cupnet.detection import CupDetection
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ray_landmarks, soft_moments
@@ -96,35 +97,6 @@ class CupNetConfig:
         if "decoder_channels" in values:
             values["decoder_channels"] = tuple(values["decoder_channels"])
         return cls(**values)
-
-
-@dataclass
-class CupDetection:
-    """One detected cup (public units).
-
-    Attributes:
-        pose: ``(5,)`` (theta_deg, phi_deg, k_mm, l_mm, h_mm); NaN where ``status`` is an error.
-        alt_pose: ``(5,)`` the second in-range pose where ``ambiguous``, else None.
-        ambiguous: both poses of the ellipse lie in range.
-        ellipse: ``(5,)`` (cx, cy, a, b, alpha_deg) original-image pixels.
-        landmarks: ``(N, 2)`` original-image pixels (u, v).
-        weights: ``(N,)`` landmark weights in [0, 1].
-        residual_px: RMS distance of the landmarks to the solved rim.
-        mask: ``(H, W)`` opening probability in original-image pixels, or None.
-        status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"``.
-        score: mean locator probability of the cup's component.
-    """
-
-    pose: np.ndarray
-    alt_pose: np.ndarray | None
-    ambiguous: bool
-    ellipse: np.ndarray
-    landmarks: np.ndarray
-    weights: np.ndarray
-    residual_px: float
-    mask: np.ndarray | None = None
-    status: str = "ok"
-    score: float = 1.0
 
 
 @dataclass

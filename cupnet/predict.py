@@ -231,7 +231,7 @@ class LandmarkDetector:
                 if getattr(cups[0], k) is not None}
 
     def __call__(self, frames: list[Frame], geometries: list[ResolvedGeometry]) -> list[list]:
-        from cupnet.model import CupDetection
+        from cupnet.detection import CupDetection
         from cupnet.solve_cli import solve_cup
 
         out: list[list] = []

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import torch
 
+from cupnet.detection import CupDetection
 from cupnet.geometry import Geometry
 from cupnet.io.landmarks import LandmarkSet, read_landmarks
 from cupnet.io.meta import REQUIRED, add_geometry_arguments, geometry_flags, meta_row, read_meta
 from cupnet.io.results import cup_row, status_row, write_results_csv
-from cupnet.model import CupDetection
 from cupnet.pose import solve_pose
 
 

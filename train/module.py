@@ -11,10 +11,11 @@ import torch
 from torch import Tensor
 
 from cupnet.crops import ellipse_to_view, resample_batch
+from cupnet.detection import CupDetection
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
-from cupnet.model import CupDetection, CupNet, CupNetConfig, load_model, save_model
+from cupnet.model import CupNet, CupNetConfig, load_model, save_model
 from train.losses import (
     POSE_SCALE,
     ellipse_loss,

@@ -1,0 +1,40 @@
+"""One detected cup: the record ``CupNet.detect``, ``cupnet predict`` and ``cupnet solve`` share.
+
+Kept apart from :mod:`cupnet.model` so that landmark-only tools load without the network's
+libraries.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class CupDetection:
+    """One detected cup (public units).
+
+    Attributes:
+        pose: ``(5,)`` (theta_deg, phi_deg, k_mm, l_mm, h_mm); NaN where ``status`` is an error.
+        alt_pose: ``(5,)`` the second in-range pose where ``ambiguous``, else None.
+        ambiguous: both poses of the ellipse lie in range.
+        ellipse: ``(5,)`` (cx, cy, a, b, alpha_deg) original-image pixels.
+        landmarks: ``(N, 2)`` original-image pixels (u, v).
+        weights: ``(N,)`` landmark weights in [0, 1].
+        residual_px: RMS distance of the landmarks to the solved rim.
+        mask: ``(H, W)`` opening probability in original-image pixels, or None.
+        status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"``.
+        score: mean locator probability of the cup's component.
+    """
+
+    pose: np.ndarray
+    alt_pose: np.ndarray | None
+    ambiguous: bool
+    ellipse: np.ndarray
+    landmarks: np.ndarray
+    weights: np.ndarray
+    residual_px: float
+    mask: np.ndarray | None = None
+    status: str = "ok"
+    score: float = 1.0
