@@ -211,7 +211,10 @@ def test_orthographic_baseline_is_biased_off_centre_and_perspective_is_not():
 
 
 def test_paper_mode_converges_from_its_first_best_guess():
-    truth = torch.tensor([[28.0, 35.0, 20.0, -10.0, 300.0]], dtype=torch.float64)
+    # The second cup's inclination lies across +-90 deg from the 40 deg start: reached only
+    # because phi wraps within its range between steps.
+    truth = torch.tensor([[28.0, 35.0, 20.0, -10.0, 300.0],
+                          [39.6, -57.9, -29.8, 16.3, 221.1]], dtype=torch.float64)
     pose, steps = solve_pose_paper(rim_landmarks(truth, GEOMETRY), GEOMETRY, 50.0, steps=4000)
-    assert (pose - truth).abs().max() < 0.05
-    assert 10 < int(steps[0]) <= 4000
+    assert (pose - truth).abs().max() < 0.05, pose
+    assert (10 < steps).all() and (steps <= 4000).all()
