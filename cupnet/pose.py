@@ -543,7 +543,7 @@ class _RefinePose(torch.autograd.Function):
 
 
 def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tensor | float,
-                weights: Tensor | None = None, max_iter: int = 10, tol: float = 1e-6,
+                weights: Tensor | None = None, max_iter: int = 10, tol: float = 1e-4,
                 corrected: bool = True, compiled: bool = False) -> tuple[Tensor, Tensor]:
     """Maximum-likelihood pose: orthogonal-distance regression of the projected rim.
 
@@ -563,8 +563,8 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
         weights: ``(B, N)`` non-negative, default ones.
         max_iter: LM iterations at most.
         tol: stop when a step would lower the cost by less than ``tol`` noise variances
-            (1e-6: a thousandth of a standard deviation). Tighten (e.g. 1e-20) where the
-            implicit gradient must be exact to many digits.
+            (1e-4: steps below a hundredth of a standard deviation). Tighten (e.g. 1e-20)
+            where the implicit gradient must be exact to many digits.
         corrected: solve the curvature-corrected score rather than plain ML.
         compiled: run the solver's inner loop through ``torch.compile`` (worth it for
             batches of thousands; the first call compiles for about a minute).
