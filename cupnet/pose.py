@@ -330,7 +330,7 @@ def _initial_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: 
     centre = pose[:, 2:5] - source_position(geometry, pose.dtype, pose.device)
     homography = cam @ torch.stack([rot[..., 0], rot[..., 2], centre], -1)
     hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
-    plane = torch.linalg.solve(homography[:, None], hom[..., None]).squeeze(-1)  # (B, N, 3)
+    plane = hom @ torch.linalg.inv(homography).transpose(-1, -2)  # (B, N, 3)
     sign = torch.sign(plane[..., 2])
     return torch.atan2(sign * plane[..., 1], sign * plane[..., 0])
 
@@ -413,11 +413,23 @@ def _normal_equations(pose: Tensor, t: Tensor, u: Tensor, v: Tensor, weights: Te
 
 
 @functools.cache
-def _compiled_normal_equations() -> Callable[..., tuple[Tensor, Tensor, Tensor, Tensor]]:
-    """:func:`_normal_equations` fused by ``torch.compile`` (one C++ loop instead of ~100
-    elementwise passes over memory): about 3x faster on large batches, after a one-off
-    compilation of about a minute that Inductor caches on disk."""
-    return torch.compile(_normal_equations, dynamic=True)
+def _compiled(function: Callable[..., Any]) -> Callable[..., Any]:
+    """``function`` fused by ``torch.compile`` (one C++ loop instead of ~100 elementwise
+    passes over memory): about 3x faster on large batches, after a one-off compilation of
+    about a minute that Inductor caches on disk."""
+    return torch.compile(function, dynamic=True)
+
+
+def _run(function: Callable[..., Any], compiled: bool, *args: Any) -> Any:
+    """``function(*args)``, through :func:`_compiled` when asked and it works (it needs a
+    C++ compiler, and a failure shows only at the first call); else eagerly, with a warning."""
+    if compiled:
+        try:
+            return _compiled(function)(*args)
+        except Exception as error:  # noqa: BLE001 - any compile failure falls back the same way
+            warnings.warn(f"torch.compile failed, running {function.__name__} without it: "
+                          f"{error}", stacklevel=2)
+    return function(*args)
 
 
 def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tensor,
@@ -437,18 +449,10 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
     pose, t = pose.clone(), t.clone()
     root_w = weights.sqrt()
     pts = points.unbind(-1)  # contiguous u and v: strided views slow every elementwise op
-    equations = _compiled_normal_equations() if compiled else _normal_equations
 
     def evaluate(p, tt, x, w, rw, g, r):
-        nonlocal equations
-        try:
-            jtj, rhs, cost, tt = equations(p, tt, x[0], x[1], w, rw, g, r, corrected)
-        except Exception as error:  # e.g. no C++ compiler: shows only at the first call
-            if equations is _normal_equations:
-                raise
-            warnings.warn(f"torch.compile failed, solving without it: {error}", stacklevel=2)
-            equations = _normal_equations
-            jtj, rhs, cost, tt = equations(p, tt, x[0], x[1], w, rw, g, r, corrected)
+        jtj, rhs, cost, tt = _run(_normal_equations, compiled, p, tt, x[0], x[1], w, rw, g, r,
+                                  corrected)
         # Newton decrement of the pose equations: the corrected score is not the gradient of
         # the cost, so near its root steps are judged by this instead.
         decrement = (rhs * torch.linalg.solve_ex(jtj, rhs[..., None])[0].squeeze(-1)).sum(-1)
@@ -459,11 +463,23 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
     damping = torch.full(pose.shape[:1], 1e-3, dtype=pose.dtype, device=pose.device)
     active = torch.arange(pose.shape[0], device=pose.device)
     for _ in range(max_iter):
+        damped = jtj + damping[:, None, None] * torch.diag_embed(jtj.diagonal(dim1=-2, dim2=-1))
+        step = torch.linalg.solve_ex(damped, rhs[..., None])[0].squeeze(-1)
+        # Converged when the step is statistically negligible: the cost decrease the linear
+        # model promises is below tol noise variances (sigma^2 ~ cost / N); such a step is
+        # taken without evaluating it. The floor lets exact, noise-free landmarks stop at a
+        # residual of ~1e-10 px.
+        predicted = (step * rhs).sum(-1)
+        done = predicted <= tol * cost / t.shape[1] + 1e-20 * t.shape[1]
+        pose[active[done]] += step[done]
+        live = ~done
+        jtj, rhs, cost, decrement, step, damping, active, lowest, dof = (
+            a[live] for a in (jtj, rhs, cost, decrement, step, damping, active, lowest, dof))
+        if active.numel() == 0:
+            break
         x = tuple(c[active] for c in pts)
         w, rw, g, r = (v[active] for v in (weights, root_w, geom, radius))
         p, tt = pose[active], t[active]
-        damped = jtj + damping[:, None, None] * torch.diag_embed(jtj.diagonal(dim1=-2, dim2=-1))
-        step = torch.linalg.solve_ex(damped, rhs[..., None])[0].squeeze(-1)
         trial = evaluate(p + step, tt, x, w, rw, g, r)
         # Accept ties within round-off, so the last digits still converge. Steps towards the
         # corrected root may raise the cost, but only within two noise variances of the
@@ -475,19 +491,12 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
         lowest = torch.where(better, torch.minimum(lowest, trial[2]), lowest)
         pose[active] = torch.where(better[:, None], p + step, p)
         t[active] = torch.where(better[:, None], trial[4], tt)
-        # Converged when the step is statistically negligible: the cost decrease the
-        # linear model promises is below tol noise variances (sigma^2 ~ cost / N). The floor
-        # lets exact, noise-free landmarks stop at a residual of ~1e-10 px.
-        predicted = (step * rhs).sum(-1)
-        floor = tol * cost / t.shape[1] + 1e-20 * t.shape[1]
         damping = torch.where(better, damping / 4, damping * 4)
-        keep = ((predicted > floor) | ~torch.isfinite(predicted)) & (damping < 1e12)
+        keep = damping < 1e12
         jtj, rhs, cost, decrement = (
             torch.where(better.view(-1, *[1] * (a.ndim - 1)), b_, a)[keep]
             for a, b_ in zip((jtj, rhs, cost, decrement), trial[:4], strict=True))
         damping, active, lowest, dof = damping[keep], active[keep], lowest[keep], dof[keep]
-        if active.numel() == 0:
-            break
     return pose, t
 
 
@@ -599,24 +608,33 @@ def _select(solutions: Tensor, ambiguity_tol: float) -> tuple[Tensor, Tensor, Te
     return canonical_pose(chosen), canonical_pose(other), ambiguous
 
 
+def _newton_distances(pose: Tensor, t: Tensor, u: Tensor, v: Tensor, radius: Tensor,
+                      geom: Tensor, iterations: int) -> Tensor:
+    """Landmark distances ``(B, N)`` px to the rim after ``iterations`` Newton steps of
+    their rim parameters ``t``; landmarks ``u, v`` ``(B, N)``."""
+    for _ in range(iterations):
+        t = _closest_rim_parameters(pose, t, (u, v), radius, geom)
+    rim = _rim(pose, t, radius, geom)
+    return torch.hypot(u - rim.u, v - rim.v)
+
+
 def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geometry,
-                  iterations: int = 2) -> Tensor:
+                  iterations: int = 2, compiled: bool = False) -> Tensor:
     """Distance of each landmark to the projected rim (its closest rim point), pixels.
 
     Args:
         pose: ``(B, 5)`` rad / mm; points: ``(B, N, 2)`` px; radius: ``(B,)`` mm.
         iterations: Newton steps on each landmark's rim parameter, from its exact value for
             a landmark on the rim (the error left falls with the cube of the distance).
+        compiled: through ``torch.compile`` (see :func:`refine_pose`).
     Returns:
         ``(B, N)`` px, not differentiable.
     """
     with torch.no_grad():
         geom = _batch_geometry(geometry, pose.shape[0], pose.dtype, pose.device)
         t = _initial_rim_parameters(pose, points, radius, geom)
-        for _ in range(iterations):
-            t = _closest_rim_parameters(pose, t, points.unbind(-1), radius, geom)
-        rim = _rim(pose, t, radius, geom)
-        return torch.hypot(points[..., 0] - rim.u, points[..., 1] - rim.v)
+        u, v = points.unbind(-1)
+        return _run(_newton_distances, compiled, pose, t, u, v, radius, geom, iterations)
 
 
 def solve_pose(
@@ -683,7 +701,7 @@ def solve_pose(
 
     w_res = torch.ones(points.shape[:2], dtype=dtype, device=device) if weights is None else weights
     dist = rim_distances(pose.detach(), torch.where(ok[:, None, None], points.detach(), 0.0),
-                         safe_radius.detach(), safe_geometry)
+                         safe_radius.detach(), safe_geometry, compiled=compiled)
     residual = torch.sqrt((w_res.detach() * dist**2).sum(-1) / w_res.detach().sum(-1).clamp_min(
         1e-300))
 
