@@ -55,6 +55,8 @@ def main() -> None:
         }
         for threads in args.threads:
             torch.set_num_threads(threads)
+            # Inductor fixes a kernel's thread count when it compiles it: compile anew.
+            torch.compiler.reset()
             for name, fn in stages.items():
                 fn()  # warm-up
                 wall, cpu = best_rate(fn, batch, args.repeats)
