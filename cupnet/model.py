@@ -321,8 +321,19 @@ class CupNet(nn.Module):
             cup_diameter: mm, scalar or ``(B,)``.
             return_masks: fill :attr:`CupDetection.mask` (an ``(H, W)`` array per cup).
         """
+        # Switch modes only when needed: smp's train() walks every submodule (~2 ms a call).
         was_training = self.training
-        self.eval()
+        if was_training:
+            self.eval()
+        try:
+            return self._detect(images, geometry, cup_diameter, return_masks)
+        finally:
+            if was_training:
+                self.train()
+
+    def _detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
+                return_masks: bool) -> list[list[CupDetection]]:
+        """:meth:`detect` in eval mode."""
         image_list = _as_image_list(images, self.dtype)
         batch = len(image_list)
         diameter = torch.as_tensor(cup_diameter, dtype=torch.float64)
@@ -336,7 +347,6 @@ class CupNet(nn.Module):
         frames = self.frames(self.first_pass_ellipses(rough[cup_index[:, 0], cup_index[:, 1]]))
         results: list[list[CupDetection]] = [[] for _ in range(batch)]
         if len(cup_index) == 0:
-            self.train(was_training)
             return results
         for _ in range(self.config.refine_passes - 1):
             # Re-frame on the fitted ellipse where it is usable; keep the old frame otherwise.
@@ -367,7 +377,6 @@ class CupNet(nn.Module):
                 status=solution.status[k],
                 score=float(scores[i, c]),
             ))
-        self.train(was_training)
         return results
 
 
