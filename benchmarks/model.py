@@ -2,7 +2,7 @@
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--ablation NAME=PATH ...] [--images N]``.
 Writes the ``model`` (speed) and ``model_accuracy`` (accuracy, ablation) sections of
-docs/benchmarks.md.
+docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -58,12 +59,50 @@ def latency(model: CupNet, images: list[dict], repeats: int = 1) -> dict[str, fl
     return {"mean_s": float(np.mean(times)), "median_s": float(np.median(times))}
 
 
-def accuracy(model: CupNet, data: list[dict]) -> dict[str, float]:
-    """Pose MAE of matched cups and the fraction of true cups detected with a pose."""
+def failure_gallery(data: list[dict], detections: list[list], path: Path, count: int = 6,
+                    tile: int = 240) -> None:
+    """The ``count`` true cups with the largest theta errors (missed cups first): a crop
+    around each, the true rim in green, the landmarks in red, the errors as text."""
+    from cupnet.overlay import display_image
+    from train.module import match_detections
+
+    cases = []
+    for s, dets in zip(data, detections, strict=True):
+        valid = s["cup_valid"].numpy().astype(bool)
+        for c, det in enumerate(match_detections(dets, s["ellipse"].numpy(), valid)):
+            if valid[c]:
+                solved = det is not None and np.isfinite(det.pose).all()
+                err = np.abs(det.pose - s["pose"][c].double().numpy()) if solved else None
+                cases.append((np.inf if err is None else err[0], s, c, det, err))
+    tiles = []
+    for _, s, c, det, err in sorted(cases, key=lambda x: -x[0])[:count]:
+        image = cv2.cvtColor(display_image(s["image"][0].numpy()), cv2.COLOR_GRAY2BGR)
+        cx, cy, a, b, alpha = (float(v) for v in s["ellipse"][c])
+        cv2.ellipse(image, ((cx, cy), (2 * a, 2 * b), alpha), (80, 220, 80), 1)
+        for u, v in [] if det is None else det.landmarks:
+            cv2.circle(image, (round(float(u)), round(float(v))), 1, (60, 60, 255), -1)
+        half = int(1.5 * a) + 4
+        x0, y0 = max(int(cx) - half, 0), max(int(cy) - half, 0)
+        crop = cv2.resize(image[y0:int(cy) + half, x0:int(cx) + half], (tile, tile))
+        text = ("missed" if det is None else det.status[:24]) if err is None else (
+            f"d theta {err[0]:.1f}, d phi {err[1]:.1f}, d h {err[4]:.0f}")
+        cv2.rectangle(crop, (0, tile - 18), (tile, tile), (0, 0, 0), -1)
+        cv2.putText(crop, text, (4, tile - 6), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1)
+        tiles.append(crop)
+    if tiles:
+        cv2.imwrite(str(path), np.hstack(tiles))
+
+
+def accuracy(model: CupNet, data: list[dict], detections: list[list] | None = None
+             ) -> dict[str, float]:
+    """Pose MAE of matched cups and the fraction of true cups detected with a pose; appends
+    each image's detections to ``detections`` when given."""
     errors, found, total, false_pos = [], 0, 0, 0
     for s in data:
         dets = model.detect(s["image"][None], geometry_of(s), float(s["cup_diameter"][0]),
                             return_masks=False)[0]
+        if detections is not None:
+            detections.append(dets)
         e, f, t, fp = score_detections(dets, s["pose"].double().numpy(), s["ellipse"].numpy(),
                                        s["cup_valid"].numpy().astype(bool))
         errors += e
@@ -87,6 +126,8 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[512, 768, 1024],
                         help="square sizes (px) of the accuracy images, in equal shares")
     parser.add_argument("--seed", type=int, default=20_261_123)
+    parser.add_argument("--gallery", default="docs/model_failures.png",
+                        help="where to write the worst cases of the shipped model")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2],
                         help="torch intra-op threads to time with (accuracy uses the first)")
     args = parser.parse_args()
@@ -120,7 +161,10 @@ def main() -> None:
     header = ["model", *[f"MAE {n}" for n in NAMES], "detected", "false positives"]
     table = []
     for name, net in models.items():
-        res = accuracy(net, eval_set)
+        detections: list[list] = []
+        res = accuracy(net, eval_set, detections)
+        if net is model:
+            failure_gallery(eval_set, detections, Path(args.gallery))
         table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
                       res["false_positives"]])
         print(name, res)
