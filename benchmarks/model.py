@@ -175,7 +175,9 @@ def main() -> None:
                   f"`{args.eval_config}` (CT background on every image) at "
                   f"{', '.join(map(str, args.sizes))} px (seed {args.seed}), MAE over detected "
                   "true cups "
-                  f"(deg, deg, mm, mm, mm); targets {TARGETS}.\n\n" + text)
+                  f"(deg, deg, mm, mm, mm); targets {TARGETS}. The ablation (segmentation "
+                  "alone vs end to end, same set) and the training record are in "
+                  "docs/training.md; the worst cases in docs/model_failures.png.\n\n" + text)
 
 
 if __name__ == "__main__":
