@@ -420,13 +420,18 @@ def _compiled(function: Callable[..., Any]) -> Callable[..., Any]:
     return torch.compile(function, dynamic=True)
 
 
+_UNCOMPILABLE: set[Callable[..., Any]] = set()  # functions torch.compile failed on
+
+
 def _run(function: Callable[..., Any], compiled: bool, *args: Any) -> Any:
     """``function(*args)``, through :func:`_compiled` when asked and it works (it needs a
-    C++ compiler, and a failure shows only at the first call); else eagerly, with a warning."""
-    if compiled:
+    C++ compiler, and a failure shows only at the first call); else eagerly, with a warning
+    the first time."""
+    if compiled and function not in _UNCOMPILABLE:
         try:
             return _compiled(function)(*args)
         except Exception as error:  # noqa: BLE001 - any compile failure falls back the same way
+            _UNCOMPILABLE.add(function)
             warnings.warn(f"torch.compile failed, running {function.__name__} without it: "
                           f"{error}", stacklevel=2)
     return function(*args)

@@ -127,6 +127,23 @@ def test_compiled_solver_matches_the_eager_one(generator):
     assert torch.allclose(fused.pose, eager.pose, rtol=0, atol=1e-6, equal_nan=True)
 
 
+def test_compiled_solver_falls_back_to_eager_with_a_warning(generator, monkeypatch):
+    import cupnet.pose as pose_module
+
+    def no_compiler(function):
+        def fail(*args):
+            raise RuntimeError("no C++ compiler")
+        return fail
+
+    monkeypatch.setattr(pose_module, "_compiled", no_compiler)
+    monkeypatch.setattr(pose_module, "_UNCOMPILABLE", set())
+    truth = paper_poses(4, generator)
+    points = rim_landmarks(truth, GEOMETRY)
+    with pytest.warns(UserWarning, match="torch.compile failed"):
+        fused = solve_pose(points, GEOMETRY, 50.0, compiled=True)
+    assert torch.allclose(fused.pose, solve_pose(points, GEOMETRY, 50.0).pose, equal_nan=True)
+
+
 @pytest.mark.parametrize("corrected", [True, False])
 def test_gradcheck_refined_pose_wrt_points_and_weights(generator, corrected):
     truth = torch.tensor([[35.0, 20.0, 10.0, 5.0, 250.0]], dtype=torch.float64)
