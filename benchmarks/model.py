@@ -20,10 +20,11 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.report import machine, markdown_table, write_section  # noqa: E402
+from cupnet.detection import CupDetection  # noqa: E402
 from cupnet.geometry import Geometry  # noqa: E402
 from cupnet.model import DEFAULT_CHECKPOINT, CupNet, load_model  # noqa: E402
 from train.data import synth_config  # noqa: E402
-from train.module import score_detections  # noqa: E402
+from train.module import cup_errors  # noqa: E402
 
 NAMES = ("theta", "phi", "k", "l", "h")
 TARGETS = (1.0, 1.0, 1.0, 1.0, 8.0)
@@ -59,23 +60,18 @@ def latency(model: CupNet, images: list[dict], repeats: int = 1) -> dict[str, fl
     return {"mean_s": float(np.mean(times)), "median_s": float(np.median(times))}
 
 
-def failure_gallery(data: list[dict], detections: list[list], path: Path, count: int = 6,
-                    tile: int = 240) -> None:
-    """The ``count`` true cups with the largest theta errors (missed cups first): a crop
-    around each, the true rim in green, the landmarks in red, the errors as text."""
-    from cupnet.overlay import display_image
-    from train.module import match_detections
+def failure_gallery(cases: list[tuple[dict, int, CupDetection | None, np.ndarray | None]],
+                    path: Path, count: int = 6, tile: int = 240) -> None:
+    """The ``count`` true cups with the largest theta errors (unsolved cups first): a crop
+    around each, the true rim in green, the landmarks in red, the errors as text.
 
-    cases = []
-    for s, dets in zip(data, detections, strict=True):
-        valid = s["cup_valid"].numpy().astype(bool)
-        for c, det in enumerate(match_detections(dets, s["ellipse"].numpy(), valid)):
-            if valid[c]:
-                solved = det is not None and np.isfinite(det.pose).all()
-                err = np.abs(det.pose - s["pose"][c].double().numpy()) if solved else None
-                cases.append((np.inf if err is None else err[0], s, c, det, err))
+    Args: cases: ``(sample, cup index, detection, errors)`` per true cup, from :func:`accuracy`.
+    """
+    from cupnet.overlay import display_image
+
+    worst = sorted(cases, key=lambda case: -np.inf if case[3] is None else -case[3][0])
     tiles = []
-    for _, s, c, det, err in sorted(cases, key=lambda x: -x[0])[:count]:
+    for s, c, det, err in worst[:count]:
         image = cv2.cvtColor(display_image(s["image"][0].numpy()), cv2.COLOR_GRAY2BGR)
         cx, cy, a, b, alpha = (float(v) for v in s["ellipse"][c])
         cv2.ellipse(image, ((cx, cy), (2 * a, 2 * b), alpha), (80, 220, 80), 1)
@@ -93,21 +89,20 @@ def failure_gallery(data: list[dict], detections: list[list], path: Path, count:
         cv2.imwrite(str(path), np.hstack(tiles))
 
 
-def accuracy(model: CupNet, data: list[dict], detections: list[list] | None = None
-             ) -> dict[str, float]:
+def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict[str, float]:
     """Pose MAE of matched cups and the fraction of true cups detected with a pose; appends
-    each image's detections to ``detections`` when given."""
+    ``(sample, cup index, detection, errors)`` of each true cup to ``cases`` when given."""
     errors, found, total, false_pos = [], 0, 0, 0
     for s in data:
         dets = model.detect(s["image"][None], geometry_of(s), float(s["cup_diameter"][0]),
                             return_masks=False)[0]
-        if detections is not None:
-            detections.append(dets)
-        e, f, t, fp = score_detections(dets, s["pose"].double().numpy(), s["ellipse"].numpy(),
-                                       s["cup_valid"].numpy().astype(bool))
-        errors += e
-        found += f
-        total += t
+        cups, fp = cup_errors(dets, s["pose"].double().numpy(), s["ellipse"].numpy(),
+                              s["cup_valid"].numpy().astype(bool))
+        if cases is not None:
+            cases += [(s, c, det, err) for c, det, err in cups]
+        errors += [err for _, _, err in cups if err is not None]
+        found += sum(err is not None for _, _, err in cups)
+        total += len(cups)
         false_pos += fp
     mae = np.mean(errors, 0) if errors else np.full(5, np.nan)
     out = {f"mae_{n}": float(v) for n, v in zip(NAMES, mae, strict=True)}
@@ -161,10 +156,10 @@ def main() -> None:
     header = ["model", *[f"MAE {n}" for n in NAMES], "detected", "false positives"]
     table = []
     for name, net in models.items():
-        detections: list[list] = []
-        res = accuracy(net, eval_set, detections)
+        cases: list = []
+        res = accuracy(net, eval_set, cases)
         if net is model:
-            failure_gallery(eval_set, detections, Path(args.gallery))
+            failure_gallery(cases, Path(args.gallery))
         table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
                       res["false_positives"]])
         print(name, res)

@@ -96,28 +96,46 @@ def match_detections(detections: list[CupDetection], ellipse: np.ndarray, valid:
     return out
 
 
-def score_detections(detections: list[CupDetection], truth_pose: np.ndarray,
-                     truth_ellipse: np.ndarray, valid: np.ndarray
-                     ) -> tuple[list[np.ndarray], int, int, int]:
-    """Score one image's detections against its true cups.
+def cup_errors(detections: list[CupDetection], truth_pose: np.ndarray, truth_ellipse: np.ndarray,
+               valid: np.ndarray
+               ) -> tuple[list[tuple[int, CupDetection | None, np.ndarray | None]], int]:
+    """Each true cup's detection and absolute pose errors.
 
     Args:
         detections: the image's detections; truth_pose: ``(C, 5)`` public units;
         truth_ellipse: ``(C, 5)`` px; valid: ``(C,)`` bool.
     Returns:
+        per true cup ``(index, detection or None, errors (5,) or None where it has no pose)``
+        (phi wrapped as in :func:`train.losses.pose_errors`), and the number of detections
+        matching no true cup.
+    """
+    matched = match_detections(detections, truth_ellipse, valid)
+    cups: list[tuple[int, CupDetection | None, np.ndarray | None]] = []
+    for c, det in enumerate(matched):
+        if not valid[c]:
+            continue
+        err = None
+        if det is not None and np.isfinite(det.pose).all():
+            err = pose_errors(torch.from_numpy(np.asarray(det.pose, np.float64))[None],
+                              torch.from_numpy(np.asarray(truth_pose[c], np.float64))[None]
+                              )[0].abs().numpy()
+        cups.append((c, det, err))
+    return cups, len(detections) - sum(m is not None for m in matched)
+
+
+def score_detections(detections: list[CupDetection], truth_pose: np.ndarray,
+                     truth_ellipse: np.ndarray, valid: np.ndarray
+                     ) -> tuple[list[np.ndarray], int, int, int]:
+    """Score one image's detections against its true cups.
+
+    Args: as :func:`cup_errors`.
+    Returns:
         absolute pose errors ``(5,)`` of each true cup detected with a pose, the number of such
         cups, the number of true cups, and the detections matching no true cup.
     """
-    matched = match_detections(detections, truth_ellipse, valid)
-    errors, found = [], 0
-    for c, det in enumerate(matched):
-        if valid[c] and det is not None and np.isfinite(det.pose).all():
-            found += 1
-            err = pose_errors(torch.from_numpy(np.asarray(det.pose, np.float64))[None],
-                              torch.from_numpy(np.asarray(truth_pose[c], np.float64))[None])[0]
-            errors.append(err.abs().numpy())
-    false_positives = len(detections) - sum(m is not None for m in matched)
-    return errors, found, int(valid.sum()), false_positives
+    cups, false_positives = cup_errors(detections, truth_pose, truth_ellipse, valid)
+    errors = [err for _, _, err in cups if err is not None]
+    return errors, len(errors), len(cups), false_positives
 
 
 class CupNetModule(L.LightningModule):
