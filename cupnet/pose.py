@@ -228,6 +228,7 @@ class _Rim(NamedTuple):
     v: Tensor
     du: Tensor  # d (u, v) / d t, px per rad
     dv: Tensor
+    speed2: Tensor  # du^2 + dv^2
     ddu: Tensor  # d^2 (u, v) / d t^2, px per rad^2
     ddv: Tensor
     focal: Tensor  # sdd / spacing / depth, px per mm
@@ -273,7 +274,8 @@ def _rim(pose: Tensor, t: Tensor, radius: Tensor, geom: Tensor) -> _Rim:
     bend = 2 * dz / depth
     ddu = focal * (-(x - pose[:, 2:3]) - lat_x * (ct * rs)) + bend * du
     ddv = focal * (-(y - pose[:, 3:4]) - lat_y * (ct * rs)) + bend * dv
-    return _Rim(u0 + focal * x, v0 + focal * y, du, dv, ddu, ddv, focal, lat_x, lat_y, rc, rs)
+    return _Rim(u0 + focal * x, v0 + focal * y, du, dv, du**2 + dv**2, ddu, ddv, focal, lat_x,
+                lat_y, rc, rs)
 
 
 def _closest_rim_parameters(pose: Tensor, t: Tensor, points: tuple[Tensor, Tensor],
@@ -288,10 +290,9 @@ def _closest_rim_parameters(pose: Tensor, t: Tensor, points: tuple[Tensor, Tenso
     """
     rim = _rim(pose, t, radius, geom)
     off_u, off_v = points[0] - rim.u, points[1] - rim.v
-    speed2 = rim.du**2 + rim.dv**2
     # Half the Hessian of |x - rim(t)|^2 / 2; floored where the landmark lies beyond the
     # centre of curvature (there the closest point is far and a bounded step is safer).
-    hessian = torch.maximum(speed2 - (off_u * rim.ddu + off_v * rim.ddv), 0.25 * speed2)
+    hessian = torch.maximum(rim.speed2 - (off_u * rim.ddu + off_v * rim.ddv), 0.25 * rim.speed2)
     step = (off_u * rim.du + off_v * rim.dv) / hessian.clamp_min(1e-30)
     return t + step.clamp(-0.5, 0.5)
 
@@ -307,7 +308,7 @@ def _normal_jacobian(pose: Tensor, rim: _Rim) -> tuple[Tensor, Tensor, Tensor]:
     (rad, rad, mm, mm, mm).
     """
     ct, st, cp, sp = _pose_axes(pose)
-    norm = torch.sqrt(rim.du**2 + rim.dv**2).clamp_min(1e-300)
+    norm = torch.sqrt(rim.speed2).clamp_min(1e-300)
     n_u, n_v = -rim.dv / norm, rim.du / norm
     # n^T d x / d X for a rim point X.
     pull_x, pull_y = rim.focal * n_u, rim.focal * n_v
@@ -356,7 +357,7 @@ def _curvature_offsets(dist: Tensor, weights: Tensor, rim: _Rim, n_u: Tensor,
     the offset saturates, so it is clipped at one noise standard deviation.
     """
     variance = _noise_variance(dist, weights)
-    bend = (n_u * rim.ddu + n_v * rim.ddv) / (rim.du**2 + rim.dv**2).clamp_min(1e-30)
+    bend = (n_u * rim.ddu + n_v * rim.ddv) / rim.speed2.clamp_min(1e-30)
     limit = variance.sqrt()
     return torch.clamp(-0.5 * variance * bend, -limit, limit)
 
