@@ -224,9 +224,10 @@ def fit_ellipse(
     constraint ``4AC - B^2 = 1``, on points normalised to zero weighted mean and unit RMS
     spread (the fit is similarity-covariant, so this changes only the conditioning). The
     constrained problem is solved as a symmetric eigenproblem
-    ``L^-1 C1 L^-T`` (``L`` the Cholesky factor of the reduced scatter matrix), whose single
-    positive eigenvalue gives the ellipse, so the fit is differentiable with respect to the
-    points and the weights through ``torch.linalg.eigh``.
+    ``L^-1 C1 L^-T`` (``L`` the Cholesky factor of the slightly ridged reduced scatter
+    matrix), whose single positive eigenvalue gives the ellipse; Rayleigh-quotient steps then
+    remove the ridge's bias. The fit is differentiable with respect to the points and the
+    weights through the exact eigenvector (implicit function theorem).
 
     Args:
         points: ``(B, N, 2)`` or ``(N, 2)`` pixels.
@@ -273,21 +274,23 @@ def fit_ellipse(
     lin_from_quad = -torch.linalg.solve(s3, s2.transpose(-1, -2))  # (B, 3, 3)
     reduced = s1 + s2 @ lin_from_quad
     reduced = torch.where(valid[:, None, None], 0.5 * (reduced + reduced.transpose(-1, -2)), eye)
-    trace = reduced.diagonal(dim1=-2, dim2=-1).sum(-1)
-    chol = torch.linalg.cholesky(reduced + (_RIDGE * trace)[:, None, None] * eye)
     constraint = torch.tensor([[0.0, 0.0, 2.0], [0.0, -1.0, 0.0], [2.0, 0.0, 0.0]],
                               dtype=points.dtype, device=points.device)
-    half = torch.linalg.solve_triangular(chol, constraint.expand_as(chol), upper=False)
-    sym = torch.linalg.solve_triangular(chol, half.transpose(-1, -2), upper=False)
-    sym = 0.5 * (sym + sym.transpose(-1, -2))
-    _, vecs = torch.linalg.eigh(sym)
-    top = vecs[..., -1:]  # the single positive eigenvalue is the largest
-    quad_coef = torch.linalg.solve_triangular(chol.transpose(-1, -2), top, upper=True)
+    # The ridged problem only starts the polish below (gradients come from the exact
+    # eigenvector there), so it is solved without a graph.
+    with torch.no_grad():
+        trace = reduced.diagonal(dim1=-2, dim2=-1).sum(-1)
+        chol = torch.linalg.cholesky(reduced + (_RIDGE * trace)[:, None, None] * eye)
+        half = torch.linalg.solve_triangular(chol, constraint.expand_as(chol), upper=False)
+        sym = torch.linalg.solve_triangular(chol, half.transpose(-1, -2), upper=False)
+        sym = 0.5 * (sym + sym.transpose(-1, -2))
+        _, vecs = torch.linalg.eigh(sym)
+        top = vecs[..., -1:]  # the single positive eigenvalue is the largest
+        quad_coef = torch.linalg.solve_triangular(chol.transpose(-1, -2), top, upper=True)
     if valid.any():  # polishing a stand-in block could meet an exactly singular system
         # Rayleigh-quotient polish removes the ridge's bias, so points exactly on an
-        # ellipse give it to machine precision; gradients come from the exact eigenvector.
-        polished = _PencilEigenvector.apply(reduced[valid], constraint,
-                                            quad_coef[valid].detach(), 3)
+        # ellipse give it to machine precision.
+        polished = _PencilEigenvector.apply(reduced[valid], constraint, quad_coef[valid], 3)
         quad_coef = quad_coef.clone()
         quad_coef[valid] = polished
     lin_coef = lin_from_quad @ quad_coef
