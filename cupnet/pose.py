@@ -460,7 +460,9 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
         jtj, rhs, cost, tt = _run(_normal_equations, compiled, p, tt, x[0], x[1], w, rw, g, r,
                                   corrected)
         # Newton decrement of the pose equations: the corrected score is not the gradient of
-        # the cost, so near its root steps are judged by this instead.
+        # the cost, so near its root steps are judged by this instead (plain ML needs none).
+        if not corrected:
+            return jtj, rhs, cost, torch.zeros_like(cost), tt
         decrement = (rhs * torch.linalg.solve_ex(jtj, rhs[..., None])[0].squeeze(-1)).sum(-1)
         return jtj, rhs, cost, decrement, tt
 
