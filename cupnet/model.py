@@ -8,9 +8,13 @@ filled rim ellipse) as an area-coverage map:
 2. the *refiner* segments a square crop around each cup, framed so the rim's major axis
    spans ``crop_fill`` of the ``crop_size`` crop (a second pass re-frames the crop on the
    first pass's ellipse). Soft landmarks (:func:`cupnet.landmarks.ray_landmarks`) are mapped
-   back to original-image pixels through the crop's exact affine, then the weighted ellipse
-   fit and the pose solver (:func:`cupnet.pose.solve_pose`) give the pose, so a pose loss
-   backpropagates into the refiner.
+   back to original-image pixels through the crop's exact affine;
+3. the optional *rim* stage (:mod:`cupnet.rim`, ``rim_passes > 0``) samples full-resolution
+   strips across the refiner's ellipse and moves each landmark onto the rim with a learned,
+   differentiable edge locator, weighting it by its predicted precision.
+
+The weighted ellipse fit and the pose solver (:func:`cupnet.pose.solve_pose`) then give the
+pose, so a pose loss backpropagates into the last stage's network.
 
 Images may have any size; every resampling is an exactly known affine (:mod:`cupnet.crops`).
 """
@@ -19,7 +23,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import cv2
@@ -41,6 +45,7 @@ from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ray_landmarks, soft_moments
 from cupnet.pose import PoseSolution, solve_pose
+from cupnet.rim import RimNet, rim_frame, sample_strips, strip_landmarks, strip_offsets
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 DEFAULT_CHECKPOINT = ASSETS / "cupnet_default.safetensors"
@@ -69,6 +74,12 @@ class CupNetConfig:
         refine_passes: stage-2 passes at inference (each re-frames on the last ellipse).
         locator_scale: the first pass frames the locator's blob enlarged by this factor and
             made round (axis ratio >= 0.8, no stretch), as in training's coarse frames.
+        rim_passes: rim-stage passes (0: no rim stage; the landmarks are the refiner's); each
+            pass after the first is framed on the weighted fit of the pass before.
+        rim_points: rim landmarks (strip columns) per cup.
+        rim_samples: samples along each normal (strip rows) ...
+        rim_step: ... this many image pixels apart.
+        rim_channels: width of :class:`cupnet.rim.RimNet`.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -86,6 +97,11 @@ class CupNetConfig:
     min_cup_area: float = 4.0
     refine_passes: int = 2
     locator_scale: float = 1.15
+    rim_passes: int = 0
+    rim_points: int = 128
+    rim_samples: int = 64
+    rim_step: float = 0.5
+    rim_channels: int = 16
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -109,8 +125,11 @@ class CupNetOutput:
         crop_logits: ``(K, 1, s, s)`` opening logits of each cup's crop.
         crop_to_image: ``(K, 2, 3)`` crop-to-image affines.
         cup_index: ``(K, 2)`` (image, cup slot) of each crop.
-        landmarks: ``(K, N, 2)`` original-image pixels; ``weights``: ``(K, N)``.
+        landmarks: ``(K, N, 2)`` original-image pixels; ``weights``: ``(K, N)``: the rim
+            stage's when the model has one, else the refiner's.
         solution: pose solver output for the ``K`` cups (float64, public units).
+        rim_sigma: ``(K, N)`` pixels, the rim stage's predicted landmark precision (None
+            without a rim stage).
     """
 
     locator_logits: Tensor
@@ -121,7 +140,7 @@ class CupNetOutput:
     landmarks: Tensor
     weights: Tensor
     solution: PoseSolution
-    extras: dict = field(default_factory=dict)
+    rim_sigma: Tensor | None = None
 
 
 def _unet(config: CupNetConfig) -> smp.Unet:
@@ -169,6 +188,7 @@ class CupNet(nn.Module):
         self.config = config or CupNetConfig()
         self.locator = _unet(self.config)
         self.refiner = _unet(self.config)
+        self.rim = RimNet(self.config.rim_channels) if self.config.rim_passes > 0 else None
         if self.config.encoder_weights:
             state, _ = _read_checkpoint(Path(self.config.encoder_weights))
             for net in (self.locator, self.refiner):
@@ -258,6 +278,38 @@ class CupNet(nn.Module):
                                         self.config.ray_samples)
         return to_image(points, crop_to_image.double()), weights
 
+    # -- stage 3 ---------------------------------------------------------------------------
+    def rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor,
+                      passes: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """Rim stage: strip passes from ``start`` ellipses (not differentiated).
+
+        Args:
+            images: ``(B, 1, H, W)`` or list of ``(1, H, W)``.
+            index: ``(K,)`` image of each cup.
+            start: ``(K, 5)`` ellipses (cx, cy, a, b, alpha_deg), image pixels.
+            passes: strip passes (None: ``rim_passes``).
+        Returns:
+            landmarks ``(K, n, 2)`` image pixels (float64), weights ``(K, n)`` (mean 1 per cup),
+            sigma ``(K, n)`` pixels, of the last pass.
+        """
+        cfg = self.config
+        if self.rim is None:
+            raise ValueError("this CupNet has no rim stage (rim_passes = 0)")
+        offsets = strip_offsets(cfg.rim_samples, cfg.rim_step, device=start.device)
+        ellipse = start.detach().double()
+        for remaining in range((passes or cfg.rim_passes) - 1, -1, -1):
+            points, normals = rim_frame(ellipse, cfg.rim_points)
+            strips = sample_strips(images, index, points, normals, offsets)
+            if strips.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
+                empty = points.new_zeros(0, cfg.rim_points)
+                return points, empty, empty
+            logits, log_sigma = self.rim(strips.to(self.dtype))
+            landmarks, weights, sigma = strip_landmarks(logits, log_sigma, points, normals,
+                                                        offsets)
+            if remaining:
+                ellipse = _usable_fit(landmarks.detach(), weights.detach(), ellipse)
+        return landmarks, weights, sigma
+
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
                 crop_frames: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
         """Images + geometry -> locator map, crop maps, landmarks, ellipses and poses.
@@ -288,10 +340,15 @@ class CupNet(nn.Module):
         frames = crop_frames[cup_index[:, 0], cup_index[:, 1]].to(locator_logits.device)
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
         points, weights = self.crop_landmarks(crop_logits, crop_to_image)
+        sigma = None
+        if self.rim is not None:
+            start = _usable_fit(points.detach(), weights.detach(),
+                                _frame_ellipse(frames, self.config))
+            points, weights, sigma = self.rim_landmarks(image_list, cup_index[:, 0], start)
         solution = self.solve(points, weights, geometry, cup_diameter, cup_index, batch,
                               refine_pose)
         return CupNetOutput(locator_logits, letterbox, crop_logits, crop_to_image, cup_index,
-                            points, weights, solution)
+                            points, weights, solution, sigma)
 
     def solve(self, points: Tensor, weights: Tensor, geometry: Geometry, cup_diameter: Tensor,
               cup_index: Tensor, batch: int, refine: bool) -> PoseSolution:
@@ -351,12 +408,14 @@ class CupNet(nn.Module):
         for _ in range(self.config.refine_passes - 1):
             # Re-frame on the fitted ellipse where it is usable; keep the old frame otherwise.
             crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
-            ellipse = fit_ellipse(*self.crop_landmarks(crop_logits, crop_to_image),
-                                  on_error="flag").params
-            usable = torch.isfinite(ellipse).all(-1) & (ellipse[:, 2] > 0.5)
-            frames = torch.where(usable[:, None], self.frames(ellipse.nan_to_num(1.0)), frames)
+            ellipse = _usable_fit(*self.crop_landmarks(crop_logits, crop_to_image),
+                                  _frame_ellipse(frames, self.config))
+            frames = self.frames(ellipse)
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
         points, weights = self.crop_landmarks(crop_logits, crop_to_image)
+        if self.rim is not None:
+            start = _usable_fit(points, weights, _frame_ellipse(frames, self.config))
+            points, weights, _ = self.rim_landmarks(image_list, cup_index[:, 0], start)
         solution = self.solve(points, weights, geometry, diameter, cup_index, batch, refine=True)
         for k, (i, c) in enumerate(cup_index.tolist()):
             mask = None
@@ -378,6 +437,22 @@ class CupNet(nn.Module):
                 score=float(scores[i, c]),
             ))
         return results
+
+
+def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:
+    """The ellipse a crop frame ``(K, 5)`` was made for (its minor axis only roughly, where
+    the crop was stretched): the fallback where a fit fails."""
+    major = frames[:, 2:3] * config.crop_fill / 2
+    minor = frames[:, 3:4] * config.crop_fill * config.crop_min_ratio / 2
+    return torch.cat([frames[:, :2], major, minor.clamp_max(major), frames[:, 4:]], -1).double()
+
+
+def _usable_fit(points: Tensor, weights: Tensor, fallback: Tensor) -> Tensor:
+    """Weighted ellipse fit ``(K, 5)`` of landmarks ``(K, N, 2)``, ``fallback`` ``(K, 5)``
+    where the fit fails or collapses (semi-major axis under half a pixel)."""
+    ellipse = fit_ellipse(points, weights, on_error="flag").params
+    usable = torch.isfinite(ellipse).all(-1) & (ellipse[:, 2] > 0.5)
+    return torch.where(usable[:, None], ellipse, fallback.to(ellipse))
 
 
 def _read_checkpoint(path: Path) -> tuple[dict[str, Tensor], dict | None]:

@@ -1,4 +1,5 @@
-"""Training losses of CupNet: segmentation, geometric ellipse and normalised pose terms."""
+"""Training losses of CupNet: segmentation, geometric ellipse, rim landmark and normalised
+pose terms."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from cupnet.ellipse import sampson_distance
+from cupnet.ellipse import params_to_conic, sampson_distance
 
 # Pose error that counts as 1 in the normalised pose loss: the issue's target MAEs
 # (theta, phi in degrees; k, l, h in mm).
@@ -38,6 +39,24 @@ def ellipse_loss(conic: Tensor, rim: Tensor, pixel_scale: Tensor, valid: Tensor)
         return conic.sum() * 0.0
     dist = sampson_distance(conic[valid], rim[valid]).abs() / pixel_scale[valid, None]
     return F.smooth_l1_loss(dist, torch.zeros_like(dist), beta=1.0)
+
+
+def rim_loss(landmarks: Tensor, sigma: Tensor, truth: Tensor) -> Tensor:
+    """Laplace negative log-likelihood of rim landmarks' distances to the true rims.
+
+    ``|d| / sigma + log sigma`` per landmark, ``d`` its Sampson distance to the true ellipse:
+    the network is rewarded for landmarks on the rim and for a ``sigma`` (its fit weight
+    ``1 / sigma^2``) equal to the distance it expects to be off, so a column where the rim
+    cannot be seen learns a large ``sigma`` rather than a guess at full weight.
+
+    Args:
+        landmarks: ``(K, n, 2)`` image pixels; sigma: ``(K, n)`` pixels.
+        truth: ``(K, 5)`` true ellipses (cx, cy, a, b, alpha_deg).
+    """
+    if landmarks.shape[0] == 0:
+        return landmarks.sum() * 0.0
+    dist = sampson_distance(params_to_conic(truth.to(landmarks)), landmarks).abs()
+    return (dist / sigma + sigma.log()).mean()
 
 
 def wrap_angle(delta: Tensor, period: float = 180.0) -> Tensor:

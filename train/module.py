@@ -16,12 +16,14 @@ from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
 from cupnet.model import CupNet, CupNetConfig, load_model, save_model
+from cupnet.pose import PoseSolution
 from train.losses import (
     POSE_SCALE,
     ellipse_loss,
     pose_errors,
     pose_loss,
     ramp,
+    rim_loss,
     segmentation_loss,
 )
 
@@ -64,6 +66,25 @@ def jittered_ellipses(ellipse: Tensor, valid: Tensor, coarse: float, coarse_shif
     axes = torch.cat([axes.max(-1, keepdim=True).values, axes.min(-1, keepdim=True).values], -1)
     out = torch.cat([centre, axes, alpha], -1)
     return torch.where(valid[..., None], out, torch.full_like(out, math.nan))
+
+
+def jittered_rim_starts(ellipse: Tensor, scale: float) -> Tensor:
+    """True ellipses ``(K, 5)`` perturbed like the refiner's fits the rim stage starts from.
+
+    With a magnitude ``m ~ U(0.1, 1.2) scale`` per cup: the centre moved by
+    ``N(0, m max(2 px, 0.04 a))`` per axis, ``a`` scaled by ``exp(N(0, 0.04 m))``, ``b`` moved
+    by ``N(0, 0.04 m a)`` (additive: a nearly edge-on cup's minor axis is off by pixels, not
+    by a fraction of itself), the angle turned by ``N(0, 3 m)`` degrees.
+    """
+    count = ellipse.shape[0]
+    noise = torch.randn(count, 5, dtype=ellipse.dtype, device=ellipse.device)
+    m = scale * (0.1 + 1.1 * torch.rand(count, 1, dtype=ellipse.dtype, device=ellipse.device))
+    a, b = ellipse[:, 2:3], ellipse[:, 3:4]
+    centre = ellipse[:, :2] + noise[:, :2] * m * (0.04 * a).clamp_min(2.0)
+    axes = torch.cat([a * torch.exp(0.04 * m * noise[:, 2:3]),
+                      (b + 0.04 * m * a * noise[:, 3:4]).clamp_min(0.5)], -1)
+    axes = torch.cat([axes.max(-1, keepdim=True).values, axes.min(-1, keepdim=True).values], -1)
+    return torch.cat([centre, axes, ellipse[:, 4:] + 3 * m * noise[:, 4:]], -1)
 
 
 def crop_targets(ellipse: Tensor, valid: Tensor, crop_to_image: Tensor, cup_index: Tensor,
@@ -138,6 +159,16 @@ def score_detections(detections: list[CupDetection], truth_pose: np.ndarray,
     return errors, len(errors), len(cups), false_positives
 
 
+def _pose_maes(solution: PoseSolution, truth: Tensor) -> dict[str, Tensor]:
+    """Training-log MAEs ``mae_theta`` ... ``mae_h`` of the solved poses against ``truth``."""
+    with torch.no_grad():
+        err = pose_errors(solution.pose, truth)
+        ok = solution.valid
+        return {f"mae_{name}": (err[ok, j].abs().mean() if bool(ok.any())
+                                else torch.tensor(math.nan))
+                for j, name in enumerate(("theta", "phi", "k", "l", "h"))}
+
+
 class CupNetModule(L.LightningModule):
     """CupNet training: locator + refiner segmentation, then ellipse and pose losses.
 
@@ -155,6 +186,12 @@ class CupNetModule(L.LightningModule):
         crops_per_cup: differently jittered crops per cup and image (synthesis costs more
             than a crop's training step, so each image is used several times).
         refine_pose: train through the solver's ML refinement (else its closed form).
+        rim_weight: weight of the rim stage's landmark loss (:func:`train.losses.rim_loss`),
+            when the model has a rim stage.
+        rim_only: train the rim stage alone, the U-Nets frozen and not run: strips framed on
+            jittered true ellipses (:func:`jittered_rim_starts`), one pass, rim and pose
+            losses.
+        rim_jitter: scale of those jitters; rim_copies: differently jittered starts per cup.
         torch_threads: intra-op threads (None: torch's default); 1 suits a shared CPU,
             where the data worker takes the other core.
         init_weights: a checkpoint whose network weights start this run (fine-tuning; a
@@ -182,6 +219,10 @@ class CupNetModule(L.LightningModule):
         fine_ratio: float = 0.25,
         crops_per_cup: int = 2,
         refine_pose: bool = False,
+        rim_weight: float = 1.0,
+        rim_only: bool = False,
+        rim_jitter: float = 1.0,
+        rim_copies: int = 3,
         torch_threads: int | None = None,
         init_weights: str | None = None,
         export_path: str | None = None,
@@ -190,10 +231,29 @@ class CupNetModule(L.LightningModule):
         self.save_hyperparameters()
         self.model = CupNet(CupNetConfig.from_dict(model or {}))
         if init_weights:
-            self.model.load_state_dict(load_model(init_weights).state_dict())
+            # A model gaining a rim stage starts from weights without one.
+            missing, unexpected = self.model.load_state_dict(
+                load_model(init_weights).state_dict(), strict=False)
+            if unexpected or any(not k.startswith("rim.") for k in missing):
+                raise ValueError(f"{init_weights} does not fit this model: missing "
+                                 f"{missing[:5]}, unexpected {unexpected[:5]}")
+        if rim_only:
+            if self.model.rim is None:
+                raise ValueError("rim_only needs a model with a rim stage (rim_passes > 0)")
+            for net in (self.model.locator, self.model.refiner):
+                net.requires_grad_(False)
+
+    def train(self, mode: bool = True) -> CupNetModule:
+        super().train(mode)
+        if self.hparams.rim_only:  # frozen U-Nets keep their BatchNorm statistics
+            self.model.locator.eval()
+            self.model.refiner.eval()
+        return self
 
     def losses(self, batch: dict, step: int) -> dict[str, Tensor]:
         """All loss terms of one batch and their weighted total (``"loss"``)."""
+        if self.hparams.rim_only:
+            return self.rim_losses(batch)
         hp, cfg = self.hparams, self.model.config
         images = batch["image"]
         cups = batch["cup_valid"].shape[1]
@@ -222,13 +282,28 @@ class CupNetModule(L.LightningModule):
         terms["pose"] = pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)
         total = (hp.locator_weight * terms["seg_locator"] + terms["seg_crop"]
                  + w_ellipse * terms.get("ellipse", 0.0) + w_pose * terms["pose"])
+        if out.rim_sigma is not None:
+            terms["rim"] = rim_loss(out.landmarks, out.rim_sigma, batch["ellipse"][i, c])
+            total = total + hp.rim_weight * terms["rim"]
         terms["loss"] = total.float()
-        with torch.no_grad():
-            err = pose_errors(solution.pose, batch["pose"][i, c].double())
-            ok = solution.valid
-            for j, name in enumerate(("theta", "phi", "k", "l", "h")):
-                terms[f"mae_{name}"] = (err[ok, j].abs().mean() if bool(ok.any())
-                                        else torch.tensor(math.nan))
+        terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
+        return terms
+
+    def rim_losses(self, batch: dict) -> dict[str, Tensor]:
+        """Loss terms of the rim stage alone (``rim_only``), see :meth:`losses`."""
+        hp = self.hparams
+        cup_index = batch["cup_valid"].bool().nonzero().repeat(hp.rim_copies, 1)  # (K, 2)
+        i, c = cup_index[:, 0], cup_index[:, 1]
+        truth = batch["ellipse"][i, c].double()
+        start = jittered_rim_starts(truth, hp.rim_jitter)
+        landmarks, weights, sigma = self.model.rim_landmarks(batch["image"], i, start, passes=1)
+        solution = self.model.solve(landmarks, weights, batch_geometry(batch["geometry"]),
+                                    batch["cup_diameter"], cup_index, batch["image"].shape[0],
+                                    refine=hp.refine_pose)
+        terms = {"rim": rim_loss(landmarks, sigma, truth),
+                 "pose": pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)}
+        terms["loss"] = (hp.rim_weight * terms["rim"] + hp.pose_weight * terms["pose"]).float()
+        terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
         return terms
 
     def setup(self, stage: str) -> None:
@@ -267,7 +342,8 @@ class CupNetModule(L.LightningModule):
         self.log("val/score", relative + 10 * (1 - detected), batch_size=size, prog_bar=True)
 
     def configure_optimizers(self):
-        optimizer = torch.optim.AdamW(self.parameters(), lr=self.hparams.lr,
+        optimizer = torch.optim.AdamW((p for p in self.parameters() if p.requires_grad),
+                                      lr=self.hparams.lr,
                                       weight_decay=self.hparams.weight_decay)
         steps = max(1, int(self.trainer.max_steps)) if self.trainer.max_steps > 0 else 10_000
         scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps,

@@ -1,0 +1,163 @@
+"""Rim stage: sub-pixel rim landmarks from strips sampled across an ellipse estimate.
+
+The refiner U-Net sees each cup through a 128 px crop, several image pixels per crop pixel
+for a large cup, so its landmarks are a few pixels off. The rim stage works at full
+resolution on a narrow band instead: ``n`` normals of the current ellipse (equal arc length,
+outward), each sampled at ``S`` offsets ``step`` image pixels apart, stacked into a strip
+``(S, n)`` (rows: offset along the normal, columns: position around the rim, circular).
+:class:`RimNet`, a small dilated CNN, gives each column a distribution over offsets (its
+expectation places the landmark, differentiably) and a scale ``sigma`` (its landmark's
+expected distance to the rim, the weight of the ellipse fit being ``1 / sigma^2``). The rim
+edge of a metal shell is not a symmetric step (the path through metal grows inwards from
+the outer rim over several pixels, and a femoral head can hide part of the rim), so a
+learned edge locator beats a gradient peak; the network learns where the rim lies in its
+profile and when it cannot be seen.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+# Range of log(sigma / px): a landmark claims at most ~20x sub-pixel precision, at least
+# that it is anywhere in the strip.
+_LOG_SIGMA_RANGE = (-3.0, 4.0)
+
+
+def rim_frame(ellipse: Tensor, n: int, oversample: int = 8) -> tuple[Tensor, Tensor]:
+    """Points at equal arc length around ellipses and their outward unit normals.
+
+    Args:
+        ellipse: ``(K, 5)`` (cx, cy, a, b, alpha_deg), image pixels.
+        n: points per ellipse.
+        oversample: dense samples per point of the arc-length table.
+    Returns:
+        points ``(K, n, 2)`` pixels, normals ``(K, n, 2)`` unit vectors; the first point lies
+        at the end of the major axis (parameter 0), the order is counter-clockwise in
+        ``(u, v)``.
+    """
+    dtype, device = ellipse.dtype, ellipse.device
+    cx, cy, a, b, alpha = (x[:, None] for x in ellipse.unbind(-1))
+    dense = torch.arange(n * oversample + 1, dtype=dtype, device=device) * (
+        2 * math.pi / (n * oversample))
+    speed = torch.hypot(a * torch.sin(dense), b * torch.cos(dense))  # (K, M+1)
+    arc = torch.cat([torch.zeros_like(speed[:, :1]),
+                     torch.cumsum(0.5 * (speed[:, 1:] + speed[:, :-1]), -1)], -1)
+    target = arc[:, -1:] * torch.arange(n, dtype=dtype, device=device) / n
+    # Invert the arc-length table by linear interpolation.
+    j = torch.searchsorted(arc.contiguous(), target.contiguous()).clamp(1, arc.shape[1] - 1)
+    a0, a1 = arc.gather(1, j - 1), arc.gather(1, j)
+    frac = (target - a0) / (a1 - a0).clamp_min(1e-12)
+    t = dense[j - 1] + frac * (dense[1] - dense[0])
+    ang = torch.deg2rad(alpha)
+    ca, sa = torch.cos(ang), torch.sin(ang)
+    x, y = a * torch.cos(t), b * torch.sin(t)
+    nx, ny = b * torch.cos(t), a * torch.sin(t)
+    norm = torch.hypot(nx, ny)
+    nx, ny = nx / norm, ny / norm
+    points = torch.stack([cx + x * ca - y * sa, cy + x * sa + y * ca], -1)
+    normals = torch.stack([nx * ca - ny * sa, nx * sa + ny * ca], -1)
+    return points, normals
+
+
+def strip_offsets(samples: int, step: float, dtype: torch.dtype = torch.float64,
+                  device: torch.device | None = None) -> Tensor:
+    """``(S,)`` offsets (image pixels, outward positive) of a strip's rows, centred on 0."""
+    return (torch.arange(samples, dtype=dtype, device=device) - (samples - 1) / 2) * step
+
+
+def sample_strips(images: Tensor | list[Tensor], index: Tensor, points: Tensor, normals: Tensor,
+                  offsets: Tensor) -> Tensor:
+    """Bilinear samples of each image along each normal: the strips.
+
+    Args:
+        images: ``(B, 1, H, W)`` or a list of ``(1, H_i, W_i)``.
+        index: ``(K,)`` image of each strip.
+        points: ``(K, n, 2)`` pixels; normals: ``(K, n, 2)``; offsets: ``(S,)`` pixels.
+    Returns:
+        ``(K, 1, S, n)`` in the images' dtype (border values outside an image).
+    """
+    grid = points[:, None] + offsets[None, :, None, None] * normals[:, None]  # (K, S, n, 2)
+    strips = []
+    for k in range(points.shape[0]):
+        image = images[int(index[k])]
+        height, width = image.shape[-2:]
+        # grid_sample with align_corners=True: -1 and +1 are the centres of the edge pixels.
+        scale = grid.new_tensor([2 / max(width - 1, 1), 2 / max(height - 1, 1)])
+        strips.append(F.grid_sample(image[None], (grid[k:k + 1] * scale - 1).to(image.dtype),
+                                    mode="bilinear", padding_mode="border",
+                                    align_corners=True)[0])
+    if not strips:
+        return points.new_zeros(0, 1, offsets.shape[0], points.shape[1])
+    return torch.stack(strips)
+
+
+class _StripConv(nn.Module):
+    """3x3 convolution dilated by ``(along the normal, around the rim)``, padded circularly
+    around the rim and by replication along the normal, then BatchNorm and ReLU."""
+
+    def __init__(self, channels_in: int, channels_out: int, dilation: tuple[int, int]) -> None:
+        super().__init__()
+        self.pad_s, self.pad_n = dilation
+        self.conv = nn.Conv2d(channels_in, channels_out, 3, dilation=dilation, bias=False)
+        self.norm = nn.BatchNorm2d(channels_out)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = F.pad(x, (self.pad_n, self.pad_n, 0, 0), mode="circular")
+        x = F.pad(x, (0, 0, self.pad_s, self.pad_s), mode="replicate")
+        return F.relu(self.norm(self.conv(x)))
+
+
+class RimNet(nn.Module):
+    """Strip ``(K, 1, S, n)`` -> offset logits ``(K, S, n)`` and ``log sigma`` ``(K, n)``.
+
+    Dilations along the normal grow to cover the whole strip (receptive field ``2 sum d + 1``
+    rows); around the rim they grow more slowly, so a column sees its neighbours' edges (a
+    rim is smooth) without averaging across the ellipse.
+    """
+
+    def __init__(self, channels: int = 24,
+                 dilations: tuple[tuple[int, int], ...] = ((1, 1), (2, 1), (4, 2), (8, 2),
+                                                           (16, 4), (1, 1))) -> None:
+        super().__init__()
+        widths = [1] + [channels] * len(dilations)
+        self.body = nn.Sequential(*(_StripConv(cin, cout, d) for cin, cout, d
+                                    in zip(widths[:-1], widths[1:], dilations, strict=True)))
+        self.offset_head = nn.Conv2d(channels, 1, 1)
+        self.sigma_head = nn.Conv1d(channels + 1, 1, 1)
+
+    def forward(self, strips: Tensor) -> tuple[Tensor, Tensor]:
+        # Per-strip standardisation: exposure, windowing and polarity-free scale.
+        mean = strips.mean((-2, -1), keepdim=True)
+        std = strips.std((-2, -1), keepdim=True)
+        features = self.body((strips - mean) / (std + 1e-3))
+        logits = self.offset_head(features)[:, 0]  # (K, S, n)
+        prob = torch.softmax(logits, 1)
+        # Features where the column puts its landmark, and how peaked it is, give sigma.
+        at_landmark = (features * prob[:, None]).sum(2)  # (K, C, n)
+        peak = prob.max(1).values[:, None]  # (K, 1, n)
+        log_sigma = self.sigma_head(torch.cat([at_landmark, peak], 1))[:, 0]
+        return logits, log_sigma.clamp(*_LOG_SIGMA_RANGE)
+
+
+def strip_landmarks(logits: Tensor, log_sigma: Tensor, points: Tensor, normals: Tensor,
+                    offsets: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Landmarks at each column's expected offset, and their fit weights.
+
+    Args:
+        logits: ``(K, S, n)``; log_sigma: ``(K, n)`` log pixels.
+        points, normals: ``(K, n, 2)`` the strips' frame; offsets: ``(S,)`` pixels.
+    Returns:
+        landmarks ``(K, n, 2)`` pixels (float64), weights ``(K, n)`` ``(1 / sigma^2)``
+        normalised to mean 1 per cup, sigma ``(K, n)`` pixels.
+    """
+    prob = torch.softmax(logits.double(), 1)
+    offset = (prob * offsets.to(prob)[None, :, None]).sum(1)  # (K, n)
+    landmarks = points.double() + offset[..., None] * normals.double()
+    sigma = log_sigma.double().exp()
+    weights = sigma.pow(-2)
+    weights = weights / weights.mean(-1, keepdim=True)
+    return landmarks, weights, sigma

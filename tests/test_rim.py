@@ -1,0 +1,168 @@
+"""Rim stage: strip frames, sampling, landmarks, the network's symmetry and its use in CupNet."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from cupnet.ellipse import ellipse_points, fit_ellipse, params_to_conic, sampson_distance
+from cupnet.geometry import Geometry
+from cupnet.landmarks import ellipse_coverage
+from cupnet.model import CupNet, CupNetConfig, load_model, save_model
+from cupnet.pose import ellipse_of_pose
+from cupnet.rim import RimNet, rim_frame, sample_strips, strip_landmarks, strip_offsets
+from train.losses import rim_loss
+
+ELLIPSES = torch.tensor([[120.0, 95.0, 60.0, 22.0, 31.0], [70.5, 140.2, 48.0, 47.0, 170.0],
+                         [150.0, 150.0, 80.0, 1.5, 95.0]], dtype=torch.float64)
+
+
+def test_rim_frame_points_lie_on_the_ellipse_at_equal_arc_length():
+    points, normals = rim_frame(ELLIPSES, 96)
+    dist = sampson_distance(params_to_conic(ELLIPSES), points)
+    assert dist.abs().max() < 1e-6
+    # Outward unit normals: along the conic's gradient (C p)_xy, pointing away from the centre.
+    hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
+    grad = torch.einsum("kij,knj->kni", params_to_conic(ELLIPSES)[:, :2], hom)
+    grad = grad / grad.norm(dim=-1, keepdim=True)
+    assert torch.allclose(normals, grad * grad.mul(normals).sum(-1, keepdim=True).sign(),
+                          atol=1e-9)
+    assert ((points - ELLIPSES[:, None, :2]) * normals).sum(-1).min() > 0
+    # Equal arc length: chords between neighbours agree to the chord-vs-arc difference.
+    chords = (points.roll(-1, 1) - points).norm(dim=-1)
+    assert (chords.max(1).values / chords.min(1).values).max() < 1.02
+    # Starts at the end of the major axis.
+    start = ellipse_points(ELLIPSES, torch.zeros(1, dtype=torch.float64))[:, 0]
+    assert torch.allclose(points[:, 0], start, atol=1e-9)
+
+
+def test_sample_strips_is_exact_on_a_linear_image():
+    # Bilinear interpolation reproduces a linear image exactly: the samples must equal the
+    # ramp at p + s n, in CONVENTIONS pixels (centres at integers).
+    height, width = 220, 260
+    v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64),
+                          torch.arange(width, dtype=torch.float64), indexing="ij")
+    images = torch.stack([0.01 * u + 0.02 * v, 0.5 - 0.003 * u + 0.004 * v])[:, None]
+    index = torch.tensor([1, 0, 1])
+    points, normals = rim_frame(ELLIPSES * torch.tensor([1, 1, 0.5, 0.5, 1.0]), 32)
+    offsets = strip_offsets(16, 0.75)
+    strips = sample_strips(images, index, points, normals, offsets)
+    assert strips.shape == (3, 1, 16, 32)
+    where = points[:, None] + offsets[None, :, None, None] * normals[:, None]  # (K, S, n, 2)
+    coef = torch.tensor([[0.0, 0.01, 0.02], [0.5, -0.003, 0.004]], dtype=torch.float64)[index]
+    expected = (coef[:, None, None, :1] + (where * coef[:, None, None, 1:]).sum(-1, keepdim=True))
+    assert torch.allclose(strips[:, 0], expected[..., 0], atol=1e-12)
+
+
+def test_strip_landmarks_sit_at_the_expected_offset():
+    points, normals = rim_frame(ELLIPSES[:1], 8)
+    offsets = strip_offsets(9, 0.5)
+    logits = torch.full((1, 9, 8), -1e4, dtype=torch.float64)
+    rows = torch.tensor([0, 2, 4, 6, 8, 4, 4, 3])
+    logits[0, rows, torch.arange(8)] = 0.0
+    log_sigma = torch.log(torch.tensor([[0.5, 1, 1, 1, 1, 1, 1, 2]], dtype=torch.float64))
+    landmarks, weights, sigma = strip_landmarks(logits, log_sigma, points, normals, offsets)
+    assert torch.allclose(landmarks, points + offsets[rows][None, :, None] * normals)
+    assert torch.allclose(sigma, log_sigma.exp())
+    assert torch.allclose(weights, sigma.pow(-2) / sigma.pow(-2).mean())
+
+
+def test_rim_net_is_equivariant_to_turning_around_the_rim():
+    # Columns are positions around a closed curve: the network pads circularly, so rolling a
+    # strip's columns rolls its outputs.
+    torch.manual_seed(0)
+    net = RimNet(channels=8).eval()
+    strips = torch.randn(2, 1, 32, 24)
+    logits, log_sigma = net(strips)
+    rolled_logits, rolled_sigma = net(strips.roll(5, -1))
+    assert logits.shape == (2, 32, 24) and log_sigma.shape == (2, 24)
+    assert torch.allclose(rolled_logits, logits.roll(5, -1), atol=1e-5)
+    assert torch.allclose(rolled_sigma, log_sigma.roll(5, -1), atol=1e-5)
+
+
+def test_rim_loss_is_the_laplace_likelihood_of_the_distance():
+    circle = torch.tensor([[0.0, 0.0, 10.0, 10.0, 0.0]], dtype=torch.float64)
+    landmarks = torch.tensor([[[12.0, 0.0], [0.0, -9.5]]], dtype=torch.float64)
+    sigma = torch.tensor([[1.0, 0.25]], dtype=torch.float64)
+    # Sampson distance to a circle of radius r at radius rho: (rho^2 - r^2) / (2 rho).
+    d = torch.tensor([(144 - 100) / 24, (90.25 - 100) / 19])
+    expected = (d.abs() / sigma[0] + sigma[0].log()).mean()
+    assert float(rim_loss(landmarks, sigma, circle[0:1])) == pytest.approx(float(expected))
+
+
+class EdgeRimNet(nn.Module):
+    """Stand-in rim network: each column's offset distribution is proportional to the
+    strip's slope magnitude along the normal (the landmark is the slope's centroid)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.scale = nn.Parameter(torch.tensor(1.0))
+
+    def forward(self, strips: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = strips[:, 0]
+        slope = torch.cat([x[:, 1:2] - x[:, :1], (x[:, 2:] - x[:, :-2]) / 2,
+                           x[:, -1:] - x[:, -2:-1]], 1)
+        return torch.log(self.scale * slope.abs() + 1e-30), torch.zeros_like(x[:, 0])
+
+
+RIM = CupNetConfig(encoder="resnet18", decoder_channels=(8, 8), n_rays=48, ray_samples=96,
+                   rim_passes=2, rim_points=64, rim_samples=48, rim_step=0.5, rim_channels=8)
+
+
+def _rim_scene() -> tuple[torch.Tensor, Geometry, torch.Tensor]:
+    geometry = Geometry.for_image(320, 300, 1040.0, 0.3)
+    ellipse = ellipse_of_pose(torch.tensor([[24.0, 33.0, 8.0, -6.0, 300.0]], dtype=torch.float64),
+                              52.0, geometry)
+    # 8 x 8 supersampled area coverage: a step edge exactly on the rim.
+    image = ellipse_coverage(ellipse[None], 300, 320, supersample=8)[0]
+    return image, geometry, ellipse
+
+
+def test_rim_stage_moves_landmarks_onto_the_rim():
+    image, geometry, ellipse = _rim_scene()
+    model = CupNet(RIM).double()
+    model.rim = EdgeRimNet().double()
+    start = ellipse + torch.tensor([[3.0, -2.5, 4.0, -3.0, 4.0]], dtype=torch.float64)
+    landmarks, weights, _ = model.rim_landmarks(image[None], torch.tensor([0]), start)
+    dist = sampson_distance(params_to_conic(ellipse), landmarks)
+    assert landmarks.shape == (1, 64, 2) and dist.abs().max() < 0.1 and dist.abs().mean() < 0.03
+    fitted = fit_ellipse(landmarks.detach(), weights.detach()).params[0]
+    assert torch.allclose(fitted[:4], ellipse[0, :4], atol=0.05)
+    assert math.isclose(float(fitted[4]), float(ellipse[0, 4]), abs_tol=0.1)
+
+
+def test_pose_loss_reaches_the_rim_network():
+    torch.manual_seed(0)
+    image, geometry, ellipse = _rim_scene()
+    model = CupNet(RIM)
+    # Stand-in refiner that thresholds the standardised crop, so the rim stage starts near
+    # the rim (an untrained U-Net's map is arbitrary); the rim network is the real one.
+    model.refiner = nn.Conv2d(1, 1, 1)
+    with torch.no_grad():
+        model.refiner.weight.fill_(20.0)
+        model.refiner.bias.zero_()
+    out = model(image.float()[None], geometry, torch.tensor([52.0]),
+                crop_frames=model.frames(ellipse)[None])
+    assert out.landmarks.shape == (1, 64, 2) and out.rim_sigma.shape == (1, 64)
+    assert out.solution.valid.all(), out.solution.status
+    out.solution.pose.sum().backward()
+    grad = model.rim.body[0].conv.weight.grad
+    assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
+def test_rim_model_round_trips_and_detects(tmp_path):
+    torch.manual_seed(2)
+    model = CupNet(RIM).eval()
+    loaded = load_model(save_model(model, tmp_path / "rim.safetensors"))
+    assert loaded.config == model.config and loaded.rim is not None
+    strips = torch.rand(2, 1, RIM.rim_samples, RIM.rim_points)
+    with torch.no_grad():
+        assert all(torch.equal(x, y) for x, y in zip(model.rim(strips), loaded.rim(strips),
+                                                     strict=True))
+    image, geometry, _ = _rim_scene()
+    assert loaded.detect(torch.zeros(1, 1, 300, 320), geometry, 52.0) == [[]]
+    for found in loaded.detect(image.float()[None], geometry, 52.0):
+        assert all(det.landmarks.shape == (RIM.rim_points, 2) for det in found)
