@@ -45,7 +45,14 @@ from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ray_landmarks, soft_moments
 from cupnet.pose import PoseSolution, solve_pose
-from cupnet.rim import RimNet, rim_frame, sample_strips, strip_landmarks, strip_offsets
+from cupnet.rim import (
+    RimLandmarks,
+    RimNet,
+    rim_frame,
+    sample_strips,
+    strip_landmarks,
+    strip_offsets,
+)
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 DEFAULT_CHECKPOINT = ASSETS / "cupnet_default.safetensors"
@@ -128,8 +135,7 @@ class CupNetOutput:
         landmarks: ``(K, N, 2)`` original-image pixels; ``weights``: ``(K, N)``: the rim
             stage's when the model has one, else the refiner's.
         solution: pose solver output for the ``K`` cups (float64, public units).
-        rim_sigma: ``(K, N)`` pixels, the rim stage's predicted landmark precision (None
-            without a rim stage).
+        rim: the rim stage's output (None without a rim stage).
     """
 
     locator_logits: Tensor
@@ -140,7 +146,7 @@ class CupNetOutput:
     landmarks: Tensor
     weights: Tensor
     solution: PoseSolution
-    rim_sigma: Tensor | None = None
+    rim: RimLandmarks | None = None
 
 
 def _unet(config: CupNetConfig) -> smp.Unet:
@@ -279,8 +285,13 @@ class CupNet(nn.Module):
         return to_image(points, crop_to_image.double()), weights
 
     # -- stage 3 ---------------------------------------------------------------------------
+    @property
+    def rim_reach(self) -> float:
+        """How far (image pixels) the rim stage looks either side of its ellipse, per pass."""
+        return (self.config.rim_samples - 1) / 2 * self.config.rim_step
+
     def rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor,
-                      passes: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                      passes: int | None = None) -> RimLandmarks:
         """Rim stage: strip passes from ``start`` ellipses (not differentiated).
 
         Args:
@@ -289,8 +300,7 @@ class CupNet(nn.Module):
             start: ``(K, 5)`` ellipses (cx, cy, a, b, alpha_deg), image pixels.
             passes: strip passes (None: ``rim_passes``).
         Returns:
-            landmarks ``(K, n, 2)`` image pixels (float64), weights ``(K, n)`` (mean 1 per cup),
-            sigma ``(K, n)`` pixels, of the last pass.
+            the last pass's :class:`cupnet.rim.RimLandmarks`.
         """
         cfg = self.config
         if self.rim is None:
@@ -302,13 +312,12 @@ class CupNet(nn.Module):
             strips = sample_strips(images, index, points, normals, offsets)
             if strips.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
                 empty = points.new_zeros(0, cfg.rim_points)
-                return points, empty, empty
+                return RimLandmarks(points, empty, empty, empty, points, normals)
             logits, log_sigma = self.rim(strips.to(self.dtype))
-            landmarks, weights, sigma = strip_landmarks(logits, log_sigma, points, normals,
-                                                        offsets)
+            rim = strip_landmarks(logits, log_sigma, points, normals, offsets)
             if remaining:
-                ellipse = _usable_fit(landmarks.detach(), weights.detach(), ellipse)
-        return landmarks, weights, sigma
+                ellipse = _usable_fit(rim.landmarks.detach(), rim.weights.detach(), ellipse)
+        return rim
 
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
                 crop_frames: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
@@ -340,15 +349,16 @@ class CupNet(nn.Module):
         frames = crop_frames[cup_index[:, 0], cup_index[:, 1]].to(locator_logits.device)
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
         points, weights = self.crop_landmarks(crop_logits, crop_to_image)
-        sigma = None
+        rim = None
         if self.rim is not None:
             start = _usable_fit(points.detach(), weights.detach(),
                                 _frame_ellipse(frames, self.config))
-            points, weights, sigma = self.rim_landmarks(image_list, cup_index[:, 0], start)
+            rim = self.rim_landmarks(image_list, cup_index[:, 0], start)
+            points, weights = rim.landmarks, rim.weights
         solution = self.solve(points, weights, geometry, cup_diameter, cup_index, batch,
                               refine_pose)
         return CupNetOutput(locator_logits, letterbox, crop_logits, crop_to_image, cup_index,
-                            points, weights, solution, sigma)
+                            points, weights, solution, rim)
 
     def solve(self, points: Tensor, weights: Tensor, geometry: Geometry, cup_diameter: Tensor,
               cup_index: Tensor, batch: int, refine: bool) -> PoseSolution:
@@ -415,7 +425,7 @@ class CupNet(nn.Module):
         points, weights = self.crop_landmarks(crop_logits, crop_to_image)
         if self.rim is not None:
             start = _usable_fit(points, weights, _frame_ellipse(frames, self.config))
-            points, weights, _ = self.rim_landmarks(image_list, cup_index[:, 0], start)
+            points, weights = self.rim_landmarks(image_list, cup_index[:, 0], start)[:2]
         solution = self.solve(points, weights, geometry, diameter, cup_index, batch, refine=True)
         for k, (i, c) in enumerate(cup_index.tolist()):
             mask = None

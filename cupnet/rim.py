@@ -17,50 +17,69 @@ profile and when it cannot be seen.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from cupnet.ellipse import ellipse_points, params_to_conic
 
 # Range of log(sigma / px): a landmark claims at most ~20x sub-pixel precision, at least
 # that it is anywhere in the strip.
 _LOG_SIGMA_RANGE = (-3.0, 4.0)
 
 
-def rim_frame(ellipse: Tensor, n: int, oversample: int = 8) -> tuple[Tensor, Tensor]:
-    """Points at equal arc length around ellipses and their outward unit normals.
+def rim_frame(ellipse: Tensor, n: int) -> tuple[Tensor, Tensor]:
+    """Points at ``n`` equally spaced parameters ``t`` around ellipses, and outward normals.
+
+    Equal parameter steps, not equal arc length: on a thin (nearly edge-on) ellipse they
+    crowd towards the two tips, where the only evidence of the major axis, and so of the
+    cup's distance, lies.
 
     Args:
         ellipse: ``(K, 5)`` (cx, cy, a, b, alpha_deg), image pixels.
         n: points per ellipse.
-        oversample: dense samples per point of the arc-length table.
     Returns:
-        points ``(K, n, 2)`` pixels, normals ``(K, n, 2)`` unit vectors; the first point lies
-        at the end of the major axis (parameter 0), the order is counter-clockwise in
-        ``(u, v)``.
+        points ``(K, n, 2)`` pixels, normals ``(K, n, 2)`` unit vectors; point ``j`` is
+        :func:`cupnet.ellipse.ellipse_points` at ``t = 2 pi j / n``.
     """
-    dtype, device = ellipse.dtype, ellipse.device
-    cx, cy, a, b, alpha = (x[:, None] for x in ellipse.unbind(-1))
-    dense = torch.arange(n * oversample + 1, dtype=dtype, device=device) * (
-        2 * math.pi / (n * oversample))
-    speed = torch.hypot(a * torch.sin(dense), b * torch.cos(dense))  # (K, M+1)
-    arc = torch.cat([torch.zeros_like(speed[:, :1]),
-                     torch.cumsum(0.5 * (speed[:, 1:] + speed[:, :-1]), -1)], -1)
-    target = arc[:, -1:] * torch.arange(n, dtype=dtype, device=device) / n
-    # Invert the arc-length table by linear interpolation.
-    j = torch.searchsorted(arc.contiguous(), target.contiguous()).clamp(1, arc.shape[1] - 1)
-    a0, a1 = arc.gather(1, j - 1), arc.gather(1, j)
-    frac = (target - a0) / (a1 - a0).clamp_min(1e-12)
-    t = dense[j - 1] + frac * (dense[1] - dense[0])
+    t = torch.arange(n, dtype=ellipse.dtype, device=ellipse.device) * (2 * math.pi / n)
+    points = ellipse_points(ellipse, t)
+    _, _, a, b, alpha = (x[:, None] for x in ellipse.unbind(-1))
     ang = torch.deg2rad(alpha)
-    ca, sa = torch.cos(ang), torch.sin(ang)
-    x, y = a * torch.cos(t), b * torch.sin(t)
-    nx, ny = b * torch.cos(t), a * torch.sin(t)
+    nx, ny = b * torch.cos(t), a * torch.sin(t)  # the gradient of (x/a)^2 + (y/b)^2, scaled
     norm = torch.hypot(nx, ny)
     nx, ny = nx / norm, ny / norm
-    points = torch.stack([cx + x * ca - y * sa, cy + x * sa + y * ca], -1)
-    normals = torch.stack([nx * ca - ny * sa, nx * sa + ny * ca], -1)
+    normals = torch.stack([nx * torch.cos(ang) - ny * torch.sin(ang),
+                           nx * torch.sin(ang) + ny * torch.cos(ang)], -1)
     return points, normals
+
+
+def normal_crossings(points: Tensor, normals: Tensor, ellipse: Tensor) -> Tensor:
+    """Offsets along each normal line ``p + s n`` where it leaves another ellipse.
+
+    The training target of a strip column: the larger root of the conic along the line (the
+    rim on the column's side), or, for a line that misses the ellipse, its nearest approach
+    (the root of the derivative), which continues the crossing smoothly.
+
+    Args:
+        points, normals: ``(K, n, 2)`` a strip frame, pixels; ellipse: ``(K, 5)`` the rim.
+    Returns:
+        ``(K, n)`` offsets ``s``, pixels.
+    """
+    conic = params_to_conic(ellipse.to(points))
+    hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
+    direction = torch.cat([normals, torch.zeros_like(normals[..., :1])], -1)
+    cd = torch.einsum("kij,knj->kni", conic, direction)
+    quad = (direction * cd).sum(-1)  # q(s) = quad s^2 + 2 half s + const
+    half = (hom * cd).sum(-1)
+    const = torch.einsum("kni,kij,knj->kn", hom, conic, hom)
+    disc = half**2 - quad * const
+    # The sign of a unit-norm conic is arbitrary: the larger root is where q turns from
+    # inside to outside, whichever the sign.
+    root = torch.sqrt(disc.clamp_min(0)) / quad.abs()
+    return torch.where(disc >= 0, -half / quad + root, -half / quad)
 
 
 def strip_offsets(samples: int, step: float, dtype: torch.dtype = torch.float64,
@@ -143,21 +162,37 @@ class RimNet(nn.Module):
         return logits, log_sigma.clamp(*_LOG_SIGMA_RANGE)
 
 
+class RimLandmarks(NamedTuple):
+    """Output of the rim stage for ``K`` cups of ``n`` columns (float64).
+
+    Attributes:
+        landmarks: ``(K, n, 2)`` image pixels, ``points + offset * normals``.
+        weights: ``(K, n)`` fit weights ``1 / sigma^2``, normalised to mean 1 per cup.
+        sigma: ``(K, n)`` pixels, each landmark's predicted distance to the rim.
+        offset: ``(K, n)`` pixels along the normal.
+        points, normals: ``(K, n, 2)`` the strips' frame.
+    """
+
+    landmarks: Tensor
+    weights: Tensor
+    sigma: Tensor
+    offset: Tensor
+    points: Tensor
+    normals: Tensor
+
+
 def strip_landmarks(logits: Tensor, log_sigma: Tensor, points: Tensor, normals: Tensor,
-                    offsets: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+                    offsets: Tensor) -> RimLandmarks:
     """Landmarks at each column's expected offset, and their fit weights.
 
     Args:
         logits: ``(K, S, n)``; log_sigma: ``(K, n)`` log pixels.
         points, normals: ``(K, n, 2)`` the strips' frame; offsets: ``(S,)`` pixels.
-    Returns:
-        landmarks ``(K, n, 2)`` pixels (float64), weights ``(K, n)`` ``(1 / sigma^2)``
-        normalised to mean 1 per cup, sigma ``(K, n)`` pixels.
     """
     prob = torch.softmax(logits.double(), 1)
     offset = (prob * offsets.to(prob)[None, :, None]).sum(1)  # (K, n)
-    landmarks = points.double() + offset[..., None] * normals.double()
+    points, normals = points.double(), normals.double()
     sigma = log_sigma.double().exp()
     weights = sigma.pow(-2)
-    weights = weights / weights.mean(-1, keepdim=True)
-    return landmarks, weights, sigma
+    return RimLandmarks(points + offset[..., None] * normals,
+                        weights / weights.mean(-1, keepdim=True), sigma, offset, points, normals)

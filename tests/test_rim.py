@@ -13,17 +13,25 @@ from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
 from cupnet.model import CupNet, CupNetConfig, load_model, save_model
 from cupnet.pose import ellipse_of_pose
-from cupnet.rim import RimNet, rim_frame, sample_strips, strip_landmarks, strip_offsets
+from cupnet.rim import (
+    RimLandmarks,
+    RimNet,
+    normal_crossings,
+    rim_frame,
+    sample_strips,
+    strip_landmarks,
+    strip_offsets,
+)
 from train.losses import rim_loss
 
 ELLIPSES = torch.tensor([[120.0, 95.0, 60.0, 22.0, 31.0], [70.5, 140.2, 48.0, 47.0, 170.0],
                          [150.0, 150.0, 80.0, 1.5, 95.0]], dtype=torch.float64)
 
 
-def test_rim_frame_points_lie_on_the_ellipse_at_equal_arc_length():
+def test_rim_frame_points_and_outward_normals():
     points, normals = rim_frame(ELLIPSES, 96)
-    dist = sampson_distance(params_to_conic(ELLIPSES), points)
-    assert dist.abs().max() < 1e-6
+    t = torch.arange(96, dtype=torch.float64) * (2 * math.pi / 96)
+    assert torch.allclose(points, ellipse_points(ELLIPSES, t), atol=1e-12)
     # Outward unit normals: along the conic's gradient (C p)_xy, pointing away from the centre.
     hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
     grad = torch.einsum("kij,knj->kni", params_to_conic(ELLIPSES)[:, :2], hom)
@@ -31,12 +39,23 @@ def test_rim_frame_points_lie_on_the_ellipse_at_equal_arc_length():
     assert torch.allclose(normals, grad * grad.mul(normals).sum(-1, keepdim=True).sign(),
                           atol=1e-9)
     assert ((points - ELLIPSES[:, None, :2]) * normals).sum(-1).min() > 0
-    # Equal arc length: chords between neighbours agree to the chord-vs-arc difference.
-    chords = (points.roll(-1, 1) - points).norm(dim=-1)
-    assert (chords.max(1).values / chords.min(1).values).max() < 1.02
-    # Starts at the end of the major axis.
-    start = ellipse_points(ELLIPSES, torch.zeros(1, dtype=torch.float64))[:, 0]
-    assert torch.allclose(points[:, 0], start, atol=1e-9)
+
+
+def test_normal_crossings_hand_derived_on_a_circle():
+    circle = torch.tensor([[0.0, 0.0, 10.0, 10.0, 0.0]], dtype=torch.float64)
+    # Outside moving out (leaves behind it), inside moving out, a chord, a line that misses.
+    points = torch.tensor([[[12.0, 0.0], [0.0, -9.5], [6.0, 0.0], [0.0, 20.0]]],
+                          dtype=torch.float64)
+    normals = torch.tensor([[[1.0, 0.0], [0.0, -1.0], [0.0, 1.0], [1.0, 0.0]]],
+                           dtype=torch.float64)
+    expected = torch.tensor([[-2.0, 0.5, 8.0, 0.0]], dtype=torch.float64)
+    assert torch.allclose(normal_crossings(points, normals, circle), expected, atol=1e-9)
+    # Frames of a perturbed ellipse: the crossings lie on the true ellipse.
+    frame_points, frame_normals = rim_frame(ELLIPSES + torch.tensor([2.0, -1.0, 3.0, 0.5, 2.0],
+                                                                    dtype=torch.float64), 64)
+    s = normal_crossings(frame_points, frame_normals, ELLIPSES)
+    on_rim = frame_points + s[..., None] * frame_normals
+    assert sampson_distance(params_to_conic(ELLIPSES), on_rim)[:2].abs().max() < 1e-6
 
 
 def test_sample_strips_is_exact_on_a_linear_image():
@@ -64,10 +83,11 @@ def test_strip_landmarks_sit_at_the_expected_offset():
     rows = torch.tensor([0, 2, 4, 6, 8, 4, 4, 3])
     logits[0, rows, torch.arange(8)] = 0.0
     log_sigma = torch.log(torch.tensor([[0.5, 1, 1, 1, 1, 1, 1, 2]], dtype=torch.float64))
-    landmarks, weights, sigma = strip_landmarks(logits, log_sigma, points, normals, offsets)
-    assert torch.allclose(landmarks, points + offsets[rows][None, :, None] * normals)
-    assert torch.allclose(sigma, log_sigma.exp())
-    assert torch.allclose(weights, sigma.pow(-2) / sigma.pow(-2).mean())
+    rim = strip_landmarks(logits, log_sigma, points, normals, offsets)
+    assert torch.allclose(rim.offset, offsets[rows][None])
+    assert torch.allclose(rim.landmarks, points + offsets[rows][None, :, None] * normals)
+    assert torch.allclose(rim.sigma, log_sigma.exp())
+    assert torch.allclose(rim.weights, rim.sigma.pow(-2) / rim.sigma.pow(-2).mean())
 
 
 def test_rim_net_is_equivariant_to_turning_around_the_rim():
@@ -83,14 +103,18 @@ def test_rim_net_is_equivariant_to_turning_around_the_rim():
     assert torch.allclose(rolled_sigma, log_sigma.roll(5, -1), atol=1e-5)
 
 
-def test_rim_loss_is_the_laplace_likelihood_of_the_distance():
+def test_rim_loss_is_the_laplace_likelihood_of_the_offset_error():
     circle = torch.tensor([[0.0, 0.0, 10.0, 10.0, 0.0]], dtype=torch.float64)
-    landmarks = torch.tensor([[[12.0, 0.0], [0.0, -9.5]]], dtype=torch.float64)
-    sigma = torch.tensor([[1.0, 0.25]], dtype=torch.float64)
-    # Sampson distance to a circle of radius r at radius rho: (rho^2 - r^2) / (2 rho).
-    d = torch.tensor([(144 - 100) / 24, (90.25 - 100) / 19])
-    expected = (d.abs() / sigma[0] + sigma[0].log()).mean()
-    assert float(rim_loss(landmarks, sigma, circle[0:1])) == pytest.approx(float(expected))
+    points = torch.tensor([[[12.0, 0.0], [0.0, -9.5], [0.0, 4.0]]], dtype=torch.float64)
+    normals = torch.tensor([[[1.0, 0.0], [0.0, -1.0], [0.0, 1.0]]], dtype=torch.float64)
+    offset = torch.tensor([[-1.0, 0.0, 5.5]], dtype=torch.float64)
+    sigma = torch.tensor([[1.0, 0.25, 2.0]], dtype=torch.float64)
+    rim = RimLandmarks(points + offset[..., None] * normals, sigma.pow(-2), sigma, offset,
+                       points, normals)
+    # Crossings at -2, 0.5 and 6, the last clipped to the reach of 5.
+    error = torch.tensor([1.0, 0.5, 0.5], dtype=torch.float64)
+    expected = (error / sigma[0] + sigma[0].log()).mean()
+    assert float(rim_loss(rim, circle, reach=5.0)) == pytest.approx(float(expected))
 
 
 class EdgeRimNet(nn.Module):
@@ -126,7 +150,7 @@ def test_rim_stage_moves_landmarks_onto_the_rim():
     model = CupNet(RIM).double()
     model.rim = EdgeRimNet().double()
     start = ellipse + torch.tensor([[3.0, -2.5, 4.0, -3.0, 4.0]], dtype=torch.float64)
-    landmarks, weights, _ = model.rim_landmarks(image[None], torch.tensor([0]), start)
+    landmarks, weights = model.rim_landmarks(image[None], torch.tensor([0]), start)[:2]
     dist = sampson_distance(params_to_conic(ellipse), landmarks)
     assert landmarks.shape == (1, 64, 2) and dist.abs().max() < 0.1 and dist.abs().mean() < 0.03
     fitted = fit_ellipse(landmarks.detach(), weights.detach()).params[0]
@@ -146,7 +170,7 @@ def test_pose_loss_reaches_the_rim_network():
         model.refiner.bias.zero_()
     out = model(image.float()[None], geometry, torch.tensor([52.0]),
                 crop_frames=model.frames(ellipse)[None])
-    assert out.landmarks.shape == (1, 64, 2) and out.rim_sigma.shape == (1, 64)
+    assert out.landmarks.shape == (1, 64, 2) and out.rim.sigma.shape == (1, 64)
     assert out.solution.valid.all(), out.solution.status
     out.solution.pose.sum().backward()
     grad = model.rim.body[0].conv.weight.grad

@@ -7,7 +7,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from cupnet.ellipse import params_to_conic, sampson_distance
+from cupnet.ellipse import sampson_distance
+from cupnet.rim import RimLandmarks, normal_crossings
 
 # Pose error that counts as 1 in the normalised pose loss: the issue's target MAEs
 # (theta, phi in degrees; k, l, h in mm).
@@ -41,22 +42,25 @@ def ellipse_loss(conic: Tensor, rim: Tensor, pixel_scale: Tensor, valid: Tensor)
     return F.smooth_l1_loss(dist, torch.zeros_like(dist), beta=1.0)
 
 
-def rim_loss(landmarks: Tensor, sigma: Tensor, truth: Tensor) -> Tensor:
-    """Laplace negative log-likelihood of rim landmarks' distances to the true rims.
+def rim_loss(rim: RimLandmarks, truth: Tensor, reach: float) -> Tensor:
+    """Laplace negative log-likelihood of the rim stage's offsets.
 
-    ``|d| / sigma + log sigma`` per landmark, ``d`` its Sampson distance to the true ellipse:
-    the network is rewarded for landmarks on the rim and for a ``sigma`` (its fit weight
-    ``1 / sigma^2``) equal to the distance it expects to be off, so a column where the rim
-    cannot be seen learns a large ``sigma`` rather than a guess at full weight.
+    ``|s - s*| / sigma + log sigma`` per column, ``s*`` where the column's normal line leaves
+    the true ellipse (:func:`cupnet.rim.normal_crossings`) clipped to the strip's ``reach``:
+    the network is rewarded for landmarks on the rim, at the column's own place along it (a
+    distance to the ellipse would accept a thin ellipse's tip column anywhere on its long
+    sides), and for a ``sigma`` (its fit weight ``1 / sigma^2``) equal to the error it expects,
+    so a column where the rim cannot be seen learns a large ``sigma`` rather than a guess at
+    full weight.
 
     Args:
-        landmarks: ``(K, n, 2)`` image pixels; sigma: ``(K, n)`` pixels.
-        truth: ``(K, 5)`` true ellipses (cx, cy, a, b, alpha_deg).
+        rim: the rim stage's output for ``K`` cups; truth: ``(K, 5)`` true ellipses.
+        reach: half the strip's length, pixels.
     """
-    if landmarks.shape[0] == 0:
-        return landmarks.sum() * 0.0
-    dist = sampson_distance(params_to_conic(truth.to(landmarks)), landmarks).abs()
-    return (dist / sigma + sigma.log()).mean()
+    if rim.offset.shape[0] == 0:
+        return rim.offset.sum() * 0.0
+    target = normal_crossings(rim.points, rim.normals, truth).clamp(-reach, reach)
+    return ((rim.offset - target).abs() / rim.sigma + rim.sigma.log()).mean()
 
 
 def wrap_angle(delta: Tensor, period: float = 180.0) -> Tensor:

@@ -72,7 +72,7 @@ def jittered_rim_starts(ellipse: Tensor, scale: float) -> Tensor:
     """True ellipses ``(K, 5)`` perturbed like the refiner's fits the rim stage starts from.
 
     With a magnitude ``m ~ U(0.1, 1.2) scale`` per cup: the centre moved by
-    ``N(0, m max(2 px, 0.04 a))`` per axis, ``a`` scaled by ``exp(N(0, 0.04 m))``, ``b`` moved
+    ``N(0, m max(2 px, 0.04 a))`` per axis, ``a`` scaled by ``exp(N(0, 0.08 m))``, ``b`` moved
     by ``N(0, 0.04 m a)`` (additive: a nearly edge-on cup's minor axis is off by pixels, not
     by a fraction of itself), the angle turned by ``N(0, 3 m)`` degrees.
     """
@@ -81,7 +81,7 @@ def jittered_rim_starts(ellipse: Tensor, scale: float) -> Tensor:
     m = scale * (0.1 + 1.1 * torch.rand(count, 1, dtype=ellipse.dtype, device=ellipse.device))
     a, b = ellipse[:, 2:3], ellipse[:, 3:4]
     centre = ellipse[:, :2] + noise[:, :2] * m * (0.04 * a).clamp_min(2.0)
-    axes = torch.cat([a * torch.exp(0.04 * m * noise[:, 2:3]),
+    axes = torch.cat([a * torch.exp(0.08 * m * noise[:, 2:3]),
                       (b + 0.04 * m * a * noise[:, 3:4]).clamp_min(0.5)], -1)
     axes = torch.cat([axes.max(-1, keepdim=True).values, axes.min(-1, keepdim=True).values], -1)
     return torch.cat([centre, axes, ellipse[:, 4:] + 3 * m * noise[:, 4:]], -1)
@@ -282,8 +282,8 @@ class CupNetModule(L.LightningModule):
         terms["pose"] = pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)
         total = (hp.locator_weight * terms["seg_locator"] + terms["seg_crop"]
                  + w_ellipse * terms.get("ellipse", 0.0) + w_pose * terms["pose"])
-        if out.rim_sigma is not None:
-            terms["rim"] = rim_loss(out.landmarks, out.rim_sigma, batch["ellipse"][i, c])
+        if out.rim is not None:
+            terms["rim"] = rim_loss(out.rim, batch["ellipse"][i, c], self.model.rim_reach)
             total = total + hp.rim_weight * terms["rim"]
         terms["loss"] = total.float()
         terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
@@ -296,11 +296,11 @@ class CupNetModule(L.LightningModule):
         i, c = cup_index[:, 0], cup_index[:, 1]
         truth = batch["ellipse"][i, c].double()
         start = jittered_rim_starts(truth, hp.rim_jitter)
-        landmarks, weights, sigma = self.model.rim_landmarks(batch["image"], i, start, passes=1)
-        solution = self.model.solve(landmarks, weights, batch_geometry(batch["geometry"]),
+        rim = self.model.rim_landmarks(batch["image"], i, start, passes=1)
+        solution = self.model.solve(rim.landmarks, rim.weights, batch_geometry(batch["geometry"]),
                                     batch["cup_diameter"], cup_index, batch["image"].shape[0],
                                     refine=hp.refine_pose)
-        terms = {"rim": rim_loss(landmarks, sigma, truth),
+        terms = {"rim": rim_loss(rim, truth, self.model.rim_reach),
                  "pose": pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)}
         terms["loss"] = (hp.rim_weight * terms["rim"] + hp.pose_weight * terms["pose"]).float()
         terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
