@@ -422,28 +422,42 @@ class CupNet(nn.Module):
                                   _frame_ellipse(frames, self.config))
             frames = self.frames(ellipse)
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
-        points, weights = self.crop_landmarks(crop_logits, crop_to_image)
+        crop_points, crop_weights = self.crop_landmarks(crop_logits, crop_to_image)
+        # Each cup's landmarks, weights and (solution, row): the rim stage's where it gives a
+        # pose, else the refiner's (a rim the strips lost, e.g. one hidden by a femoral head).
+        candidates = [(crop_points, crop_weights)]
         if self.rim is not None:
-            start = _usable_fit(points, weights, _frame_ellipse(frames, self.config))
-            points, weights = self.rim_landmarks(image_list, cup_index[:, 0], start)[:2]
-        solution = self.solve(points, weights, geometry, diameter, cup_index, batch, refine=True)
+            start = _usable_fit(crop_points, crop_weights, _frame_ellipse(frames, self.config))
+            candidates.insert(0, self.rim_landmarks(image_list, cup_index[:, 0], start)[:2])
+        chosen: list = [None] * len(cup_index)
+        for points, weights in candidates:
+            todo = torch.tensor([k for k, pick in enumerate(chosen) if pick is None],
+                                dtype=torch.long)
+            if len(todo) == 0:
+                break
+            solution = self.solve(points[todo], weights[todo], geometry, diameter,
+                                  cup_index[todo], batch, refine=True)
+            for row, k in enumerate(todo.tolist()):
+                if bool(solution.valid[row]) or points is crop_points:
+                    chosen[k] = (points[k], weights[k], solution, row)
         for k, (i, c) in enumerate(cup_index.tolist()):
+            points, weights, solution, row = chosen[k]
             mask = None
             if return_masks:
                 height, width = image_list[i].shape[-2:]
                 mask = warp_affine(torch.sigmoid(crop_logits[k:k + 1]), crop_to_image[k:k + 1],
                                    (height, width), align_corners=True)[0, 0].numpy()
-            ambiguous = bool(solution.ambiguous[k])
+            ambiguous = bool(solution.ambiguous[row])
             results[i].append(CupDetection(
-                pose=solution.pose[k].numpy(),
-                alt_pose=solution.alt_pose[k].numpy() if ambiguous else None,
+                pose=solution.pose[row].numpy(),
+                alt_pose=solution.alt_pose[row].numpy() if ambiguous else None,
                 ambiguous=ambiguous,
-                ellipse=solution.ellipse[k].numpy(),
-                landmarks=points[k].numpy(),
-                weights=weights[k].numpy(),
-                residual_px=float(solution.residual_px[k]),
+                ellipse=solution.ellipse[row].numpy(),
+                landmarks=points.numpy(),
+                weights=weights.numpy(),
+                residual_px=float(solution.residual_px[row]),
                 mask=mask,
-                status=solution.status[k],
+                status=solution.status[row],
                 score=float(scores[i, c]),
             ))
         return results

@@ -188,5 +188,30 @@ def test_rim_model_round_trips_and_detects(tmp_path):
                                                      strict=True))
     image, geometry, _ = _rim_scene()
     assert loaded.detect(torch.zeros(1, 1, 300, 320), geometry, 52.0) == [[]]
+    # Untrained networks: the landmarks are the rim stage's, or the refiner's where the rim
+    # stage's gave no pose.
     for found in loaded.detect(image.float()[None], geometry, 52.0):
-        assert all(det.landmarks.shape == (RIM.rim_points, 2) for det in found)
+        assert all(det.landmarks.shape in ((RIM.rim_points, 2), (RIM.n_rays, 2)) for det in found)
+
+
+class BrokenRimNet(nn.Module):
+    """Stand-in rim network whose landmarks are all NaN (no pose can come of them)."""
+
+    def forward(self, strips: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        nan = torch.full_like(strips[:, 0], math.nan)
+        return nan, nan[:, 0]
+
+
+def test_detect_falls_back_on_the_refiners_landmarks_where_the_rim_stage_fails():
+    image, geometry, ellipse = _rim_scene()
+    model = CupNet(RIM)
+    model.locator, model.refiner = nn.Conv2d(1, 1, 1), nn.Conv2d(1, 1, 1)
+    with torch.no_grad():
+        for net in (model.locator, model.refiner):
+            net.weight.fill_(20.0)
+            net.bias.zero_()
+    model.rim = BrokenRimNet()
+    (found,) = model.detect(image.float()[None], geometry, 52.0)
+    assert len(found) == 1 and found[0].status in ("ok", "ambiguous")
+    assert found[0].landmarks.shape == (RIM.n_rays, 2)
+    assert abs(found[0].ellipse[2] - float(ellipse[0, 2])) < 2.0
