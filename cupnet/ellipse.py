@@ -249,7 +249,7 @@ def fit_ellipse(
     bad = [i for i, s in enumerate(status) if s != "ok"]
     if bad and on_error == "raise":
         raise EllipseFitError(f"ellipse fit of item {bad[0]}: {status[bad[0]]}")
-    valid = torch.tensor([s == "ok" for s in status], device=points.device)
+    valid = torch.tensor([s == "ok" for s in status], dtype=torch.bool, device=points.device)
 
     # Invalid items get unit weights and zero points, and below identity blocks in place of
     # their (singular) scatter matrices, so the batch stays finite; their results are masked.
@@ -308,7 +308,7 @@ def fit_ellipse(
     for i in range(len(status)):
         if status[i] == "ok" and not bool(ellipse[i]):
             status[i] = "fit is not an ellipse (degenerate conic)"
-    valid = torch.tensor([s == "ok" for s in status], device=points.device)
+    valid = torch.tensor([s == "ok" for s in status], dtype=torch.bool, device=points.device)
     if not valid.all() and on_error == "raise":
         first = int((~valid).nonzero()[0])
         raise EllipseFitError(f"ellipse fit of item {first}: {status[first]}")

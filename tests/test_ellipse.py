@@ -121,6 +121,12 @@ def test_flag_mode_reports_per_item_and_keeps_the_good_ones():
     assert torch.isfinite(fit.params[0]).all() and torch.isnan(fit.params[1]).all()
 
 
+def test_empty_batch_gives_empty_results():
+    # An image with no cup yields a batch of zero point sets.
+    fit = fit_ellipse(torch.zeros(0, 12, 2, dtype=torch.float64), on_error="flag")
+    assert fit.params.shape == (0, 5) and fit.valid.dtype == torch.bool and fit.status == []
+
+
 def test_hyperbola_points_are_not_an_ellipse():
     x = torch.linspace(1, 3, 10, dtype=torch.float64)
     points = torch.cat([torch.stack([x, 1 / x], -1), torch.stack([-x, -1 / x], -1)])
