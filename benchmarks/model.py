@@ -104,8 +104,11 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
         found += sum(err is not None for _, _, err in cups)
         total += len(cups)
         false_pos += fp
-    mae = np.mean(errors, 0) if errors else np.full(5, np.nan)
-    out = {f"mae_{n}": float(v) for n, v in zip(NAMES, mae, strict=True)}
+    errors = np.array(errors) if errors else np.full((1, 5), np.nan)
+    out = {}
+    for stat, values in (("mae", errors.mean(0)), ("median", np.median(errors, 0)),
+                         ("p90", np.percentile(errors, 90, 0))):
+        out.update({f"{stat}_{n}": float(v) for n, v in zip(NAMES, values, strict=True)})
     out.update(detected=found / max(total, 1), cups=total, false_positives=false_pos)
     return out
 
@@ -154,16 +157,23 @@ def main() -> None:
         name, path = item.split("=", 1)
         models[name] = load_model(path)
     header = ["model", *[f"MAE {n}" for n in NAMES], "detected", "false positives"]
-    table = []
+    table, spread = [], ""
     for name, net in models.items():
         cases: list = []
         res = accuracy(net, eval_set, cases)
         if net is model:
             failure_gallery(cases, Path(args.gallery))
+            spread = markdown_table(
+                ["shipped model", *NAMES],
+                [[stat, *[res[f"{key}_{n}"] for n in NAMES]]
+                 for stat, key in (("mean", "mae"), ("median", "median"),
+                                   ("90th percentile", "p90"))])
         table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
                       res["false_positives"]])
         print(name, res)
     text = markdown_table(header, table)
+    text += ("\n\nAbsolute errors of the shipped model's detected cups: a few gross failures "
+             "dominate the means.\n\n" + spread)
     print(text)
     write_section("model_accuracy", "## CupNet accuracy\n\n"
                   f"`python benchmarks/model.py`: {args.images} fresh DRRs from "

@@ -316,7 +316,7 @@ class CupNet(nn.Module):
             logits, log_sigma = self.rim(strips.to(self.dtype))
             rim = strip_landmarks(logits, log_sigma, points, normals, offsets)
             if remaining:
-                ellipse = _usable_fit(rim.landmarks.detach(), rim.weights.detach(), ellipse)
+                ellipse = usable_fit(rim.landmarks.detach(), rim.weights.detach(), ellipse)
         return rim
 
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
@@ -351,7 +351,7 @@ class CupNet(nn.Module):
         points, weights = self.crop_landmarks(crop_logits, crop_to_image)
         rim = None
         if self.rim is not None:
-            start = _usable_fit(points.detach(), weights.detach(),
+            start = usable_fit(points.detach(), weights.detach(),
                                 _frame_ellipse(frames, self.config))
             rim = self.rim_landmarks(image_list, cup_index[:, 0], start)
             points, weights = rim.landmarks, rim.weights
@@ -418,7 +418,7 @@ class CupNet(nn.Module):
         for _ in range(self.config.refine_passes - 1):
             # Re-frame on the fitted ellipse where it is usable; keep the old frame otherwise.
             crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
-            ellipse = _usable_fit(*self.crop_landmarks(crop_logits, crop_to_image),
+            ellipse = usable_fit(*self.crop_landmarks(crop_logits, crop_to_image),
                                   _frame_ellipse(frames, self.config))
             frames = self.frames(ellipse)
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
@@ -427,7 +427,7 @@ class CupNet(nn.Module):
         # pose, else the refiner's (a rim the strips lost, e.g. one hidden by a femoral head).
         candidates = [(crop_points, crop_weights)]
         if self.rim is not None:
-            start = _usable_fit(crop_points, crop_weights, _frame_ellipse(frames, self.config))
+            start = usable_fit(crop_points, crop_weights, _frame_ellipse(frames, self.config))
             candidates.insert(0, self.rim_landmarks(image_list, cup_index[:, 0], start)[:2])
         chosen: list = [None] * len(cup_index)
         for points, weights in candidates:
@@ -471,7 +471,7 @@ def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:
     return torch.cat([frames[:, :2], major, minor.clamp_max(major), frames[:, 4:]], -1).double()
 
 
-def _usable_fit(points: Tensor, weights: Tensor, fallback: Tensor) -> Tensor:
+def usable_fit(points: Tensor, weights: Tensor, fallback: Tensor) -> Tensor:
     """Weighted ellipse fit ``(K, 5)`` of landmarks ``(K, N, 2)``, ``fallback`` ``(K, 5)``
     where the fit fails or collapses (semi-major axis under half a pixel)."""
     ellipse = fit_ellipse(points, weights, on_error="flag").params

@@ -131,7 +131,7 @@ def _smoke_batch() -> dict:
 
 def test_rim_only_training_moves_the_rim_network_alone():
     batch = _smoke_batch()
-    module = CupNetModule(model=RIM_MODEL, rim_only=True, rim_copies=2, lr=3e-3)
+    module = CupNetModule(model=RIM_MODEL, rim_only=True, rim_copies=2, rim_refiner_starts=0.5)
     module.train()
     assert not module.model.refiner.training and module.model.rim.training
     optimizer = torch.optim.Adam((p for p in module.parameters() if p.requires_grad), lr=3e-3)

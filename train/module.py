@@ -15,7 +15,7 @@ from cupnet.detection import CupDetection
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
-from cupnet.model import CupNet, CupNetConfig, load_model, save_model
+from cupnet.model import CupNet, CupNetConfig, load_model, save_model, usable_fit
 from cupnet.pose import PoseSolution
 from train.losses import (
     POSE_SCALE,
@@ -192,6 +192,8 @@ class CupNetModule(L.LightningModule):
             jittered true ellipses (:func:`jittered_rim_starts`), one pass, rim and pose
             losses.
         rim_jitter: scale of those jitters; rim_copies: differently jittered starts per cup.
+        rim_refiner_starts: the fraction of ``rim_only`` starts that are instead the frozen
+            refiner's fits on crops framed like its second inference pass (its real errors).
         torch_threads: intra-op threads (None: torch's default); 1 suits a shared CPU,
             where the data worker takes the other core.
         init_weights: a checkpoint whose network weights start this run (fine-tuning; a
@@ -223,6 +225,7 @@ class CupNetModule(L.LightningModule):
         rim_only: bool = False,
         rim_jitter: float = 1.0,
         rim_copies: int = 3,
+        rim_refiner_starts: float = 0.0,
         torch_threads: int | None = None,
         init_weights: str | None = None,
         export_path: str | None = None,
@@ -295,8 +298,8 @@ class CupNetModule(L.LightningModule):
         cup_index = batch["cup_valid"].bool().nonzero().repeat(hp.rim_copies, 1)  # (K, 2)
         i, c = cup_index[:, 0], cup_index[:, 1]
         truth = batch["ellipse"][i, c].double()
-        start = jittered_rim_starts(truth, hp.rim_jitter)
-        rim = self.model.rim_landmarks(batch["image"], i, start, passes=1)
+        rim = self.model.rim_landmarks(batch["image"], i, self.rim_starts(batch["image"], i, truth),
+                                       passes=1)
         solution = self.model.solve(rim.landmarks, rim.weights, batch_geometry(batch["geometry"]),
                                     batch["cup_diameter"], cup_index, batch["image"].shape[0],
                                     refine=hp.refine_pose)
@@ -305,6 +308,31 @@ class CupNetModule(L.LightningModule):
         terms["loss"] = (hp.rim_weight * terms["rim"] + hp.pose_weight * terms["pose"]).float()
         terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
         return terms
+
+    def rim_starts(self, images: Tensor, index: Tensor, truth: Tensor) -> Tensor:
+        """Ellipses ``(K, 5)`` the rim stage starts from in ``rim_only`` training.
+
+        A fraction ``rim_refiner_starts`` are the frozen refiner's fits on crops framed like
+        its second inference pass (:func:`jittered_ellipses`, fine frames), so the rim stage
+        meets the refiner's real mistakes (a femoral head's outline, a thin rim's short major
+        axis); the others are :func:`jittered_rim_starts`.
+
+        Args:
+            images: ``(B, 1, H, W)``; index: ``(K,)`` image of each cup; truth: ``(K, 5)``.
+        """
+        hp = self.hparams
+        start = jittered_rim_starts(truth, hp.rim_jitter)
+        if hp.rim_refiner_starts <= 0:
+            return start
+        with torch.no_grad():
+            valid = torch.ones_like(truth[None, :, 0], dtype=torch.bool)
+            frames = self.model.frames(jittered_ellipses(
+                truth[None], valid, 0.0, hp.coarse_shift, hp.coarse_scale, hp.fine_shift,
+                hp.fine_scale, hp.fine_angle, hp.fine_ratio)[0])
+            crop_logits, crop_to_image = self.model.segment_crops(images, frames, index)
+            fitted = usable_fit(*self.model.crop_landmarks(crop_logits, crop_to_image), start)
+        use = torch.rand(len(truth), 1, device=truth.device) < hp.rim_refiner_starts
+        return torch.where(use, fitted, start)
 
     def setup(self, stage: str) -> None:
         if self.hparams.torch_threads:
