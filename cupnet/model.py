@@ -295,7 +295,8 @@ class CupNet(nn.Module):
 
     def rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor,
                       passes: int | None = None) -> RimLandmarks:
-        """Rim stage: strip passes from ``start`` ellipses (not differentiated).
+        """Rim stage: strip passes from ``start`` ellipses (gradients reach the last pass's
+        network, not the ellipses its strips were framed on).
 
         Args:
             images: ``(B, 1, H, W)`` or list of ``(1, H, W)``.

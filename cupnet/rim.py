@@ -2,12 +2,12 @@
 
 The refiner U-Net sees each cup through a 128 px crop, several image pixels per crop pixel
 for a large cup, so its landmarks are a few pixels off. The rim stage works at full
-resolution on a narrow band instead: ``n`` normals of the current ellipse (equal arc length,
-outward), each sampled at ``S`` offsets ``step`` image pixels apart, stacked into a strip
+resolution on a narrow band instead: ``n`` outward normals of the current ellipse (at equal
+parameter steps), each sampled at ``S`` offsets ``step`` image pixels apart, stacked into a strip
 ``(S, n)`` (rows: offset along the normal, columns: position around the rim, circular).
 :class:`RimNet`, a small dilated CNN, gives each column a distribution over offsets (its
 expectation places the landmark, differentiably) and a scale ``sigma`` (its landmark's
-expected distance to the rim, the weight of the ellipse fit being ``1 / sigma^2``). The rim
+expected error along the normal, the weight of the ellipse fit being ``1 / sigma^2``). The rim
 edge of a metal shell is not a symmetric step (the path through metal grows inwards from
 the outer rim over several pixels, and a femoral head can hide part of the rim), so a
 learned edge locator beats a gradient peak; the network learns where the rim lies in its
@@ -25,8 +25,8 @@ from torch import Tensor, nn
 
 from cupnet.ellipse import ellipse_points, params_to_conic
 
-# Range of log(sigma / px): a landmark claims at most ~20x sub-pixel precision, at least
-# that it is anywhere in the strip.
+# Range of log(sigma / px): a landmark claims a precision of 0.05 px at best, and at worst
+# that it could be anywhere in the strip (55 px).
 _LOG_SIGMA_RANGE = (-3.0, 4.0)
 
 
@@ -168,7 +168,7 @@ class RimLandmarks(NamedTuple):
     Attributes:
         landmarks: ``(K, n, 2)`` image pixels, ``points + offset * normals``.
         weights: ``(K, n)`` fit weights ``1 / sigma^2``, normalised to mean 1 per cup.
-        sigma: ``(K, n)`` pixels, each landmark's predicted distance to the rim.
+        sigma: ``(K, n)`` pixels, each landmark's predicted error along its normal.
         offset: ``(K, n)`` pixels along the normal.
         points, normals: ``(K, n, 2)`` the strips' frame.
     """
