@@ -135,6 +135,8 @@ class CupNetOutput:
         landmarks: ``(K, N, 2)`` original-image pixels; ``weights``: ``(K, N)``: the rim
             stage's when the model has one, else the refiner's.
         solution: pose solver output for the ``K`` cups (float64, public units).
+        refiner_landmarks, refiner_weights: the refiner's own (the same as ``landmarks`` and
+            ``weights`` without a rim stage).
         rim: the rim stage's output (None without a rim stage).
     """
 
@@ -146,6 +148,8 @@ class CupNetOutput:
     landmarks: Tensor
     weights: Tensor
     solution: PoseSolution
+    refiner_landmarks: Tensor
+    refiner_weights: Tensor
     rim: RimLandmarks | None = None
 
 
@@ -309,9 +313,12 @@ class CupNet(nn.Module):
         cfg = self.config
         if self.rim is None:
             raise ValueError("this CupNet has no rim stage (rim_passes = 0)")
+        passes = cfg.rim_passes if passes is None else passes
+        if passes < 1:
+            raise ValueError(f"rim stage passes must be >= 1, got {passes}")
         offsets = strip_offsets(cfg.rim_samples, cfg.rim_step, device=start.device)
         ellipse = start.detach().double()
-        for remaining in range((passes or cfg.rim_passes) - 1, -1, -1):
+        for remaining in range(passes - 1, -1, -1):
             points, normals = rim_frame(ellipse, cfg.rim_points)
             strips = sample_strips(images, index, points, normals, offsets)
             if strips.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
@@ -352,8 +359,8 @@ class CupNet(nn.Module):
         cup_index = torch.isfinite(crop_frames).all(-1).nonzero()  # (K, 2)
         frames = crop_frames[cup_index[:, 0], cup_index[:, 1]].to(locator_logits.device)
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
-        points, weights = self.crop_landmarks(crop_logits, crop_to_image)
-        rim = None
+        crop_points, crop_weights = self.crop_landmarks(crop_logits, crop_to_image)
+        points, weights, rim = crop_points, crop_weights, None
         if self.rim is not None:
             start = usable_fit(points.detach(), weights.detach(),
                                 _frame_ellipse(frames, self.config))
@@ -362,7 +369,7 @@ class CupNet(nn.Module):
         solution = self.solve(points, weights, geometry, cup_diameter, cup_index, batch,
                               refine_pose)
         return CupNetOutput(locator_logits, letterbox, crop_logits, crop_to_image, cup_index,
-                            points, weights, solution, rim)
+                            points, weights, solution, crop_points, crop_weights, rim)
 
     def solve(self, points: Tensor, weights: Tensor, geometry: Geometry, cup_diameter: Tensor,
               cup_index: Tensor, batch: int, refine: bool) -> PoseSolution:
@@ -468,8 +475,12 @@ class CupNet(nn.Module):
 
 
 def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:
-    """The ellipse a crop frame ``(K, 5)`` was made for (its minor axis only roughly, where
-    the crop was stretched): the fallback where a fit fails."""
+    """An ellipse a crop frame ``(K, 5)`` fits: the fallback where a fit fails.
+
+    Its centre, angle and major axis are those the frame was made for; its minor axis is too
+    where the crop was stretched (within ``crop_max_stretch``), else ``crop_min_ratio a``:
+    whatever it is, :meth:`CupNet.frames` of it gives the same frame back.
+    """
     major = frames[:, 2:3] * config.crop_fill / 2
     minor = frames[:, 3:4] * config.crop_fill * config.crop_min_ratio / 2
     return torch.cat([frames[:, :2], major, minor.clamp_max(major), frames[:, 4:]], -1).double()

@@ -26,7 +26,7 @@ from torch import Tensor, nn
 from cupnet.ellipse import ellipse_points, params_to_conic
 
 # Range of log(sigma / px): a landmark claims a precision of 0.05 px at best, and at worst
-# that it could be anywhere in the strip (55 px).
+# 55 px, more than any strip reaches (its weight then all but vanishes).
 _LOG_SIGMA_RANGE = (-3.0, 4.0)
 
 
@@ -97,7 +97,8 @@ def sample_strips(images: Tensor | list[Tensor], index: Tensor, points: Tensor, 
         index: ``(K,)`` image of each strip.
         points: ``(K, n, 2)`` pixels; normals: ``(K, n, 2)``; offsets: ``(S,)`` pixels.
     Returns:
-        ``(K, 1, S, n)`` in the images' dtype (border values outside an image).
+        ``(K, 1, S, n)`` in the images' dtype (border values outside an image; the points'
+        dtype for ``K = 0``).
     """
     grid = points[:, None] + offsets[None, :, None, None] * normals[:, None]  # (K, S, n, 2)
     strips = []

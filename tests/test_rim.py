@@ -194,24 +194,41 @@ def test_rim_model_round_trips_and_detects(tmp_path):
         assert all(det.landmarks.shape in ((RIM.rim_points, 2), (RIM.n_rays, 2)) for det in found)
 
 
-class BrokenRimNet(nn.Module):
-    """Stand-in rim network whose landmarks are all NaN (no pose can come of them)."""
+class PartlyBrokenRimNet(nn.Module):
+    """Stand-in rim network: :class:`EdgeRimNet` for the first cup of a batch, NaN (no pose
+    can come of it) for the others."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.edges = EdgeRimNet()
 
     def forward(self, strips: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        nan = torch.full_like(strips[:, 0], math.nan)
-        return nan, nan[:, 0]
+        logits, log_sigma = self.edges(strips)
+        logits, log_sigma = logits.clone(), log_sigma.clone()
+        logits[1:], log_sigma[1:] = math.nan, math.nan
+        return logits, log_sigma
 
 
 def test_detect_falls_back_on_the_refiners_landmarks_where_the_rim_stage_fails():
-    image, geometry, ellipse = _rim_scene()
-    model = CupNet(RIM)
+    # Crops of one cup must not hold the other (the stand-in refiner would segment both).
+    geometry = Geometry.for_image(640, 360, 1040.0, 0.5)
+    truth = torch.tensor([[24.0, 33.0, -45.0, -6.0, 300.0], [18.0, -28.0, 50.0, 8.0, 320.0]],
+                         dtype=torch.float64)
+    ellipse = ellipse_of_pose(truth, 52.0, geometry)
+    image = ellipse_coverage(ellipse[None], 360, 640, supersample=8)[0]
+    model = CupNet(RIM).double()
     model.locator, model.refiner = nn.Conv2d(1, 1, 1), nn.Conv2d(1, 1, 1)
     with torch.no_grad():
         for net in (model.locator, model.refiner):
             net.weight.fill_(20.0)
             net.bias.zero_()
-    model.rim = BrokenRimNet()
-    (found,) = model.detect(image.float()[None], geometry, 52.0)
-    assert len(found) == 1 and found[0].status in ("ok", "ambiguous")
-    assert found[0].landmarks.shape == (RIM.n_rays, 2)
-    assert abs(found[0].ellipse[2] - float(ellipse[0, 2])) < 2.0
+    model.rim = PartlyBrokenRimNet().double()
+    (found,) = model.detect(image[None], geometry, 52.0)
+    assert len(found) == 2 and all(det.status in ("ok", "ambiguous") for det in found)
+    # The larger cup comes first: the rim stage's landmarks, on the rim; the other falls
+    # back on the refiner's.
+    assert found[0].landmarks.shape == (RIM.rim_points, 2)
+    assert found[1].landmarks.shape == (RIM.n_rays, 2)
+    for det in found:
+        true = ellipse[int(abs(det.ellipse[0] - ellipse[:, 0]).argmin())]
+        assert abs(det.ellipse[2] - float(true[2])) < 2.0

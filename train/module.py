@@ -62,10 +62,16 @@ def jittered_ellipses(ellipse: Tensor, valid: Tensor, coarse: float, coarse_shif
     minor = torch.where(is_coarse, major * (0.8 + 0.2 * u[..., 3:4]), minor_fine)
     alpha = torch.where(is_coarse, 90 * (u[..., 4:] + 1), ellipse[..., 4:] + m * u[..., 4:]
                         * fine_angle)
-    axes = torch.cat([major, minor], -1)
-    axes = torch.cat([axes.max(-1, keepdim=True).values, axes.min(-1, keepdim=True).values], -1)
-    out = torch.cat([centre, axes, alpha], -1)
+    out = torch.cat([centre, *_ordered_axes(major, minor, alpha)], -1)
     return torch.where(valid[..., None], out, torch.full_like(out, math.nan))
+
+
+def _ordered_axes(first: Tensor, second: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor]:
+    """Semi-axes ``(..., 2)`` as (major, minor) and the major axis's angle ``(..., 1)`` (deg)
+    of an ellipse given by the axis along ``alpha`` and the one across it."""
+    swapped = second > first
+    axes = torch.cat([torch.maximum(first, second), torch.minimum(first, second)], -1)
+    return axes, alpha + 90 * swapped
 
 
 def jittered_rim_starts(ellipse: Tensor, scale: float) -> Tensor:
@@ -81,10 +87,10 @@ def jittered_rim_starts(ellipse: Tensor, scale: float) -> Tensor:
     m = scale * (0.1 + 1.1 * torch.rand(count, 1, dtype=ellipse.dtype, device=ellipse.device))
     a, b = ellipse[:, 2:3], ellipse[:, 3:4]
     centre = ellipse[:, :2] + noise[:, :2] * m * (0.04 * a).clamp_min(2.0)
-    axes = torch.cat([a * torch.exp(0.08 * m * noise[:, 2:3]),
-                      (b + 0.04 * m * a * noise[:, 3:4]).clamp_min(0.5)], -1)
-    axes = torch.cat([axes.max(-1, keepdim=True).values, axes.min(-1, keepdim=True).values], -1)
-    return torch.cat([centre, axes, ellipse[:, 4:] + 3 * m * noise[:, 4:]], -1)
+    axes = _ordered_axes(a * torch.exp(0.08 * m * noise[:, 2:3]),
+                         (b + 0.04 * m * a * noise[:, 3:4]).clamp_min(0.5),
+                         ellipse[:, 4:] + 3 * m * noise[:, 4:])
+    return torch.cat([centre, *axes], -1)
 
 
 def crop_targets(ellipse: Tensor, valid: Tensor, crop_to_image: Tensor, cup_index: Tensor,
@@ -245,13 +251,22 @@ class CupNetModule(L.LightningModule):
                 raise ValueError("rim_only needs a model with a rim stage (rim_passes > 0)")
             for net in (self.model.locator, self.model.refiner):
                 net.requires_grad_(False)
+            self._freeze_unet_modes()
+
+    def _freeze_unet_modes(self) -> None:
+        """``rim_only``: the frozen U-Nets stay in eval mode, so running the refiner (for
+        :meth:`rim_starts`) never updates their BatchNorm statistics."""
+        if self.hparams.rim_only:
+            self.model.locator.eval()
+            self.model.refiner.eval()
 
     def train(self, mode: bool = True) -> CupNetModule:
         super().train(mode)
-        if self.hparams.rim_only:  # frozen U-Nets keep their BatchNorm statistics
-            self.model.locator.eval()
-            self.model.refiner.eval()
+        self._freeze_unet_modes()
         return self
+
+    def on_train_start(self) -> None:
+        self._freeze_unet_modes()
 
     def losses(self, batch: dict, step: int) -> dict[str, Tensor]:
         """All loss terms of one batch and their weighted total (``"loss"``)."""
@@ -277,7 +292,7 @@ class CupNetModule(L.LightningModule):
         w_ellipse = ramp(step, hp.ellipse_start, hp.ramp_steps) * hp.ellipse_weight
         w_pose = ramp(step, hp.pose_start, hp.ramp_steps) * hp.pose_weight
         if w_ellipse > 0:
-            fit = fit_ellipse(out.landmarks, out.weights, on_error="flag")
+            fit = fit_ellipse(out.refiner_landmarks, out.refiner_weights, on_error="flag")
             crop_step = torch.linalg.svdvals(out.crop_to_image[:, :, :2].double())[:, -1]
             terms["ellipse"] = ellipse_loss(fit.conic, batch["rim"][i, c].double(), crop_step,
                                             fit.valid)
@@ -305,7 +320,10 @@ class CupNetModule(L.LightningModule):
                                     refine=hp.refine_pose)
         terms = {"rim": rim_loss(rim, truth, self.model.rim_reach),
                  "pose": pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)}
-        terms["loss"] = (hp.rim_weight * terms["rim"] + hp.pose_weight * terms["pose"]).float()
+        total = hp.rim_weight * terms["rim"] + hp.pose_weight * terms["pose"]
+        if len(cup_index) == 0:  # no cup in the batch: a zero loss that still has a graph
+            total = total + sum(p.sum() for p in self.model.rim.parameters()) * 0.0
+        terms["loss"] = total.float()
         terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
         return terms
 
