@@ -10,6 +10,8 @@ from torch import Tensor
 from cupnet.ellipse import sampson_distance
 from cupnet.rim import RimLandmarks, normal_crossings
 
+# The pose's components, in the order of every (..., 5) pose tensor.
+POSE_NAMES = ("theta", "phi", "k", "l", "h")
 # Pose error that counts as 1 in the normalised pose loss: the target MAEs
 # (theta, phi in degrees; k, l, h in mm).
 POSE_SCALE = (1.0, 1.0, 1.0, 1.0, 8.0)

@@ -18,6 +18,7 @@ from cupnet.landmarks import ellipse_coverage
 from cupnet.model import CupNet, CupNetConfig, load_model, save_model, usable_fit
 from cupnet.pose import PoseSolution
 from train.losses import (
+    POSE_NAMES,
     POSE_SCALE,
     ellipse_loss,
     pose_errors,
@@ -172,7 +173,7 @@ def _pose_maes(solution: PoseSolution, truth: Tensor) -> dict[str, Tensor]:
         ok = solution.valid
         return {f"mae_{name}": (err[ok, j].abs().mean() if bool(ok.any())
                                 else torch.tensor(math.nan))
-                for j, name in enumerate(("theta", "phi", "k", "l", "h"))}
+                for j, name in enumerate(POSE_NAMES)}
 
 
 class CupNetModule(L.LightningModule):
@@ -342,15 +343,20 @@ class CupNetModule(L.LightningModule):
         start = jittered_rim_starts(truth, hp.rim_jitter)
         if hp.rim_refiner_starts <= 0:
             return start
-        with torch.no_grad():
-            valid = torch.ones_like(truth[None, :, 0], dtype=torch.bool)
-            frames = self.model.frames(jittered_ellipses(
-                truth[None], valid, 0.0, hp.coarse_shift, hp.coarse_scale, hp.fine_shift,
-                hp.fine_scale, hp.fine_angle, hp.fine_ratio)[0])
-            crop_logits, crop_to_image = self.model.segment_crops(images, frames, index)
-            fitted = usable_fit(*self.model.crop_landmarks(crop_logits, crop_to_image), start)
-        use = torch.rand(len(truth), 1, device=truth.device) < hp.rim_refiner_starts
-        return torch.where(use, fitted, start)
+        valid = torch.ones_like(truth[None, :, 0], dtype=torch.bool)
+        frames = self.model.frames(jittered_ellipses(
+            truth[None], valid, 0.0, hp.coarse_shift, hp.coarse_scale, hp.fine_shift,
+            hp.fine_scale, hp.fine_angle, hp.fine_ratio)[0])
+        use = (torch.rand(len(truth), 1, device=truth.device)
+               < hp.rim_refiner_starts)[:, 0].nonzero()[:, 0]
+        if len(use) == 0:
+            return start
+        start = start.clone()
+        with torch.no_grad():  # the refiner runs only on the cups that take its fit
+            crop_logits, crop_to_image = self.model.segment_crops(images, frames[use], index[use])
+            start[use] = usable_fit(*self.model.crop_landmarks(crop_logits, crop_to_image),
+                                    start[use])
+        return start
 
     def setup(self, stage: str) -> None:
         if self.hparams.torch_threads:
@@ -380,7 +386,7 @@ class CupNetModule(L.LightningModule):
         detected = found / max(total, 1)
         self.log("val/detected", detected, batch_size=size)
         mae = np.mean(errors, 0) if errors else np.full(5, np.nan)
-        for j, name in enumerate(("theta", "phi", "k", "l", "h")):
+        for j, name in enumerate(POSE_NAMES):
             self.log(f"val/mae_{name}", float(mae[j]), batch_size=size)
         # One figure for checkpoint selection: each MAE relative to its target, plus missed
         # cups; logged on every batch (a large value when nothing was found).
