@@ -11,7 +11,10 @@ filled rim ellipse) as an area-coverage map:
    back to original-image pixels through the crop's exact affine;
 3. the optional *rim* stage (:mod:`cupnet.rim`, ``rim_passes > 0``) samples full-resolution
    strips across the refiner's ellipse and moves each landmark onto the rim with a learned,
-   differentiable edge locator, weighting it by its predicted precision.
+   differentiable edge locator, weighting it by its predicted precision. An optional
+   *coarse* rim stage (``coarse_rim_passes > 0``) goes first, its strips reaching a fixed
+   fraction of each cup's size, to correct the refiner's gross errors (a femoral head's
+   outline taken for a thin rim) that the fine strips cannot reach.
 
 The weighted ellipse fit and the pose solver (:func:`cupnet.pose.solve_pose`) then give the
 pose, so a pose loss backpropagates into the last stage's network.
@@ -50,6 +53,7 @@ from cupnet.rim import (
     RimNet,
     rim_frame,
     sample_strips,
+    scaled_offsets,
     strip_landmarks,
     strip_offsets,
 )
@@ -86,7 +90,10 @@ class CupNetConfig:
         rim_points: rim landmarks (strip columns) per cup.
         rim_samples: samples along each normal (strip rows) ...
         rim_step: ... this many image pixels apart.
-        rim_channels: width of :class:`cupnet.rim.RimNet`.
+        rim_channels: width of :class:`cupnet.rim.RimNet` (both rim stages).
+        coarse_rim_passes: coarse rim-stage passes before the fine ones (0: none) ...
+        coarse_rim_reach: ... their strips reaching this many semi-major axes either side of
+            the ellipse, in ``rim_samples`` rows.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -109,6 +116,8 @@ class CupNetConfig:
     rim_samples: int = 64
     rim_step: float = 0.5
     rim_channels: int = 16
+    coarse_rim_passes: int = 0
+    coarse_rim_reach: float = 0.6
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -202,6 +211,8 @@ class CupNet(nn.Module):
         self.locator = _unet(self.config).to(memory_format=torch.channels_last)
         self.refiner = _unet(self.config).to(memory_format=torch.channels_last)
         self.rim = RimNet(self.config.rim_channels) if self.config.rim_passes > 0 else None
+        self.coarse_rim = (RimNet(self.config.rim_channels)
+                           if self.config.coarse_rim_passes > 0 else None)
         if self.config.encoder_weights:
             state, _ = _read_checkpoint(Path(self.config.encoder_weights))
             for net in (self.locator, self.refiner):
@@ -298,7 +309,7 @@ class CupNet(nn.Module):
         return (self.config.rim_samples - 1) / 2 * self.config.rim_step
 
     def rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor,
-                      passes: int | None = None) -> RimLandmarks:
+                      passes: int | None = None, coarse: bool = False) -> RimLandmarks:
         """Rim stage: strip passes from ``start`` ellipses (gradients reach the last pass's
         network, not the ellipses its strips were framed on).
 
@@ -306,29 +317,43 @@ class CupNet(nn.Module):
             images: ``(B, 1, H, W)`` or list of ``(1, H, W)``.
             index: ``(K,)`` image of each cup.
             start: ``(K, 5)`` ellipses (cx, cy, a, b, alpha_deg), image pixels.
-            passes: strip passes (None: ``rim_passes``).
+            passes: strip passes (None: ``rim_passes``, or ``coarse_rim_passes``).
+            coarse: run the coarse rim stage (strips scaled to each cup) instead of the fine.
         Returns:
             the last pass's :class:`cupnet.rim.RimLandmarks`.
         """
         cfg = self.config
-        if self.rim is None:
-            raise ValueError("this CupNet has no rim stage (rim_passes = 0)")
-        passes = cfg.rim_passes if passes is None else passes
+        net = self.coarse_rim if coarse else self.rim
+        if net is None:
+            raise ValueError(f"this CupNet has no {'coarse ' if coarse else ''}rim stage "
+                             f"({'coarse_' if coarse else ''}rim_passes = 0)")
+        passes = (cfg.coarse_rim_passes if coarse else cfg.rim_passes) if passes is None else passes
         if passes < 1:
             raise ValueError(f"rim stage passes must be >= 1, got {passes}")
-        offsets = strip_offsets(cfg.rim_samples, cfg.rim_step, device=start.device)
         ellipse = start.detach().double()
         for remaining in range(passes - 1, -1, -1):
             points, normals = rim_frame(ellipse, cfg.rim_points)
+            offsets = (scaled_offsets(cfg.rim_samples, ellipse, cfg.coarse_rim_reach)
+                       if coarse else strip_offsets(cfg.rim_samples, cfg.rim_step,
+                                                    device=start.device))
             strips = sample_strips(images, index, points, normals, offsets)
             if strips.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
                 empty = points.new_zeros(0, cfg.rim_points)
                 return RimLandmarks(points, empty, empty, empty, points, normals)
-            logits, log_sigma = self.rim(strips.to(self.dtype))
+            logits, log_sigma = net(strips.to(self.dtype))
             rim = strip_landmarks(logits, log_sigma, points, normals, offsets)
             if remaining:
                 ellipse = usable_fit(rim.landmarks.detach(), rim.weights.detach(), ellipse)
         return rim
+
+    def rim_start(self, images: list[Tensor] | Tensor, index: Tensor, ellipse: Tensor
+                  ) -> Tensor:
+        """``(K, 5)`` the ellipses the fine rim stage starts from: the coarse rim stage's fit
+        from the refiner's ``ellipse`` ``(K, 5)`` when the model has one, else ``ellipse``."""
+        if self.coarse_rim is None:
+            return ellipse
+        rim = self.rim_landmarks(images, index, ellipse, coarse=True)
+        return usable_fit(rim.landmarks.detach(), rim.weights.detach(), ellipse)
 
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
                 crop_frames: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
@@ -364,7 +389,8 @@ class CupNet(nn.Module):
         if self.rim is not None:
             start = usable_fit(points.detach(), weights.detach(),
                                 _frame_ellipse(frames, self.config))
-            rim = self.rim_landmarks(image_list, cup_index[:, 0], start)
+            rim = self.rim_landmarks(image_list, cup_index[:, 0],
+                                     self.rim_start(image_list, cup_index[:, 0], start))
             points, weights = rim.landmarks, rim.weights
         solution = self.solve(points, weights, geometry, cup_diameter, cup_index, batch,
                               refine_pose)
@@ -439,6 +465,7 @@ class CupNet(nn.Module):
         candidates = [(crop_points, crop_weights)]
         if self.rim is not None:
             start = usable_fit(crop_points, crop_weights, _frame_ellipse(frames, self.config))
+            start = self.rim_start(image_list, cup_index[:, 0], start)
             candidates.insert(0, self.rim_landmarks(image_list, cup_index[:, 0], start)[:2])
         chosen: list = [None] * len(cup_index)
         for points, weights in candidates:

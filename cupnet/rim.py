@@ -88,6 +88,14 @@ def strip_offsets(samples: int, step: float, dtype: torch.dtype = torch.float64,
     return (torch.arange(samples, dtype=dtype, device=device) - (samples - 1) / 2) * step
 
 
+def scaled_offsets(samples: int, ellipse: Tensor, reach: float) -> Tensor:
+    """``(K, S)`` offsets of strips reaching ``reach`` semi-major axes either side of each
+    ellipse ``(K, 5)``: the coarse rim stage sees every cup at the same relative scale, as the
+    refiner's crops do, so it can correct an error proportional to the cup's size."""
+    unit = strip_offsets(samples, 2 / (samples - 1), ellipse.dtype, ellipse.device)
+    return reach * ellipse[:, 2:3] * unit
+
+
 def sample_strips(images: Tensor | list[Tensor], index: Tensor, points: Tensor, normals: Tensor,
                   offsets: Tensor) -> Tensor:
     """Bilinear samples of each image along each normal: the strips.
@@ -95,12 +103,14 @@ def sample_strips(images: Tensor | list[Tensor], index: Tensor, points: Tensor, 
     Args:
         images: ``(B, 1, H, W)`` or a list of ``(1, H_i, W_i)``.
         index: ``(K,)`` image of each strip.
-        points: ``(K, n, 2)`` pixels; normals: ``(K, n, 2)``; offsets: ``(S,)`` pixels.
+        points: ``(K, n, 2)`` pixels; normals: ``(K, n, 2)``; offsets: ``(S,)`` pixels, or
+            ``(K, S)``, each cup's own.
     Returns:
         ``(K, 1, S, n)`` in the images' dtype (border values outside an image; the points'
         dtype for ``K = 0``).
     """
-    grid = points[:, None] + offsets[None, :, None, None] * normals[:, None]  # (K, S, n, 2)
+    offsets = offsets.expand(points.shape[0], -1)
+    grid = points[:, None] + offsets[:, :, None, None] * normals[:, None]  # (K, S, n, 2)
     strips = []
     for k in range(points.shape[0]):
         image = images[int(index[k])]
@@ -188,10 +198,11 @@ def strip_landmarks(logits: Tensor, log_sigma: Tensor, points: Tensor, normals: 
 
     Args:
         logits: ``(K, S, n)``; log_sigma: ``(K, n)`` log pixels.
-        points, normals: ``(K, n, 2)`` the strips' frame; offsets: ``(S,)`` pixels.
+        points, normals: ``(K, n, 2)`` the strips' frame; offsets: ``(S,)`` or ``(K, S)``
+            pixels.
     """
     prob = torch.softmax(logits.double(), 1)
-    offset = (prob * offsets.to(prob)[None, :, None]).sum(1)  # (K, n)
+    offset = (prob * offsets.to(prob).expand(prob.shape[0], -1)[..., None]).sum(1)  # (K, n)
     points, normals = points.double(), normals.double()
     sigma = log_sigma.double().exp()
     weights = sigma.pow(-2)

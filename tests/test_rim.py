@@ -19,6 +19,7 @@ from cupnet.rim import (
     normal_crossings,
     rim_frame,
     sample_strips,
+    scaled_offsets,
     strip_landmarks,
     strip_offsets,
 )
@@ -58,7 +59,15 @@ def test_normal_crossings_hand_derived_on_a_circle():
     assert sampson_distance(params_to_conic(ELLIPSES), on_rim)[:2].abs().max() < 1e-6
 
 
-def test_sample_strips_is_exact_on_a_linear_image():
+def test_scaled_offsets_reach_a_fraction_of_each_cups_major_axis():
+    offsets = scaled_offsets(5, ELLIPSES, 0.5)
+    # a = 60, 48, 80: rows 0.25 a apart from -a/2 to a/2.
+    assert torch.allclose(offsets, torch.tensor([[-30.0, -15, 0, 15, 30], [-24, -12, 0, 12, 24],
+                                                 [-40, -20, 0, 20, 40]], dtype=torch.float64))
+
+
+@pytest.mark.parametrize("per_cup", [False, True])
+def test_sample_strips_is_exact_on_a_linear_image(per_cup):
     # Bilinear interpolation reproduces a linear image exactly: the samples must equal the
     # ramp at p + s n, in CONVENTIONS pixels (centres at integers).
     height, width = 220, 260
@@ -66,11 +75,12 @@ def test_sample_strips_is_exact_on_a_linear_image():
                           torch.arange(width, dtype=torch.float64), indexing="ij")
     images = torch.stack([0.01 * u + 0.02 * v, 0.5 - 0.003 * u + 0.004 * v])[:, None]
     index = torch.tensor([1, 0, 1])
-    points, normals = rim_frame(ELLIPSES * torch.tensor([1, 1, 0.5, 0.5, 1.0]), 32)
-    offsets = strip_offsets(16, 0.75)
+    ellipses = ELLIPSES * torch.tensor([1, 1, 0.5, 0.5, 1.0])
+    points, normals = rim_frame(ellipses, 32)
+    offsets = scaled_offsets(16, ellipses, 0.3) if per_cup else strip_offsets(16, 0.75)
     strips = sample_strips(images, index, points, normals, offsets)
     assert strips.shape == (3, 1, 16, 32)
-    where = points[:, None] + offsets[None, :, None, None] * normals[:, None]  # (K, S, n, 2)
+    where = points[:, None] + offsets.expand(3, 16)[:, :, None, None] * normals[:, None]
     coef = torch.tensor([[0.0, 0.01, 0.02], [0.5, -0.003, 0.004]], dtype=torch.float64)[index]
     expected = (coef[:, None, None, :1] + (where * coef[:, None, None, 1:]).sum(-1, keepdim=True))
     assert torch.allclose(strips[:, 0], expected[..., 0], atol=1e-12)
@@ -115,6 +125,12 @@ def test_rim_loss_is_the_laplace_likelihood_of_the_offset_error():
     error = torch.tensor([1.0, 0.5, 0.5], dtype=torch.float64)
     expected = (error / sigma[0] + sigma[0].log()).mean()
     assert float(rim_loss(rim, circle, reach=5.0)) == pytest.approx(float(expected))
+    # Each cup's own reach: clipped at 4 instead, the last error is 1.5.
+    two = RimLandmarks(*(torch.cat([x, x]) for x in rim))
+    error = torch.tensor([1.0, 0.5, 1.5], dtype=torch.float64)
+    expected = (expected + (error / sigma[0] + sigma[0].log()).mean()) / 2
+    reach = torch.tensor([[5.0], [4.0]], dtype=torch.float64)
+    assert float(rim_loss(two, circle.repeat(2, 1), reach)) == pytest.approx(float(expected))
 
 
 class EdgeRimNet(nn.Module):
@@ -156,6 +172,25 @@ def test_rim_stage_moves_landmarks_onto_the_rim():
     fitted = fit_ellipse(landmarks.detach(), weights.detach()).params[0]
     assert torch.allclose(fitted[:4], ellipse[0, :4], atol=0.05)
     assert math.isclose(float(fitted[4]), float(ellipse[0, 4]), abs_tol=0.1)
+
+
+def test_coarse_rim_stage_reaches_a_rim_beyond_the_fine_stages_reach():
+    image, geometry, ellipse = _rim_scene()
+    model = CupNet(CupNetConfig(**{**RIM.__dict__, "coarse_rim_passes": 1})).double()
+    model.rim, model.coarse_rim = EdgeRimNet().double(), EdgeRimNet().double()
+    # A femoral head's outline for a rim: rounder and smaller, beyond the fine strips' 12 px.
+    start = ellipse + torch.tensor([[3.0, -2.0, -16.0, 20.0, 6.0]], dtype=torch.float64)
+    index = torch.tensor([0])
+    conic = params_to_conic(ellipse)
+
+    def worst_distance(landmarks: torch.Tensor) -> float:
+        return float(sampson_distance(conic, landmarks).abs().max())
+
+    assert worst_distance(model.rim_landmarks(image[None], index, start).landmarks) > 5.0
+    coarse = model.rim_landmarks(image[None], index, start, coarse=True)
+    assert coarse.offset.abs().max() > model.rim_reach and worst_distance(coarse.landmarks) < 1.5
+    refined = model.rim_landmarks(image[None], index, model.rim_start(image[None], index, start))
+    assert worst_distance(refined.landmarks) < 0.1
 
 
 def test_pose_loss_reaches_the_rim_network():

@@ -11,11 +11,11 @@ import lightning as L
 import pytest
 import torch
 
-from cupnet.model import load_model
+from cupnet.model import load_model, save_model
 from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule
 from train.losses import pose_errors, ramp, wrap_angle
-from train.module import CupNetModule, jittered_ellipses
+from train.module import CupNetModule, coarse_rim_starts, jittered_ellipses
 
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -145,22 +145,53 @@ def test_rim_only_training_moves_the_rim_network_alone():
     assert losses[-1] < losses[0]
 
 
-def test_rim_only_fit_leaves_the_frozen_unets_untouched(tmp_path):
-    # Through Lightning's own loop (which decides the modules' modes), with the refiner run
-    # on every start: its weights and BatchNorm statistics must not move.
+def _fit_moves_only(module: CupNetModule, trained: str, tmp_path: Path) -> None:
+    """Three steps of Lightning's own loop (which decides the modules' modes): the weights
+    and BatchNorm statistics of every network but ``trained`` must not move; its must."""
     data = CupDataModule(synth=str(ROOT / "configs/synth_smoke.yaml"), batch_size=2,
                          image_sizes=[160], val_length=1, num_workers=0)
-    module = CupNetModule(model=RIM_MODEL, rim_only=True, rim_copies=1, rim_refiner_starts=1.0)
-    before = {k: v.clone() for k, v in module.model.state_dict().items()
-              if not k.startswith("rim.")}
-    rim_before = module.model.rim.body[0].conv.weight.clone()
+    before = {k: v.clone() for k, v in module.model.state_dict().items()}
     trainer = L.Trainer(max_steps=3, logger=False, enable_checkpointing=False,
                         enable_progress_bar=False, enable_model_summary=False,
                         limit_val_batches=0, default_root_dir=tmp_path)
     trainer.fit(module, datamodule=data)
     after = module.model.state_dict()
-    assert all(torch.equal(v, after[k]) for k, v in before.items())
-    assert not torch.equal(rim_before, module.model.rim.body[0].conv.weight)
+    moved = {k for k, v in before.items() if not torch.equal(v, after[k])}
+    assert moved and all(k.startswith(trained + ".") for k in moved)
+    assert f"{trained}.body.0.conv.weight" in moved
+
+
+def test_rim_only_fit_leaves_the_frozen_unets_untouched(tmp_path):
+    # With the refiner run on every start.
+    module = CupNetModule(model=RIM_MODEL, rim_only=True, rim_copies=1, rim_refiner_starts=1.0)
+    _fit_moves_only(module, "rim", tmp_path)
+
+
+def test_coarse_rim_starts_perturb_towards_a_round_outline():
+    truth = torch.tensor([[100.0, 80.0, 60.0, 3.0, 30.0], [50.0, 60.0, 40.0, 30.0, 100.0]],
+                         dtype=torch.float64).repeat(500, 1)
+    assert torch.equal(coarse_rim_starts(truth, 0.0), truth)  # no jitter: the truth
+    torch.manual_seed(0)
+    start = coarse_rim_starts(truth, 1.0)
+    assert (start[:, 3] <= start[:, 2]).all() and (start[:, 3] >= 0.5).all()
+    thin = start[0::2]
+    # A thin rim is read as anything from itself to a round outline, rarely thinner.
+    assert thin[:, 3].max() > 0.8 * thin[:, 2].min() and (thin[:, 3] > 3.0).float().mean() > 0.7
+    assert (start[:, :2] - truth[:, :2]).abs().max() < 0.06 * 60 * 5
+
+
+def test_coarse_rim_only_fit_trains_the_coarse_rim_network_alone(tmp_path):
+    fine = CupNetModule(model=RIM_MODEL).model
+    weights = tmp_path / "fine.safetensors"
+    save_model(fine, weights)
+    module = CupNetModule(model={**RIM_MODEL, "coarse_rim_passes": 1}, rim_only=True,
+                          rim_stage="coarse", rim_copies=1, rim_refiner_starts=0.5,
+                          init_weights=str(weights))
+    state = module.model.state_dict()
+    assert all(torch.equal(v, state[k]) for k, v in fine.state_dict().items())
+    _fit_moves_only(module, "coarse_rim", tmp_path)
+    with pytest.raises(ValueError, match="rim_stage"):
+        CupNetModule(model=RIM_MODEL, rim_only=True, rim_stage="coarse")
 
 
 def test_full_training_of_a_rim_model_adds_the_rim_loss():

@@ -44,7 +44,7 @@ def ellipse_loss(conic: Tensor, rim: Tensor, pixel_scale: Tensor, valid: Tensor)
     return F.smooth_l1_loss(dist, torch.zeros_like(dist), beta=1.0)
 
 
-def rim_loss(rim: RimLandmarks, truth: Tensor, reach: float) -> Tensor:
+def rim_loss(rim: RimLandmarks, truth: Tensor, reach: float | Tensor) -> Tensor:
     """Laplace negative log-likelihood of the rim stage's offsets.
 
     ``|s - s*| / sigma + log sigma`` per column, ``s*`` where the column's normal line leaves
@@ -57,11 +57,13 @@ def rim_loss(rim: RimLandmarks, truth: Tensor, reach: float) -> Tensor:
 
     Args:
         rim: the rim stage's output for ``K`` cups; truth: ``(K, 5)`` true ellipses.
-        reach: half the strip's length, pixels.
+        reach: half the strip's length, pixels: a number, or ``(K, 1)`` each cup's.
     """
     if rim.offset.shape[0] == 0:
         return rim.offset.sum() * 0.0
-    target = normal_crossings(rim.points, rim.normals, truth).clamp(-reach, reach)
+    target = normal_crossings(rim.points, rim.normals, truth)
+    reach = torch.as_tensor(reach, dtype=target.dtype, device=target.device)
+    target = torch.maximum(torch.minimum(target, reach), -reach)
     return ((rim.offset - target).abs() / rim.sigma + rim.sigma.log()).mean()
 
 

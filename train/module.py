@@ -8,7 +8,7 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from cupnet.crops import ellipse_to_view, resample_batch
 from cupnet.detection import CupDetection
@@ -92,6 +92,26 @@ def jittered_rim_starts(ellipse: Tensor, scale: float) -> Tensor:
                          (b + 0.04 * m * a * noise[:, 3:4]).clamp_min(0.5),
                          ellipse[:, 4:] + 3 * m * noise[:, 4:])
     return torch.cat([centre, *axes], -1)
+
+
+def coarse_rim_starts(ellipse: Tensor, scale: float) -> Tensor:
+    """True ellipses ``(K, 5)`` perturbed like the refiner's gross errors, which the coarse rim
+    stage corrects.
+
+    With a magnitude ``m ~ U(0, 1) scale`` per cup: the centre moved by ``N(0, 0.06 m a)`` per
+    axis (a femoral head taken for the opening is centred on it), ``a`` scaled by
+    ``exp(N(0, 0.15 m))``, ``b`` moved towards ``a`` by ``m u (a - b)``, ``u ~ U(-0.3, 1)``
+    (a nearly edge-on rim read as a round head), the angle turned by ``N(0, 20 m)`` degrees.
+    """
+    count = ellipse.shape[0]
+    noise = torch.randn(count, 4, dtype=ellipse.dtype, device=ellipse.device)
+    m, u = torch.rand(count, 2, dtype=ellipse.dtype, device=ellipse.device).split(1, -1)
+    m, u = scale * m, 1.3 * u - 0.3
+    a, b = ellipse[:, 2:3], ellipse[:, 3:4]
+    centre = ellipse[:, :2] + 0.06 * m * a * noise[:, :2]
+    major = a * torch.exp(0.15 * m * noise[:, 2:3])
+    minor = torch.minimum((b + m * u * (a - b)).clamp_min(0.5), major)
+    return torch.cat([centre, major, minor, ellipse[:, 4:] + 20 * m * noise[:, 3:]], -1)
 
 
 def crop_targets(ellipse: Tensor, valid: Tensor, crop_to_image: Tensor, cup_index: Tensor,
@@ -195,9 +215,10 @@ class CupNetModule(L.LightningModule):
         refine_pose: train through the solver's ML refinement (else its closed form).
         rim_weight: weight of the rim stage's landmark loss (:func:`train.losses.rim_loss`),
             when the model has a rim stage.
-        rim_only: train the rim stage alone, the U-Nets frozen and not run: strips framed on
-            jittered true ellipses (:func:`jittered_rim_starts`), one pass, rim and pose
-            losses.
+        rim_only: train a rim stage alone, the U-Nets (and the other rim stage) frozen and
+            not run: strips framed on jittered true ellipses, one pass, rim and pose losses.
+        rim_stage: which: ``"fine"`` (starts from :func:`jittered_rim_starts`) or
+            ``"coarse"`` (:func:`coarse_rim_starts`).
         rim_jitter: scale of those jitters; rim_copies: differently jittered starts per cup.
         rim_refiner_starts: the fraction of ``rim_only`` starts that are instead the frozen
             refiner's fits on crops framed like its second inference pass (its real errors).
@@ -230,6 +251,7 @@ class CupNetModule(L.LightningModule):
         refine_pose: bool = False,
         rim_weight: float = 1.0,
         rim_only: bool = False,
+        rim_stage: str = "fine",
         rim_jitter: float = 1.0,
         rim_copies: int = 3,
         rim_refiner_starts: float = 0.0,
@@ -244,22 +266,35 @@ class CupNetModule(L.LightningModule):
             # A model gaining a rim stage starts from weights without one.
             missing, unexpected = self.model.load_state_dict(
                 load_model(init_weights).state_dict(), strict=False)
-            if unexpected or any(not k.startswith("rim.") for k in missing):
+            if unexpected or any(not k.startswith(("rim.", "coarse_rim.")) for k in missing):
                 raise ValueError(f"{init_weights} does not fit this model: missing "
                                  f"{missing[:5]}, unexpected {unexpected[:5]}")
         if rim_only:
-            if self.model.rim is None:
-                raise ValueError("rim_only needs a model with a rim stage (rim_passes > 0)")
-            for net in (self.model.locator, self.model.refiner):
+            if rim_stage not in ("fine", "coarse"):
+                raise ValueError(f"rim_stage must be 'fine' or 'coarse', got {rim_stage!r}")
+            if self._trained_rim() is None:
+                raise ValueError(f"rim_only with rim_stage {rim_stage!r} needs a model with that "
+                                 "rim stage (rim_passes or coarse_rim_passes > 0)")
+            for net in self._frozen_nets():
                 net.requires_grad_(False)
             self._freeze_unet_modes()
 
+    def _trained_rim(self) -> nn.Module | None:
+        """The rim network a ``rim_only`` run trains."""
+        return self.model.coarse_rim if self.hparams.rim_stage == "coarse" else self.model.rim
+
+    def _frozen_nets(self) -> list[nn.Module]:
+        """``rim_only``: every network but the one trained."""
+        trained = self._trained_rim()
+        return [net for net in (self.model.locator, self.model.refiner, self.model.rim,
+                                self.model.coarse_rim) if net is not None and net is not trained]
+
     def _freeze_unet_modes(self) -> None:
-        """``rim_only``: the frozen U-Nets stay in eval mode, so running the refiner (for
-        :meth:`rim_starts`) never updates their BatchNorm statistics."""
+        """``rim_only``: the frozen networks stay in eval mode, so running them (the refiner
+        for :meth:`rim_starts`) never updates their BatchNorm statistics."""
         if self.hparams.rim_only:
-            self.model.locator.eval()
-            self.model.refiner.eval()
+            for net in self._frozen_nets():
+                net.eval()
 
     def train(self, mode: bool = True) -> CupNetModule:
         super().train(mode)
@@ -314,16 +349,19 @@ class CupNetModule(L.LightningModule):
         cup_index = batch["cup_valid"].bool().nonzero().repeat(hp.rim_copies, 1)  # (K, 2)
         i, c = cup_index[:, 0], cup_index[:, 1]
         truth = batch["ellipse"][i, c].double()
-        rim = self.model.rim_landmarks(batch["image"], i, self.rim_starts(batch["image"], i, truth),
-                                       passes=1)
+        coarse = hp.rim_stage == "coarse"
+        start = self.rim_starts(batch["image"], i, truth)
+        rim = self.model.rim_landmarks(batch["image"], i, start, passes=1, coarse=coarse)
         solution = self.model.solve(rim.landmarks, rim.weights, batch_geometry(batch["geometry"]),
                                     batch["cup_diameter"], cup_index, batch["image"].shape[0],
                                     refine=hp.refine_pose)
-        terms = {"rim": rim_loss(rim, truth, self.model.rim_reach),
+        reach = (self.model.config.coarse_rim_reach * start[:, 2:3] if coarse
+                 else self.model.rim_reach)
+        terms = {"rim": rim_loss(rim, truth, reach),
                  "pose": pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)}
         total = hp.rim_weight * terms["rim"] + hp.pose_weight * terms["pose"]
         if len(cup_index) == 0:  # no cup in the batch: a zero loss that still has a graph
-            total = total + sum(p.sum() for p in self.model.rim.parameters()) * 0.0
+            total = total + sum(p.sum() for p in self._trained_rim().parameters()) * 0.0
         terms["loss"] = total.float()
         terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
         return terms
@@ -334,13 +372,15 @@ class CupNetModule(L.LightningModule):
         A fraction ``rim_refiner_starts`` are the frozen refiner's fits on crops framed like
         its second inference pass (:func:`jittered_ellipses`, fine frames), so the rim stage
         meets the refiner's real mistakes (a femoral head's outline, a thin rim's short major
-        axis); the others are :func:`jittered_rim_starts`.
+        axis); the others are :func:`jittered_rim_starts` (:func:`coarse_rim_starts` for the
+        coarse stage).
 
         Args:
             images: ``(B, 1, H, W)``; index: ``(K,)`` image of each cup; truth: ``(K, 5)``.
         """
         hp = self.hparams
-        start = jittered_rim_starts(truth, hp.rim_jitter)
+        jitter = coarse_rim_starts if hp.rim_stage == "coarse" else jittered_rim_starts
+        start = jitter(truth, hp.rim_jitter)
         if hp.rim_refiner_starts <= 0:
             return start
         valid = torch.ones_like(truth[None, :, 0], dtype=torch.bool)
