@@ -349,11 +349,13 @@ class CupNet(nn.Module):
     def rim_start(self, images: list[Tensor] | Tensor, index: Tensor, ellipse: Tensor
                   ) -> Tensor:
         """``(K, 5)`` the ellipses the fine rim stage starts from: the coarse rim stage's fit
-        from the refiner's ``ellipse`` ``(K, 5)`` when the model has one, else ``ellipse``."""
+        from the refiner's ``ellipse`` ``(K, 5)`` when the model has one, else ``ellipse``
+        (no gradient: the fine stage's strips are framed on it, as on the refiner's fit)."""
         if self.coarse_rim is None:
             return ellipse
-        rim = self.rim_landmarks(images, index, ellipse, coarse=True)
-        return usable_fit(rim.landmarks.detach(), rim.weights.detach(), ellipse)
+        with torch.no_grad():
+            rim = self.rim_landmarks(images, index, ellipse, coarse=True)
+            return usable_fit(rim.landmarks, rim.weights, ellipse)
 
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
                 crop_frames: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
@@ -465,8 +467,7 @@ class CupNet(nn.Module):
         candidates = [(crop_points, crop_weights)]
         if self.rim is not None:
             start = usable_fit(crop_points, crop_weights, _frame_ellipse(frames, self.config))
-            start = self.rim_start(image_list, cup_index[:, 0], start)
-            candidates.insert(0, self.rim_landmarks(image_list, cup_index[:, 0], start)[:2])
+            candidates[:0] = self.rim_candidates(image_list, cup_index[:, 0], start)
         chosen: list = [None] * len(cup_index)
         for points, weights in candidates:
             todo = torch.tensor([k for k, pick in enumerate(chosen) if pick is None],
@@ -499,6 +500,25 @@ class CupNet(nn.Module):
                 score=float(scores[i, c]),
             ))
         return results
+
+
+    def rim_candidates(self, images: list[Tensor], index: Tensor, start: Tensor
+                       ) -> list[tuple[Tensor, Tensor]]:
+        """The fine rim stage's landmarks ``(K, n, 2)`` and weights ``(K, n)``, best first.
+
+        From the refiner's ellipses ``start`` ``(K, 5)``, and, with a coarse rim stage, from
+        the coarse stage's fit of them too; each cup's first candidate is the one whose
+        landmarks the fine network trusts more (the smaller mean ``log sigma``): the coarse
+        stage rescues a rim the refiner missed, but a correct start it can only blur.
+        """
+        plain = self.rim_landmarks(images, index, start)
+        if self.coarse_rim is None:
+            return [(plain.landmarks, plain.weights)]
+        coarse = self.rim_landmarks(images, index, self.rim_start(images, index, start))
+        take = (coarse.sigma.log().mean(-1) < plain.sigma.log().mean(-1))[:, None]
+        return [(torch.where(take[..., None], first.landmarks, second.landmarks),
+                 torch.where(take, first.weights, second.weights))
+                for first, second in ((coarse, plain), (plain, coarse))]
 
 
 def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:

@@ -193,6 +193,32 @@ def test_coarse_rim_stage_reaches_a_rim_beyond_the_fine_stages_reach():
     assert worst_distance(refined.landmarks) < 0.1
 
 
+class SureEdgeRimNet(EdgeRimNet):
+    """:class:`EdgeRimNet` whose ``sigma`` is small where its column sees an edge."""
+
+    def forward(self, strips: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        logits, _ = super().forward(strips)
+        return logits, -logits.exp().amax(1).clamp_min(1e-3).log()
+
+
+def test_rim_candidates_put_the_landmarks_the_fine_stage_trusts_first():
+    image, geometry, ellipse = _rim_scene()
+    # One fine pass: from a far start, the columns that see no edge cannot follow the others.
+    config = {**RIM.__dict__, "coarse_rim_passes": 1, "rim_passes": 1}
+    model = CupNet(CupNetConfig(**config)).double()
+    model.rim, model.coarse_rim = SureEdgeRimNet().double(), EdgeRimNet().double()
+    conic = params_to_conic(ellipse)
+    # Far from the rim (many fine strips see no edge; the plain start's landmarks stay off
+    # it), then near it (the coarse stage's rows are no better): the first candidate lands on
+    # the rim either way.
+    for error, second_off in (([3.0, -2.0, -16.0, 20.0, 6.0], True),
+                              ([0.3, -0.2, 0.5, -0.4, 0.2], False)):
+        start = ellipse + torch.tensor([error], dtype=torch.float64)
+        (first, _), (second, _) = model.rim_candidates([image], torch.tensor([0]), start)
+        assert sampson_distance(conic, first).abs().max() < 0.1
+        assert (sampson_distance(conic, second).abs().max() > 5.0) == second_off
+
+
 def test_pose_loss_reaches_the_rim_network():
     torch.manual_seed(0)
     image, geometry, ellipse = _rim_scene()

@@ -170,14 +170,20 @@ def test_rim_only_fit_leaves_the_frozen_unets_untouched(tmp_path):
 def test_coarse_rim_starts_perturb_towards_a_round_outline():
     truth = torch.tensor([[100.0, 80.0, 60.0, 3.0, 30.0], [50.0, 60.0, 40.0, 30.0, 100.0]],
                          dtype=torch.float64).repeat(500, 1)
-    assert torch.equal(coarse_rim_starts(truth, 0.0), truth)  # no jitter: the truth
+    assert torch.equal(coarse_rim_starts(truth, 0.0, head=0.0), truth)  # no jitter: the truth
     torch.manual_seed(0)
-    start = coarse_rim_starts(truth, 1.0)
+    start = coarse_rim_starts(truth, 1.0, head=0.0)
     assert (start[:, 3] <= start[:, 2]).all() and (start[:, 3] >= 0.5).all()
     thin = start[0::2]
     # A thin rim is read as anything from itself to a round outline, rarely thinner.
     assert thin[:, 3].max() > 0.8 * thin[:, 2].min() and (thin[:, 3] > 3.0).float().mean() > 0.7
     assert (start[:, :2] - truth[:, :2]).abs().max() < 0.06 * 60 * 5
+    # Femoral heads: round, half to all of the rim's size, centred near it.
+    heads = coarse_rim_starts(truth, 1.0, head=1.0)
+    relative = heads[:, 2] / truth[:, 2]
+    assert relative.min() >= 0.5 and relative.max() <= 1.0 and relative.std() > 0.1
+    assert (heads[:, 3] >= 0.8 * heads[:, 2]).all() and (heads[:, 3] <= heads[:, 2]).all()
+    assert (heads[:, :2] - truth[:, :2]).abs().max() < 0.05 * 60 * 5
 
 
 def test_coarse_rim_only_fit_trains_the_coarse_rim_network_alone(tmp_path):

@@ -94,24 +94,32 @@ def jittered_rim_starts(ellipse: Tensor, scale: float) -> Tensor:
     return torch.cat([centre, *axes], -1)
 
 
-def coarse_rim_starts(ellipse: Tensor, scale: float) -> Tensor:
+def coarse_rim_starts(ellipse: Tensor, scale: float, head: float = 0.5) -> Tensor:
     """True ellipses ``(K, 5)`` perturbed like the refiner's gross errors, which the coarse rim
     stage corrects.
 
-    With a magnitude ``m ~ U(0, 1) scale`` per cup: the centre moved by ``N(0, 0.06 m a)`` per
-    axis (a femoral head taken for the opening is centred on it), ``a`` scaled by
-    ``exp(N(0, 0.15 m))``, ``b`` moved towards ``a`` by ``m u (a - b)``, ``u ~ U(-0.3, 1)``
-    (a nearly edge-on rim read as a round head), the angle turned by ``N(0, 20 m)`` degrees.
+    A fraction ``head`` of the cups start from a femoral head's outline, the refiner's worst
+    mistake on a nearly edge-on cup: a roundish ellipse (axis ratio in [0.8, 1], any angle)
+    of semi-major axis ``U(0.5, 1) a`` centred within ``N(0, 0.05 a)`` of the rim's centre (a
+    head sits in the cup). The others, with a magnitude ``m ~ U(0, 1) scale``: the centre
+    moved by ``N(0, 0.06 m a)`` per axis, ``a`` scaled by ``exp(N(0, 0.15 m))``, ``b`` moved
+    towards ``a`` by ``m u (a - b)``, ``u ~ U(-0.3, 1)``, the angle turned by ``N(0, 20 m)``
+    degrees.
     """
     count = ellipse.shape[0]
     noise = torch.randn(count, 4, dtype=ellipse.dtype, device=ellipse.device)
-    m, u = torch.rand(count, 2, dtype=ellipse.dtype, device=ellipse.device).split(1, -1)
+    m, u, is_head, size, ratio, turn = torch.rand(count, 6, dtype=ellipse.dtype,
+                                                  device=ellipse.device).split(1, -1)
     m, u = scale * m, 1.3 * u - 0.3
     a, b = ellipse[:, 2:3], ellipse[:, 3:4]
     centre = ellipse[:, :2] + 0.06 * m * a * noise[:, :2]
     major = a * torch.exp(0.15 * m * noise[:, 2:3])
     minor = torch.minimum((b + m * u * (a - b)).clamp_min(0.5), major)
-    return torch.cat([centre, major, minor, ellipse[:, 4:] + 20 * m * noise[:, 3:]], -1)
+    jittered = torch.cat([centre, major, minor, ellipse[:, 4:] + 20 * m * noise[:, 3:]], -1)
+    radius = a * (0.5 + 0.5 * size)
+    outline = torch.cat([ellipse[:, :2] + 0.05 * a * noise[:, :2], radius,
+                         radius * (0.8 + 0.2 * ratio), 180 * turn], -1)
+    return torch.where(is_head < head, outline, jittered)
 
 
 def crop_targets(ellipse: Tensor, valid: Tensor, crop_to_image: Tensor, cup_index: Tensor,
