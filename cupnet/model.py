@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
@@ -94,6 +95,9 @@ class CupNetConfig:
         coarse_rim_passes: coarse rim-stage passes before the fine ones (0: none) ...
         coarse_rim_reach: ... their strips reaching this many semi-major axes either side of
             the ellipse, in ``rim_samples`` rows.
+        coarse_rim_gate: at inference the coarse stage runs on the cups whose fine landmarks
+            (from the refiner's fit) get no pose, and on those whose mean ``log sigma`` (px)
+            exceeds this (None: on no others).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -118,6 +122,7 @@ class CupNetConfig:
     rim_channels: int = 16
     coarse_rim_passes: int = 0
     coarse_rim_reach: float = 0.6
+    coarse_rim_gate: float | None = None
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -391,8 +396,9 @@ class CupNet(nn.Module):
         if self.rim is not None:
             start = usable_fit(points.detach(), weights.detach(),
                                 _frame_ellipse(frames, self.config))
-            rim = self.rim_landmarks(image_list, cup_index[:, 0],
-                                     self.rim_start(image_list, cup_index[:, 0], start))
+            # From the refiner's fit, as for most cups at inference (the coarse stage, run
+            # on the others, trains on its own: ``rim_stage: coarse``).
+            rim = self.rim_landmarks(image_list, cup_index[:, 0], start)
             points, weights = rim.landmarks, rim.weights
         solution = self.solve(points, weights, geometry, cup_diameter, cup_index, batch,
                               refine_pose)
@@ -462,23 +468,33 @@ class CupNet(nn.Module):
             frames = self.frames(ellipse)
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
         crop_points, crop_weights = self.crop_landmarks(crop_logits, crop_to_image)
-        # Each cup's landmarks, weights and (solution, row): the rim stage's where it gives a
-        # pose, else the refiner's (a rim the strips lost, e.g. one hidden by a femoral head).
-        candidates = [(crop_points, crop_weights)]
+        # Each cup's landmarks, weights and (solution, row) from the first source that gives
+        # it a pose: the fine rim stage's from the refiner's fit (or from the coarse stage's
+        # fit where the fine network trusts that more); the fine rim stage's from
+        # the coarse rim stage's fit (a rim the refiner missed: a femoral head's outline taken
+        # for it); the refiner's own (a rim the strips lost). Each runs on the cups left.
+        index = cup_index[:, 0]
+        sources: list[Callable[[Tensor], tuple[Tensor, Tensor]]] = []
         if self.rim is not None:
             start = usable_fit(crop_points, crop_weights, _frame_ellipse(frames, self.config))
-            candidates[:0] = self.rim_candidates(image_list, cup_index[:, 0], start)
+            sources.append(lambda todo: self.trusted_rim_landmarks(image_list, index[todo],
+                                                                   start[todo]))
+            if self.coarse_rim is not None:
+                sources.append(lambda todo: self.rim_landmarks(image_list, index[todo], (
+                    self.rim_start(image_list, index[todo], start[todo])))[:2])
+        sources.append(lambda todo: (crop_points[todo], crop_weights[todo]))
         chosen: list = [None] * len(cup_index)
-        for points, weights in candidates:
+        for source in sources:
             todo = torch.tensor([k for k, pick in enumerate(chosen) if pick is None],
                                 dtype=torch.long)
             if len(todo) == 0:
                 break
-            solution = self.solve(points[todo], weights[todo], geometry, diameter,
-                                  cup_index[todo], batch, refine=True)
+            points, weights = source(todo)
+            solution = self.solve(points, weights, geometry, diameter, cup_index[todo], batch,
+                                  refine=True)
             for row, k in enumerate(todo.tolist()):
-                if bool(solution.valid[row]) or points is crop_points:
-                    chosen[k] = (points[k], weights[k], solution, row)
+                if bool(solution.valid[row]) or source is sources[-1]:
+                    chosen[k] = (points[row], weights[row], solution, row)
         for k, (i, c) in enumerate(cup_index.tolist()):
             points, weights, solution, row = chosen[k]
             mask = None
@@ -502,23 +518,28 @@ class CupNet(nn.Module):
         return results
 
 
-    def rim_candidates(self, images: list[Tensor], index: Tensor, start: Tensor
-                       ) -> list[tuple[Tensor, Tensor]]:
-        """The fine rim stage's landmarks ``(K, n, 2)`` and weights ``(K, n)``, best first.
-
-        From the refiner's ellipses ``start`` ``(K, 5)``, and, with a coarse rim stage, from
-        the coarse stage's fit of them too; each cup's first candidate is the one whose
-        landmarks the fine network trusts more (the smaller mean ``log sigma``): the coarse
-        stage rescues a rim the refiner missed, but a correct start it can only blur.
-        """
+    def trusted_rim_landmarks(self, images: list[Tensor], index: Tensor, start: Tensor
+                              ) -> tuple[Tensor, Tensor]:
+        """The fine rim stage's landmarks ``(K, n, 2)`` and weights ``(K, n)`` from the
+        refiner's ellipses ``start`` ``(K, 5)``; where their mean ``log sigma`` exceeds
+        ``coarse_rim_gate``, those from the coarse stage's fit instead if the fine network
+        trusts them more (the coarse stage rescues a rim the refiner missed, but would only
+        blur a right start, and costs a coarse and a fine run)."""
         plain = self.rim_landmarks(images, index, start)
-        if self.coarse_rim is None:
-            return [(plain.landmarks, plain.weights)]
-        coarse = self.rim_landmarks(images, index, self.rim_start(images, index, start))
-        take = (coarse.sigma.log().mean(-1) < plain.sigma.log().mean(-1))[:, None]
-        return [(torch.where(take[..., None], first.landmarks, second.landmarks),
-                 torch.where(take, first.weights, second.weights))
-                for first, second in ((coarse, plain), (plain, coarse))]
+        gate = self.config.coarse_rim_gate
+        if self.coarse_rim is None or gate is None:
+            return plain.landmarks, plain.weights
+        doubt = plain.sigma.log().mean(-1)
+        redo = (doubt > gate).nonzero()[:, 0]
+        if len(redo) == 0:
+            return plain.landmarks, plain.weights
+        coarse = self.rim_landmarks(images, index[redo],
+                                    self.rim_start(images, index[redo], start[redo]))
+        better = coarse.sigma.log().mean(-1) < doubt[redo]
+        landmarks, weights = plain.landmarks.clone(), plain.weights.clone()
+        landmarks[redo[better]], weights[redo[better]] = (coarse.landmarks[better],
+                                                          coarse.weights[better])
+        return landmarks, weights
 
 
 def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:
