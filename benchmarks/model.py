@@ -145,8 +145,8 @@ def main() -> None:
     write_section("model", "## CupNet speed\n\n"
                   f"`python benchmarks/model.py` on {machine()}; checkpoint "
                   f"`{Path(args.checkpoint).name}`; 20 synthetic 512x512 images, "
-                  "`CupNet.detect` end to end (locator, 2 refiner passes, landmarks, pose with "
-                  "ML refinement), machine load at the start: "
+                  "`CupNet.detect` end to end (locator, 2 refiner passes, rim stages, pose "
+                  "with ML refinement), machine load at the start: "
                   f"{os.getloadavg()[0]:.1f} (other agents share the CPU). No GPU was lent, so "
                   "the H100 throughput is not measured.\n\n" + speed)
 
