@@ -230,6 +230,8 @@ class CupNetModule(L.LightningModule):
         rim_jitter: scale of those jitters; rim_copies: differently jittered starts per cup.
         rim_refiner_starts: the fraction of ``rim_only`` starts that are instead the frozen
             refiner's fits on crops framed like its second inference pass (its real errors).
+        freeze: networks not to train (``locator``, ``refiner``, ``rim``, ``coarse_rim``),
+            kept in eval mode: e.g. a refiner-only stage.
         torch_threads: intra-op threads (None: torch's default); 1 suits a shared CPU,
             where the data worker takes the other core.
         init_weights: a checkpoint whose network weights start this run (fine-tuning; a
@@ -263,6 +265,7 @@ class CupNetModule(L.LightningModule):
         rim_jitter: float = 1.0,
         rim_copies: int = 3,
         rim_refiner_starts: float = 0.0,
+        freeze: tuple[str, ...] = (),
         torch_threads: int | None = None,
         init_weights: str | None = None,
         export_path: str | None = None,
@@ -283,34 +286,39 @@ class CupNetModule(L.LightningModule):
             if self._trained_rim() is None:
                 raise ValueError(f"rim_only with rim_stage {rim_stage!r} needs a model with that "
                                  "rim stage (rim_passes or coarse_rim_passes > 0)")
-            for net in self._frozen_nets():
-                net.requires_grad_(False)
-            self._freeze_unet_modes()
+        unknown = set(freeze) - {"locator", "refiner", "rim", "coarse_rim"}
+        if unknown:
+            raise ValueError(f"freeze names unknown networks: {sorted(unknown)}")
+        for net in self._frozen_nets():
+            net.requires_grad_(False)
+        self._freeze_modes()
 
     def _trained_rim(self) -> nn.Module | None:
         """The rim network a ``rim_only`` run trains."""
         return self.model.coarse_rim if self.hparams.rim_stage == "coarse" else self.model.rim
 
     def _frozen_nets(self) -> list[nn.Module]:
-        """``rim_only``: every network but the one trained."""
-        trained = self._trained_rim()
-        return [net for net in (self.model.locator, self.model.refiner, self.model.rim,
-                                self.model.coarse_rim) if net is not None and net is not trained]
+        """The networks ``freeze`` names, and with ``rim_only`` every network but the one
+        trained."""
+        names = ("locator", "refiner", "rim", "coarse_rim")
+        trained = self._trained_rim() if self.hparams.rim_only else None
+        return [net for name in names if (net := getattr(self.model, name)) is not None
+                and (name in self.hparams.freeze or (self.hparams.rim_only and net is not trained))]
 
-    def _freeze_unet_modes(self) -> None:
-        """``rim_only``: the frozen networks stay in eval mode, so running them (the refiner
-        for :meth:`rim_starts`) never updates their BatchNorm statistics."""
-        if self.hparams.rim_only:
-            for net in self._frozen_nets():
-                net.eval()
+    def _freeze_modes(self) -> None:
+        """The frozen networks stay in eval mode, so running them (the refiner for
+        :meth:`rim_starts`, the locator in every forward) never updates their BatchNorm
+        statistics."""
+        for net in self._frozen_nets():
+            net.eval()
 
     def train(self, mode: bool = True) -> CupNetModule:
         super().train(mode)
-        self._freeze_unet_modes()
+        self._freeze_modes()
         return self
 
     def on_train_start(self) -> None:
-        self._freeze_unet_modes()
+        self._freeze_modes()
 
     def losses(self, batch: dict, step: int) -> dict[str, Tensor]:
         """All loss terms of one batch and their weighted total (``"loss"``)."""
