@@ -12,9 +12,9 @@ filled rim ellipse) as an area-coverage map:
 3. the optional *rim* stage (:mod:`cupnet.rim`, ``rim_passes > 0``) samples full-resolution
    strips across the refiner's ellipse and moves each landmark onto the rim with a learned,
    differentiable edge locator, weighting it by its predicted precision. An optional
-   *coarse* rim stage (``coarse_rim_passes > 0``) goes first, its strips reaching a fixed
-   fraction of each cup's size, to correct the refiner's gross errors (a femoral head's
-   outline taken for a thin rim) that the fine strips cannot reach.
+   *coarse* rim stage (``coarse_rim_passes > 0``), its strips reaching a fixed fraction of
+   each cup's size, re-frames the fine stage where the refiner's ellipse was too far off for
+   the fine strips to reach the rim (a femoral head's outline taken for a thin rim).
 
 The weighted ellipse fit and the pose solver (:func:`cupnet.pose.solve_pose`) then give the
 pose, so a pose loss backpropagates into the last stage's network.
@@ -351,13 +351,11 @@ class CupNet(nn.Module):
                 ellipse = usable_fit(rim.landmarks.detach(), rim.weights.detach(), ellipse)
         return rim
 
-    def rim_start(self, images: list[Tensor] | Tensor, index: Tensor, ellipse: Tensor
-                  ) -> Tensor:
-        """``(K, 5)`` the ellipses the fine rim stage starts from: the coarse rim stage's fit
-        from the refiner's ``ellipse`` ``(K, 5)`` when the model has one, else ``ellipse``
-        (no gradient: the fine stage's strips are framed on it, as on the refiner's fit)."""
-        if self.coarse_rim is None:
-            return ellipse
+    def coarse_rim_fit(self, images: list[Tensor] | Tensor, index: Tensor, ellipse: Tensor
+                       ) -> Tensor:
+        """``(K, 5)`` the coarse rim stage's weighted fit from ``ellipse`` ``(K, 5)`` (kept
+        where the fit fails), to frame the fine stage on; no gradient, as the fine stage's
+        strips take none from the ellipses they are framed on."""
         with torch.no_grad():
             rim = self.rim_landmarks(images, index, ellipse, coarse=True)
             return usable_fit(rim.landmarks, rim.weights, ellipse)
@@ -469,10 +467,10 @@ class CupNet(nn.Module):
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
         crop_points, crop_weights = self.crop_landmarks(crop_logits, crop_to_image)
         # Each cup's landmarks, weights and (solution, row) from the first source that gives
-        # it a pose: the fine rim stage's from the refiner's fit (or from the coarse stage's
-        # fit where the fine network trusts that more); the fine rim stage's from
-        # the coarse rim stage's fit (a rim the refiner missed: a femoral head's outline taken
-        # for it); the refiner's own (a rim the strips lost). Each runs on the cups left.
+        # it a pose, each source run on the cups left: (1) the fine rim stage framed on the
+        # refiner's fit (see trusted_rim_landmarks); (2) the fine rim stage framed on the
+        # coarse stage's fit (a rim the refiner missed); (3) the refiner's own landmarks (a
+        # rim the strips lost).
         index = cup_index[:, 0]
         sources: list[Callable[[Tensor], tuple[Tensor, Tensor]]] = []
         if self.rim is not None:
@@ -481,7 +479,7 @@ class CupNet(nn.Module):
                                                                    start[todo]))
             if self.coarse_rim is not None:
                 sources.append(lambda todo: self.rim_landmarks(image_list, index[todo], (
-                    self.rim_start(image_list, index[todo], start[todo])))[:2])
+                    self.coarse_rim_fit(image_list, index[todo], start[todo])))[:2])
         sources.append(lambda todo: (crop_points[todo], crop_weights[todo]))
         chosen: list = [None] * len(cup_index)
         for source in sources:
@@ -517,7 +515,6 @@ class CupNet(nn.Module):
             ))
         return results
 
-
     def trusted_rim_landmarks(self, images: list[Tensor], index: Tensor, start: Tensor
                               ) -> tuple[Tensor, Tensor]:
         """The fine rim stage's landmarks ``(K, n, 2)`` and weights ``(K, n)`` from the
@@ -534,7 +531,7 @@ class CupNet(nn.Module):
         if len(redo) == 0:
             return plain.landmarks, plain.weights
         coarse = self.rim_landmarks(images, index[redo],
-                                    self.rim_start(images, index[redo], start[redo]))
+                                    self.coarse_rim_fit(images, index[redo], start[redo]))
         better = coarse.sigma.log().mean(-1) < doubt[redo]
         landmarks, weights = plain.landmarks.clone(), plain.weights.clone()
         landmarks[redo[better]], weights[redo[better]] = (coarse.landmarks[better],
