@@ -117,6 +117,22 @@ def test_same_seed_same_batches_and_losses():
     assert losses_a == losses_b and all(math.isfinite(v) for v in losses_a)
 
 
+def test_a_list_of_synthesis_configs_is_mixed_batch_by_batch():
+    thin = {"image_size": [128, 128], "supersample": 1, "theta_deg": [0.0, 1.0]}
+    open_ = {**thin, "theta_deg": [49.0, 50.0]}
+    mixed = CupDataModule(synth=[thin, open_], batch_size=2, image_sizes=[96, 128])
+    batches = [b for _, b in zip(range(4), mixed.train_dataset(), strict=False)]
+    # Streams in order (configs, sizes within each): thin 96, thin 128, open 96, open 128.
+    assert [b["image"].shape[-1] for b in batches] == [96, 128, 96, 128]
+    for b, low in zip(batches, (0, 0, 49, 49), strict=True):
+        theta = b["pose"][..., 0][b["cup_valid"].bool()]
+        assert ((theta >= low) & (theta <= low + 1)).all()
+    # A single config keeps its streams' seeds: the thin stream alone starts the same.
+    alone = next(iter(CupDataModule(synth=thin, batch_size=2, image_sizes=[96, 128])
+                      .train_dataset()))
+    assert torch.equal(alone["image"], batches[0]["image"])
+
+
 RIM_MODEL = {"decoder_channels": [16, 16, 8, 8, 8], "locator_size": 64, "crop_size": 64,
              "n_rays": 16, "rim_passes": 1, "rim_points": 32, "rim_samples": 32,
              "rim_channels": 8}

@@ -61,23 +61,24 @@ class CupDataModule(L.LightningDataModule):
     """Training and validation streams of synthetic images, deterministic per seed.
 
     Args:
-        synth: synthesis config (YAML path or dict of ``SynthConfig`` fields).
+        synth: synthesis config (YAML path or dict of ``SynthConfig`` fields), or a list of
+            them, mixed batch by batch (e.g. a stream of hard cases beside the usual one).
         image_sizes: square training image sizes (px), taken in turn batch by batch; None
             keeps the config's ``image_size``.
-        val_synth: synthesis config for validation (default: ``synth``).
+        val_synth: synthesis config for validation (default: ``synth``, its first).
         val_image_size: validation image size (None: the config's).
         batch_size: images per batch.
         num_workers: DataLoader workers of the training stream (the synthetic dataset gives
             each worker its own share of the stream).
         train_seed, val_seed: dataset seeds (distinct, so validation images are unseen); the
-            stream of size ``i`` uses ``train_seed + i``.
+            ``i``-th stream (configs in order, sizes within each) uses ``train_seed + i``.
         train_batches: batches per training epoch (None: endless, bounded by ``max_steps``).
         val_length: validation images.
     """
 
     def __init__(
         self,
-        synth: str | dict | None = None,
+        synth: str | dict | list | None = None,
         image_sizes: list[int] | None = None,
         val_synth: str | dict | None = None,
         val_image_size: int | None = None,
@@ -91,13 +92,18 @@ class CupDataModule(L.LightningDataModule):
         super().__init__()
         self.save_hyperparameters()
 
+    def _synth_list(self) -> list:
+        synth = self.hparams.synth
+        return list(synth) if isinstance(synth, list | tuple) else [synth]
+
     def train_dataset(self) -> RoundRobinBatches:
         from data_synth import SynthDataset
 
         hp = self.hparams
         sizes = hp.image_sizes or [None]
-        datasets = [SynthDataset(synth_config(hp.synth, size), seed=hp.train_seed + i)
-                    for i, size in enumerate(sizes)]
+        streams = [(source, size) for source in self._synth_list() for size in sizes]
+        datasets = [SynthDataset(synth_config(source, size), seed=hp.train_seed + i)
+                    for i, (source, size) in enumerate(streams)]
         return RoundRobinBatches(datasets, hp.batch_size, hp.train_batches)
 
     def train_dataloader(self) -> DataLoader:
@@ -109,7 +115,7 @@ class CupDataModule(L.LightningDataModule):
         from data_synth import SynthDataset
 
         hp = self.hparams
-        source = hp.val_synth if hp.val_synth is not None else hp.synth
+        source = hp.val_synth if hp.val_synth is not None else self._synth_list()[0]
         dataset = SynthDataset(synth_config(source, hp.val_image_size), seed=hp.val_seed,
                                length=hp.val_length)
         return DataLoader(dataset, batch_size=hp.batch_size, num_workers=0)
