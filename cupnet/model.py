@@ -351,14 +351,16 @@ class CupNet(nn.Module):
                 ellipse = usable_fit(rim.landmarks.detach(), rim.weights.detach(), ellipse)
         return rim
 
-    def coarse_rim_fit(self, images: list[Tensor] | Tensor, index: Tensor, ellipse: Tensor
-                       ) -> Tensor:
-        """``(K, 5)`` the coarse rim stage's weighted fit from ``ellipse`` ``(K, 5)`` (kept
-        where the fit fails), to frame the fine stage on; no gradient, as the fine stage's
-        strips take none from the ellipses they are framed on."""
+    def coarse_framed_rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor,
+                                    start: Tensor) -> RimLandmarks:
+        """The fine rim stage framed on the coarse rim stage's weighted fit from ``start``
+        ``(K, 5)`` (``start`` kept where the fit fails). The coarse stage runs without
+        gradient, as the fine stage's strips take none from the ellipses they are framed on.
+        """
         with torch.no_grad():
-            rim = self.rim_landmarks(images, index, ellipse, coarse=True)
-            return usable_fit(rim.landmarks, rim.weights, ellipse)
+            coarse = self.rim_landmarks(images, index, start, coarse=True)
+            framed = usable_fit(coarse.landmarks, coarse.weights, start)
+        return self.rim_landmarks(images, index, framed)
 
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
                 crop_frames: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
@@ -478,8 +480,8 @@ class CupNet(nn.Module):
             sources.append(lambda todo: self.trusted_rim_landmarks(image_list, index[todo],
                                                                    start[todo]))
             if self.coarse_rim is not None:
-                sources.append(lambda todo: self.rim_landmarks(image_list, index[todo], (
-                    self.coarse_rim_fit(image_list, index[todo], start[todo])))[:2])
+                sources.append(lambda todo: self.coarse_framed_rim_landmarks(
+                    image_list, index[todo], start[todo])[:2])
         sources.append(lambda todo: (crop_points[todo], crop_weights[todo]))
         chosen: list = [None] * len(cup_index)
         for source in sources:
@@ -530,8 +532,7 @@ class CupNet(nn.Module):
         redo = (doubt > gate).nonzero()[:, 0]
         if len(redo) == 0:
             return plain.landmarks, plain.weights
-        coarse = self.rim_landmarks(images, index[redo],
-                                    self.coarse_rim_fit(images, index[redo], start[redo]))
+        coarse = self.coarse_framed_rim_landmarks(images, index[redo], start[redo])
         better = coarse.sigma.log().mean(-1) < doubt[redo]
         landmarks, weights = plain.landmarks.clone(), plain.weights.clone()
         landmarks[redo[better]], weights[redo[better]] = (coarse.landmarks[better],

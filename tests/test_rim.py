@@ -189,8 +189,7 @@ def test_coarse_rim_stage_reaches_a_rim_beyond_the_fine_stages_reach():
     assert worst_distance(model.rim_landmarks(image[None], index, start).landmarks) > 5.0
     coarse = model.rim_landmarks(image[None], index, start, coarse=True)
     assert coarse.offset.abs().max() > model.rim_reach and worst_distance(coarse.landmarks) < 1.5
-    framed = model.coarse_rim_fit(image[None], index, start)
-    refined = model.rim_landmarks(image[None], index, framed)
+    refined = model.coarse_framed_rim_landmarks(image[None], index, start)
     assert worst_distance(refined.landmarks) < 0.1
 
 
