@@ -344,7 +344,8 @@ class CupNet(nn.Module):
             strips = sample_strips(images, index, points, normals, offsets)
             if strips.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
                 empty = points.new_zeros(0, cfg.rim_points)
-                return RimLandmarks(points, empty, empty, empty, points, normals)
+                return RimLandmarks(points, empty, empty, empty, points, normals,
+                                    points.new_zeros(0, 1))
             logits, log_sigma = net(strips.to(self.dtype))
             rim = strip_landmarks(logits, log_sigma, points, normals, offsets)
             if remaining:

@@ -182,6 +182,7 @@ class RimLandmarks(NamedTuple):
         sigma: ``(K, n)`` pixels, each landmark's predicted error along its normal.
         offset: ``(K, n)`` pixels along the normal.
         points, normals: ``(K, n, 2)`` the strips' frame.
+        reach: ``(K, 1)`` pixels, how far each cup's strips reach either side of its frame.
     """
 
     landmarks: Tensor
@@ -190,6 +191,7 @@ class RimLandmarks(NamedTuple):
     offset: Tensor
     points: Tensor
     normals: Tensor
+    reach: Tensor
 
 
 def strip_landmarks(logits: Tensor, log_sigma: Tensor, points: Tensor, normals: Tensor,
@@ -202,9 +204,11 @@ def strip_landmarks(logits: Tensor, log_sigma: Tensor, points: Tensor, normals: 
             pixels.
     """
     prob = torch.softmax(logits.double(), 1)
-    offset = (prob * offsets.to(prob).expand(prob.shape[0], -1)[..., None]).sum(1)  # (K, n)
+    offsets = offsets.to(prob).expand(prob.shape[0], -1)  # (K, S)
+    offset = (prob * offsets[..., None]).sum(1)  # (K, n)
     points, normals = points.double(), normals.double()
     sigma = log_sigma.double().exp()
     weights = sigma.pow(-2)
     return RimLandmarks(points + offset[..., None] * normals,
-                        weights / weights.mean(-1, keepdim=True), sigma, offset, points, normals)
+                        weights / weights.mean(-1, keepdim=True), sigma, offset, points, normals,
+                        offsets.abs().amax(-1, keepdim=True))

@@ -98,6 +98,7 @@ def test_strip_landmarks_sit_at_the_expected_offset():
     assert torch.allclose(rim.landmarks, points + offsets[rows][None, :, None] * normals)
     assert torch.allclose(rim.sigma, log_sigma.exp())
     assert torch.allclose(rim.weights, rim.sigma.pow(-2) / rim.sigma.pow(-2).mean())
+    assert torch.equal(rim.reach, torch.tensor([[2.0]], dtype=torch.float64))  # 4 rows of 0.5
 
 
 def test_rim_net_is_equivariant_to_turning_around_the_rim():
@@ -120,17 +121,17 @@ def test_rim_loss_is_the_laplace_likelihood_of_the_offset_error():
     offset = torch.tensor([[-1.0, 0.0, 5.5]], dtype=torch.float64)
     sigma = torch.tensor([[1.0, 0.25, 2.0]], dtype=torch.float64)
     rim = RimLandmarks(points + offset[..., None] * normals, sigma.pow(-2), sigma, offset,
-                       points, normals)
+                       points, normals, torch.tensor([[5.0]], dtype=torch.float64))
     # Crossings at -2, 0.5 and 6, the last clipped to the reach of 5.
     error = torch.tensor([1.0, 0.5, 0.5], dtype=torch.float64)
     expected = (error / sigma[0] + sigma[0].log()).mean()
-    assert float(rim_loss(rim, circle, reach=5.0)) == pytest.approx(float(expected))
+    assert float(rim_loss(rim, circle)) == pytest.approx(float(expected))
     # Each cup's own reach: clipped at 4 instead, the last error is 1.5.
-    two = RimLandmarks(*(torch.cat([x, x]) for x in rim))
+    reach = torch.tensor([[5.0], [4.0]], dtype=torch.float64)
+    two = RimLandmarks(*(torch.cat([x, x]) for x in rim[:-1]), reach)
     error = torch.tensor([1.0, 0.5, 1.5], dtype=torch.float64)
     expected = (expected + (error / sigma[0] + sigma[0].log()).mean()) / 2
-    reach = torch.tensor([[5.0], [4.0]], dtype=torch.float64)
-    assert float(rim_loss(two, circle.repeat(2, 1), reach)) == pytest.approx(float(expected))
+    assert float(rim_loss(two, circle.repeat(2, 1))) == pytest.approx(float(expected))
 
 
 class EdgeRimNet(nn.Module):

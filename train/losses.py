@@ -44,11 +44,11 @@ def ellipse_loss(conic: Tensor, rim: Tensor, pixel_scale: Tensor, valid: Tensor)
     return F.smooth_l1_loss(dist, torch.zeros_like(dist), beta=1.0)
 
 
-def rim_loss(rim: RimLandmarks, truth: Tensor, reach: float | Tensor) -> Tensor:
+def rim_loss(rim: RimLandmarks, truth: Tensor) -> Tensor:
     """Laplace negative log-likelihood of the rim stage's offsets.
 
     ``|s - s*| / sigma + log sigma`` per column, ``s*`` where the column's normal line leaves
-    the true ellipse (:func:`cupnet.rim.normal_crossings`) clipped to the strip's ``reach``:
+    the true ellipse (:func:`cupnet.rim.normal_crossings`) clipped to its strip's reach:
     the network is rewarded for landmarks on the rim, at the column's own place along it (a
     distance to the ellipse would accept a thin ellipse's tip column anywhere on its long
     sides), and for a ``sigma`` (its fit weight ``1 / sigma^2``) equal to the error it expects,
@@ -57,13 +57,10 @@ def rim_loss(rim: RimLandmarks, truth: Tensor, reach: float | Tensor) -> Tensor:
 
     Args:
         rim: the rim stage's output for ``K`` cups; truth: ``(K, 5)`` true ellipses.
-        reach: half the strip's length, pixels: a number, or ``(K, 1)`` each cup's.
     """
     if rim.offset.shape[0] == 0:
         return rim.offset.sum() * 0.0
-    target = normal_crossings(rim.points, rim.normals, truth)
-    reach = torch.as_tensor(reach, dtype=target.dtype, device=target.device)
-    target = torch.maximum(torch.minimum(target, reach), -reach)
+    target = normal_crossings(rim.points, rim.normals, truth).clamp(-rim.reach, rim.reach)
     return ((rim.offset - target).abs() / rim.sigma + rim.sigma.log()).mean()
 
 

@@ -353,7 +353,7 @@ class CupNetModule(L.LightningModule):
         total = (hp.locator_weight * terms["seg_locator"] + terms["seg_crop"]
                  + w_ellipse * terms.get("ellipse", 0.0) + w_pose * terms["pose"])
         if out.rim is not None:
-            terms["rim"] = rim_loss(out.rim, batch["ellipse"][i, c], self.model.rim_reach)
+            terms["rim"] = rim_loss(out.rim, batch["ellipse"][i, c])
             total = total + hp.rim_weight * terms["rim"]
         terms["loss"] = total.float()
         terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
@@ -365,15 +365,12 @@ class CupNetModule(L.LightningModule):
         cup_index = batch["cup_valid"].bool().nonzero().repeat(hp.rim_copies, 1)  # (K, 2)
         i, c = cup_index[:, 0], cup_index[:, 1]
         truth = batch["ellipse"][i, c].double()
-        coarse = hp.rim_stage == "coarse"
-        start = self.rim_starts(batch["image"], i, truth)
-        rim = self.model.rim_landmarks(batch["image"], i, start, passes=1, coarse=coarse)
+        rim = self.model.rim_landmarks(batch["image"], i, self.rim_starts(batch["image"], i, truth),
+                                       passes=1, coarse=hp.rim_stage == "coarse")
         solution = self.model.solve(rim.landmarks, rim.weights, batch_geometry(batch["geometry"]),
                                     batch["cup_diameter"], cup_index, batch["image"].shape[0],
                                     refine=hp.refine_pose)
-        reach = (self.model.config.coarse_rim_reach * start[:, 2:3] if coarse
-                 else self.model.rim_reach)
-        terms = {"rim": rim_loss(rim, truth, reach),
+        terms = {"rim": rim_loss(rim, truth),
                  "pose": pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)}
         total = hp.rim_weight * terms["rim"] + hp.pose_weight * terms["pose"]
         if len(cup_index) == 0:  # no cup in the batch: a zero loss that still has a graph
