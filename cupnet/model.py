@@ -98,6 +98,10 @@ class CupNetConfig:
         coarse_rim_gate: at inference the coarse stage runs on the cups whose fine landmarks
             (from the refiner's fit) get no pose, and on those whose mean ``log sigma`` (px)
             exceeds this (None: on no others).
+        locator_retry_gamma: where the locator finds no cup in an image, it looks again at
+            the image raised to this power (None: it does not): a cup under thick anatomy, in
+            the dark part of an image with bright regions, has too little contrast left
+            after standardisation; a power below 1 stretches the dark range.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -123,6 +127,7 @@ class CupNetConfig:
     coarse_rim_passes: int = 0
     coarse_rim_reach: float = 0.6
     coarse_rim_gate: float | None = None
+    locator_retry_gamma: float | None = None
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -235,10 +240,27 @@ class CupNet(nn.Module):
                                for im in images]).to(images[0])
         return resample_batch(images, affines, size), affines
 
-    def locate(self, images: list[Tensor]) -> tuple[Tensor, Tensor]:
-        """Stage 1: letterboxed opening logits ``(B, 1, S, S)`` and affines ``(B, 2, 3)``."""
+    def locate(self, images: list[Tensor], gamma: float | Tensor | None = None
+               ) -> tuple[Tensor, Tensor]:
+        """Stage 1: letterboxed opening logits ``(B, 1, S, S)`` and affines ``(B, 2, 3)``.
+
+        ``gamma``: look at the images (in [0, 1]) raised to this power, one or ``(B,)``.
+        """
         views, affines = self.letterbox(images)
+        if gamma is not None:
+            views = views.clamp(0, 1) ** torch.as_tensor(gamma).to(views).reshape(-1, 1, 1, 1)
         return self.locator(_standardise(views)), affines
+
+    def rough_ellipses(self, images: list[Tensor]) -> tuple[Tensor, Tensor]:
+        """Stage 1 at inference: :meth:`ellipses_from_locator` of :meth:`locate`, looked for
+        again with ``locator_retry_gamma`` in the images where no cup was found."""
+        rough, scores = self.ellipses_from_locator(*self.locate(images))
+        gamma = self.config.locator_retry_gamma
+        empty = (~torch.isfinite(rough).all(-1).any(-1)).nonzero()[:, 0]
+        if gamma is not None and len(empty):
+            again = self.ellipses_from_locator(*self.locate([images[i] for i in empty], gamma))
+            rough[empty], scores[empty] = again
+        return rough, scores
 
     def ellipses_from_locator(self, logits: Tensor, letterbox: Tensor) -> tuple[Tensor, Tensor]:
         """Rough cup ellipses from the locator's components (their second moments).
@@ -454,8 +476,7 @@ class CupNet(nn.Module):
         if diameter.shape != (batch,):
             raise ValueError(f"cup_diameter must be a scalar or ({batch},), got "
                              f"{tuple(diameter.shape)}")
-        locator_logits, letterbox = self.locate(image_list)
-        rough, scores = self.ellipses_from_locator(locator_logits, letterbox)
+        rough, scores = self.rough_ellipses(image_list)
         cup_index = torch.isfinite(rough).all(-1).nonzero()
         frames = self.frames(self.first_pass_ellipses(rough[cup_index[:, 0], cup_index[:, 1]]))
         results: list[list[CupDetection]] = [[] for _ in range(batch)]

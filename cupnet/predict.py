@@ -172,9 +172,10 @@ class NetworkDetector:
     """CupNet on a batch of images (weights loaded without running code from the file)."""
 
     def __init__(self, checkpoint: Path | None, save_masks: bool) -> None:
+        from cupnet.fold import fold_batchnorm
         from cupnet.model import DEFAULT_CHECKPOINT, load_model
 
-        self.model = load_model(checkpoint)
+        self.model = fold_batchnorm(load_model(checkpoint))
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),

@@ -20,6 +20,7 @@ from cupnet.crops import (
     to_view,
 )
 from cupnet.ellipse import fit_ellipse
+from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage, ray_landmarks, soft_moments
 from cupnet.model import CupNet, CupNetConfig, load_model, save_model
@@ -222,3 +223,85 @@ def test_bad_image_is_rejected_with_a_clear_error():
     with pytest.raises(ValueError, match="NaN"):
         model.detect([np.full((64, 64), np.nan, dtype=np.float32)], Geometry(1040.0, 0.3, 32, 32),
                      50.0)
+
+
+class DarkBlindNet(CupNet):
+    """A CupNet whose locator (a stand-in) sees nothing in an image darker than 0.5 unless
+    the image is shown raised to a power, as a trained locator misses a cup under thick
+    anatomy; it records each stage-1 call's (images, gamma)."""
+
+    def __init__(self, config: CupNetConfig) -> None:
+        super().__init__(config)
+        self.locator, self.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
+        self.calls: list[tuple[int, float | None]] = []
+
+    def locate(self, images, gamma=None):
+        logits, affines = super().locate(images, gamma)
+        self.calls.append((len(images), gamma))
+        if gamma is None:
+            dark = torch.tensor([float(im.max()) < 0.5 for im in images])
+            logits = torch.where(dark[:, None, None, None], -20.0, logits)
+        return logits, affines
+
+
+@pytest.mark.parametrize("retry", [None, 0.4])
+def test_locator_looks_again_only_where_it_found_no_cup(retry):
+    model = DarkBlindNet(CupNetConfig(**{**TINY.__dict__, "locator_retry_gamma": retry}))
+    pose = [[25.0, 20.0, 10.0, -5.0, 280.0]]
+    bright, geometry, ellipse = scene(pose, 300, 400)
+    found = model.detect([bright.float(), 0.4 * bright.float()], geometry, 52.0)
+    assert len(found[0]) == 1
+    if retry is None:
+        assert found[1] == [] and model.calls == [(2, None)]
+        return
+    # Only the dark image is looked at again; its cup lands where the bright one's does.
+    assert model.calls == [(2, None), (1, retry)]
+    assert len(found[1]) == 1
+    assert np.abs(found[1][0].ellipse - found[0][0].ellipse).max() < 0.5
+    assert np.abs(found[1][0].ellipse[:2] - ellipse[0, :2].numpy()).max() < 1.0
+
+
+def test_locate_with_a_power_per_image():
+    model = CupNet(TINY)
+    model.locator = EdgeNet(gain=1.0)
+    torch.manual_seed(0)
+    images = [torch.rand(1, 90, 120), torch.rand(1, 100, 80)]
+    both, _ = model.locate(images, torch.tensor([1.0, 0.3]))
+    assert torch.allclose(both[0], model.locate(images[:1])[0][0], atol=1e-5)
+    assert torch.allclose(both[1], model.locate(images[1:], 0.3)[0][0], atol=1e-5)
+    assert not torch.allclose(both[1], model.locate(images[1:])[0][0], atol=1e-2)
+
+
+@pytest.mark.parametrize("shipped", [True, False])
+def test_folded_batchnorm_gives_the_same_outputs(shipped):
+    if shipped:  # timm's mobilenet blocks (BatchNorm + activation), smp's decoder, RimNet
+        model = load_model()
+    else:  # torchvision-style resnet blocks, with BatchNorm statistics made non-trivial
+        torch.manual_seed(3)
+        model = CupNet(TINY)
+        for norm in model.modules():
+            if isinstance(norm, nn.BatchNorm2d):
+                norm.running_mean.uniform_(-0.5, 0.5)
+                norm.running_var.uniform_(0.5, 2.0)
+                norm.weight.data.uniform_(0.5, 1.5)
+                norm.bias.data.uniform_(-0.3, 0.3)
+        model.eval()
+    folded = fold_batchnorm(model)
+    assert not any(isinstance(m, nn.BatchNorm2d) for m in folded.modules())
+    assert any(isinstance(m, nn.BatchNorm2d) for m in model.modules())  # a copy
+    x = torch.rand(2, 1, 128, 128)
+    with torch.no_grad():
+        for net in ("locator", "refiner"):
+            ours, theirs = getattr(folded, net)(x), getattr(model, net)(x)
+            assert torch.allclose(ours, theirs, atol=1e-4 * float(theirs.abs().max()))
+    if shipped:
+        strips = torch.rand(3, 1, model.config.rim_samples, model.config.rim_points)
+        for ours, theirs in zip(folded.rim(strips), model.rim(strips), strict=True):
+            assert torch.allclose(ours, theirs, atol=1e-5)
+        pose = [[25.0, 20.0, 10.0, -5.0, 280.0]]
+        image, geometry, _ = scene(pose, 400, 400)
+        ours, theirs = (m.detect(image.float()[None], geometry, 52.0, return_masks=False)[0]
+                        for m in (folded, model))
+        assert theirs and len(ours) == len(theirs)
+        for a, b in zip(ours, theirs, strict=True):
+            assert np.allclose(a.ellipse, b.ellipse, atol=1e-2)

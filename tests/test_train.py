@@ -192,6 +192,11 @@ def test_freeze_trains_the_other_networks_alone(tmp_path):
         CupNetModule(model=RIM_MODEL, freeze=("encoder",))
 
 
+def test_locator_only_fit_trains_the_locator_alone(tmp_path):
+    module = CupNetModule(model=RIM_MODEL, locator_only=True, locator_dark_views=0.5)
+    _fit_moves_only(module, "locator", tmp_path)
+
+
 def test_coarse_rim_starts_perturb_towards_a_round_outline():
     truth = torch.tensor([[100.0, 80.0, 60.0, 3.0, 30.0], [50.0, 60.0, 40.0, 30.0, 100.0]],
                          dtype=torch.float64).repeat(500, 1)

@@ -230,6 +230,11 @@ class CupNetModule(L.LightningModule):
         rim_jitter: scale of those jitters; rim_copies: differently jittered starts per cup.
         rim_refiner_starts: the fraction of ``rim_only`` starts that are instead the frozen
             refiner's fits on crops framed like its second inference pass (its real errors).
+        locator_only: train the locator alone (its segmentation loss), every other network
+            frozen and not run.
+        locator_dark_views: the fraction of the locator's views raised to a power in
+            ``[0.25, 0.6]``, as :attr:`cupnet.model.CupNetConfig.locator_retry_gamma` shows
+            them to it where it found no cup.
         freeze: networks not to train (``locator``, ``refiner``, ``rim``, ``coarse_rim``),
             kept in eval mode: e.g. a refiner-only stage.
         torch_threads: intra-op threads (None: torch's default); 1 suits a shared CPU,
@@ -265,6 +270,8 @@ class CupNetModule(L.LightningModule):
         rim_jitter: float = 1.0,
         rim_copies: int = 3,
         rim_refiner_starts: float = 0.0,
+        locator_only: bool = False,
+        locator_dark_views: float = 0.0,
         freeze: tuple[str, ...] = (),
         torch_threads: int | None = None,
         init_weights: str | None = None,
@@ -298,12 +305,14 @@ class CupNetModule(L.LightningModule):
         return self.model.coarse_rim if self.hparams.rim_stage == "coarse" else self.model.rim
 
     def _frozen_nets(self) -> list[nn.Module]:
-        """The networks ``freeze`` names, and with ``rim_only`` every network but the one
-        trained."""
+        """The networks ``freeze`` names, and with ``rim_only`` or ``locator_only`` every
+        network but the one trained."""
         names = ("locator", "refiner", "rim", "coarse_rim")
-        trained = self._trained_rim() if self.hparams.rim_only else None
+        hp = self.hparams
+        trained = (self._trained_rim() if hp.rim_only
+                   else self.model.locator if hp.locator_only else None)
         return [net for name in names if (net := getattr(self.model, name)) is not None
-                and (name in self.hparams.freeze or (self.hparams.rim_only and net is not trained))]
+                and (name in hp.freeze or (trained is not None and net is not trained))]
 
     def _freeze_modes(self) -> None:
         """The frozen networks stay in eval mode, so running them (the refiner for
@@ -324,6 +333,8 @@ class CupNetModule(L.LightningModule):
         """All loss terms of one batch and their weighted total (``"loss"``)."""
         if self.hparams.rim_only:
             return self.rim_losses(batch)
+        if self.hparams.locator_only:
+            return self.locator_losses(batch)
         hp, cfg = self.hparams, self.model.config
         images = batch["image"]
         cups = batch["cup_valid"].shape[1]
@@ -358,6 +369,17 @@ class CupNetModule(L.LightningModule):
         terms["loss"] = total.float()
         terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
         return terms
+
+    def locator_losses(self, batch: dict) -> dict[str, Tensor]:
+        """Segmentation loss of the locator alone (``locator_only``), see :meth:`losses`."""
+        images = batch["image"]
+        dark = torch.rand(len(images), device=images.device) < self.hparams.locator_dark_views
+        gamma = torch.where(dark, 0.25 + 0.35 * torch.rand(len(images), device=images.device),
+                            torch.ones(len(images), device=images.device))
+        logits, letterbox = self.model.locate(list(images), gamma)
+        target = resample_batch(batch["mask"], letterbox, self.model.config.locator_size)
+        loss = segmentation_loss(logits, target)
+        return {"seg_locator": loss, "loss": loss.float()}
 
     def rim_losses(self, batch: dict) -> dict[str, Tensor]:
         """Loss terms of the rim stage alone (``rim_only``), see :meth:`losses`."""
