@@ -57,6 +57,7 @@ from cupnet.rim import (
     scaled_offsets,
     strip_landmarks,
     strip_offsets,
+    thin_rim_starts,
 )
 
 ASSETS = Path(__file__).resolve().parent / "assets"
@@ -98,6 +99,12 @@ class CupNetConfig:
         coarse_rim_gate: at inference the coarse stage runs on the cups whose fine landmarks
             (from the refiner's fit) get no pose, and on those whose mean ``log sigma`` (px)
             exceeds this (None: on no others).
+        thin_rim_angles: orientations of the thin-rim hypotheses (see
+            :func:`cupnet.rim.thin_rim_starts`) ...
+        thin_rim_ratio: ... their axis ratio ...
+        thin_rim_gate: ... tried on the cups whose fine landmarks (from the refiner's fit)
+            have a mean ``log sigma`` (px) above this (None: on no cup), and on the cups the
+            other sources give no pose.
         locator_retry_gamma: where the locator finds no cup in an image, it looks again at
             the image raised to this power (None: it does not): a cup under thick anatomy, in
             the dark part of an image with bright regions, has too little contrast left
@@ -127,6 +134,9 @@ class CupNetConfig:
     coarse_rim_passes: int = 0
     coarse_rim_reach: float = 0.6
     coarse_rim_gate: float | None = None
+    thin_rim_angles: int = 12
+    thin_rim_ratio: float = 0.15
+    thin_rim_gate: float | None = None
     locator_retry_gamma: float | None = None
 
     @classmethod
@@ -385,6 +395,22 @@ class CupNet(nn.Module):
             framed = usable_fit(coarse.landmarks, coarse.weights, start)
         return self.rim_landmarks(images, index, framed)
 
+    def thin_rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor
+                           ) -> RimLandmarks:
+        """The fine rim stage from thin-rim hypotheses around each ellipse ``start`` ``(K, 5)``
+        (:func:`cupnet.rim.thin_rim_starts`): one pass from each, then ``rim_passes`` more
+        from the weighted fit of the pass the network trusts most (lowest mean ``log sigma``).
+        """
+        cfg = self.config
+        starts = thin_rim_starts(start.detach().double(), cfg.thin_rim_angles, cfg.thin_rim_ratio)
+        count, angles = starts.shape[:2]
+        starts = starts.flatten(0, 1)
+        first = self.rim_landmarks(images, index.repeat_interleave(angles), starts, passes=1)
+        doubt = first.sigma.log().mean(-1).reshape(count, angles).nan_to_num(math.inf)
+        pick = torch.arange(count, device=doubt.device) * angles + doubt.argmin(-1)
+        framed = usable_fit(first.landmarks[pick], first.weights[pick], starts[pick])
+        return self.rim_landmarks(images, index, framed)
+
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
                 crop_frames: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
         """Images + geometry -> locator map, crop maps, landmarks, ellipses and poses.
@@ -493,8 +519,9 @@ class CupNet(nn.Module):
         # Each cup's landmarks, weights and (solution, row) from the first source that gives
         # it a pose, each source run on the cups left: (1) the fine rim stage framed on the
         # refiner's fit (see trusted_rim_landmarks); (2) the fine rim stage framed on the
-        # coarse stage's fit (a rim the refiner missed); (3) the refiner's own landmarks (a
-        # rim the strips lost).
+        # coarse stage's fit (a rim the refiner missed); (3) with a thin_rim_gate, the fine
+        # rim stage from the thin-rim hypotheses (a nearly edge-on rim the refiner took for
+        # a disc); (4) the refiner's own landmarks (a rim the strips lost).
         index = cup_index[:, 0]
         sources: list[Callable[[Tensor], tuple[Tensor, Tensor]]] = []
         if self.rim is not None:
@@ -503,6 +530,9 @@ class CupNet(nn.Module):
                                                                    start[todo]))
             if self.coarse_rim is not None:
                 sources.append(lambda todo: self.coarse_framed_rim_landmarks(
+                    image_list, index[todo], start[todo])[:2])
+            if self.config.thin_rim_gate is not None and self.config.thin_rim_angles > 0:
+                sources.append(lambda todo: self.thin_rim_landmarks(
                     image_list, index[todo], start[todo])[:2])
         sources.append(lambda todo: (crop_points[todo], crop_weights[todo]))
         chosen: list = [None] * len(cup_index)
@@ -543,22 +573,29 @@ class CupNet(nn.Module):
                               ) -> tuple[Tensor, Tensor]:
         """The fine rim stage's landmarks ``(K, n, 2)`` and weights ``(K, n)`` from the
         refiner's ellipses ``start`` ``(K, 5)``; where their mean ``log sigma`` exceeds
-        ``coarse_rim_gate``, those from the coarse stage's fit instead if the fine network
-        trusts them more (the coarse stage rescues a rim the refiner missed, but would only
-        blur a right start, and costs a coarse and a fine run)."""
+        ``coarse_rim_gate`` (``thin_rim_gate``), those framed on the coarse stage's fit (the
+        thin-rim hypotheses' best) instead if the fine network trusts them more. Either
+        rescues a rim the refiner missed, costs more rim passes, and would only blur a right
+        start."""
+        cfg = self.config
         plain = self.rim_landmarks(images, index, start)
-        gate = self.config.coarse_rim_gate
-        if self.coarse_rim is None or gate is None:
-            return plain.landmarks, plain.weights
         doubt = plain.sigma.log().mean(-1)
-        redo = (doubt > gate).nonzero()[:, 0]
-        if len(redo) == 0:
-            return plain.landmarks, plain.weights
-        coarse = self.coarse_framed_rim_landmarks(images, index[redo], start[redo])
-        better = coarse.sigma.log().mean(-1) < doubt[redo]
-        landmarks, weights = plain.landmarks.clone(), plain.weights.clone()
-        landmarks[redo[better]], weights[redo[better]] = (coarse.landmarks[better],
-                                                          coarse.weights[better])
+        landmarks, weights = plain.landmarks, plain.weights
+        alternatives = [(gate, other) for gate, other, usable in (
+            (cfg.coarse_rim_gate, self.coarse_framed_rim_landmarks, self.coarse_rim is not None),
+            (cfg.thin_rim_gate, self.thin_rim_landmarks, cfg.thin_rim_angles > 0))
+            if usable and gate is not None]
+        for gate, other in alternatives:
+            redo = (doubt > gate).nonzero()[:, 0]
+            if len(redo) == 0:
+                continue
+            rim = other(images, index[redo], start[redo])
+            rim_doubt = rim.sigma.log().mean(-1)
+            better = rim_doubt < doubt[redo]
+            rows = redo[better]
+            landmarks, weights, doubt = landmarks.clone(), weights.clone(), doubt.clone()
+            landmarks[rows], weights[rows] = rim.landmarks[better], rim.weights[better]
+            doubt[rows] = rim_doubt[better]
         return landmarks, weights
 
 

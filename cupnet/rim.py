@@ -96,6 +96,23 @@ def scaled_offsets(samples: int, ellipse: Tensor, reach: float) -> Tensor:
     return reach * ellipse[:, 2:3] * unit
 
 
+def thin_rim_starts(ellipse: Tensor, angles: int, ratio: float) -> Tensor:
+    """``(K, A, 5)`` thin ellipses sharing each ellipse's ``(K, 5)`` centre and semi-major
+    axis, semi-minor axis ``ratio a``, at ``A = angles`` orientations evenly spread over 180
+    degrees.
+
+    Where a nearly edge-on cup holds a femoral head, cup and head show as one round disc, which
+    a segmentation takes for the opening; the rim is a thin ellipse along that disc's diameter,
+    at an orientation the disc does not show. These are the starts from which the rim stage
+    looks for it (:meth:`cupnet.model.CupNet.thin_rim_landmarks`).
+    """
+    count = ellipse.shape[0]
+    turn = torch.arange(angles, dtype=ellipse.dtype, device=ellipse.device) * (180.0 / angles)
+    major = ellipse[:, None, 2:3].expand(count, angles, 1)
+    return torch.cat([ellipse[:, None, :2].expand(count, angles, 2), major, ratio * major,
+                      turn[None, :, None].expand(count, angles, 1)], -1)
+
+
 def sample_strips(images: Tensor | list[Tensor], index: Tensor, points: Tensor, normals: Tensor,
                   offsets: Tensor) -> Tensor:
     """Bilinear samples of each image along each normal: the strips.

@@ -22,6 +22,7 @@ from cupnet.rim import (
     scaled_offsets,
     strip_landmarks,
     strip_offsets,
+    thin_rim_starts,
 )
 from train.losses import rim_loss
 
@@ -213,6 +214,39 @@ def test_trusted_rim_landmarks_take_the_coarse_path_where_the_fine_stage_doubts(
     landmarks, _ = model.trusted_rim_landmarks([image], torch.tensor([0]), far)
     worst = float(sampson_distance(params_to_conic(ellipse), landmarks).abs().max())
     assert worst < 0.1 if rescued else worst > 5.0
+
+
+def test_thin_rim_starts_spread_thin_ellipses_over_half_a_turn():
+    ellipse = torch.tensor([[100.0, 80.0, 50.0, 40.0, 33.0], [10.0, 20.0, 30.0, 30.0, 0.0]],
+                           dtype=torch.float64)
+    starts = thin_rim_starts(ellipse, 12, 0.15)
+    assert starts.shape == (2, 12, 5)
+    assert torch.equal(starts[..., :3], ellipse[:, None, :3].expand(2, 12, 3))
+    assert torch.allclose(starts[..., 3], 0.15 * ellipse[:, None, 2].expand(2, 12))
+    assert torch.allclose(starts[0, :, 4], torch.arange(0.0, 180.0, 15.0, dtype=torch.float64))
+
+
+@pytest.mark.parametrize(("gate", "rescued"), [(None, False), (0.0, True)])
+def test_thin_rim_hypotheses_find_a_rim_the_segmentation_took_for_a_disc(gate, rescued):
+    # A nearly edge-on rim 4 degrees off the nearest hypothesis, and the round outline a
+    # segmentation of cup and femoral head gives for it: the fine strips (12 px) reach the
+    # rim only near its tips. (Wide enough that no strip crosses both of its long sides: the
+    # stand-in network would average them.)
+    rim = torch.tensor([[200.0, 190.0, 120.0, 15.0, 34.0]], dtype=torch.float64)
+    image = ellipse_coverage(rim[None], 380, 400, supersample=8)[0]
+    disc = torch.tensor([[201.0, 189.0, 118.0, 110.0, 100.0]], dtype=torch.float64)
+    model = CupNet(CupNetConfig(**{**RIM.__dict__, "thin_rim_gate": gate})).double()
+    model.rim = SureEdgeRimNet().double()
+    landmarks, weights = model.trusted_rim_landmarks([image], torch.tensor([0]), disc)
+    # The stand-in places the columns at the thin rim's tips poorly: it takes the slope's
+    # centroid across a strip that runs along the rim there, and says it is unsure.
+    typical = float(sampson_distance(params_to_conic(rim), landmarks).abs().median())
+    assert typical < 0.1 if rescued else typical > 5.0
+    if rescued:
+        fitted = fit_ellipse(landmarks, weights).params[0]
+        assert torch.allclose(fitted[[0, 1, 3]], rim[0, [0, 1, 3]], atol=0.3)  # disc: b 95 px off
+        assert abs(float(fitted[2] - rim[0, 2])) < 4.0  # tips short by the stand-in's
+        assert math.isclose(float(fitted[4]), float(rim[0, 4]), abs_tol=0.2)
 
 
 def test_pose_loss_reaches_the_rim_network():
