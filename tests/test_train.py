@@ -15,7 +15,7 @@ from cupnet.model import load_model, save_model
 from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule
 from train.losses import pose_errors, ramp, wrap_angle
-from train.module import CupNetModule, coarse_rim_starts, jittered_ellipses
+from train.module import CupNetModule, coarse_rim_starts, far_rim_starts, jittered_ellipses
 
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -214,6 +214,20 @@ def test_coarse_rim_starts_perturb_towards_a_round_outline():
     assert relative.min() >= 0.5 and relative.max() <= 1.0 and relative.std() > 0.1
     assert (heads[:, 3] >= 0.8 * heads[:, 2]).all() and (heads[:, 3] <= heads[:, 2]).all()
     assert (heads[:, :2] - truth[:, :2]).abs().max() < 0.05 * 60 * 5
+
+
+def test_far_rim_starts_are_discs_or_thin_ellipses_at_any_angle():
+    truth = torch.tensor([[100.0, 80.0, 60.0, 6.0, 30.0]], dtype=torch.float64).repeat(2000, 1)
+    torch.manual_seed(0)
+    start = far_rim_starts(truth)
+    ratio = start[:, 3] / start[:, 2]
+    thin, disc = ratio < 0.2, ratio >= 0.8
+    assert (thin | disc).all() and 0.45 < thin.float().mean() < 0.55
+    assert torch.allclose(ratio[thin], torch.full_like(ratio[thin], 0.15))
+    assert (start[disc, 2] >= 30.0).all() and (start[disc, 2] <= 60.0).all()  # heads
+    angles = start[thin, 4]
+    assert angles.min() < 10 and angles.max() > 170 and 60 < angles.median() < 120
+    assert (start[:, :2] - truth[:, :2]).abs().max() < 0.05 * 60 * 5
 
 
 def test_coarse_rim_only_fit_trains_the_coarse_rim_network_alone(tmp_path):

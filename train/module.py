@@ -122,6 +122,23 @@ def coarse_rim_starts(ellipse: Tensor, scale: float, head: float = 0.5) -> Tenso
     return torch.where(is_head < head, outline, jittered)
 
 
+def far_rim_starts(ellipse: Tensor) -> Tensor:
+    """True ellipses ``(K, 5)`` replaced by the starts the thin-rim hypotheses and a disc give
+    the fine rim stage at inference, mostly out of its reach: half a disc's round outline
+    (:func:`coarse_rim_starts`' femoral heads), half a thin ellipse (axis ratio 0.15, the
+    semi-major axis ``a exp(N(0, 0.1))``, the centre within ``N(0, 0.05 a)``) at any angle.
+    The rim stage learns to say where it cannot see the rim (a large ``sigma``), which is how
+    :meth:`cupnet.model.CupNet.trusted_rim_landmarks` chooses among its starts."""
+    count = ellipse.shape[0]
+    noise = torch.randn(count, 3, dtype=ellipse.dtype, device=ellipse.device)
+    turn, is_disc = torch.rand(count, 2, dtype=ellipse.dtype, device=ellipse.device).split(1, -1)
+    a = ellipse[:, 2:3]
+    major = a * torch.exp(0.1 * noise[:, 2:3])
+    thin = torch.cat([ellipse[:, :2] + 0.05 * a * noise[:, :2], major, 0.15 * major, 180 * turn],
+                     -1)
+    return torch.where(is_disc < 0.5, coarse_rim_starts(ellipse, 0.0, head=1.0), thin)
+
+
 def crop_targets(ellipse: Tensor, valid: Tensor, crop_to_image: Tensor, cup_index: Tensor,
                  size: int) -> Tensor:
     """Coverage maps ``(K, 1, size, size)`` of all true ellipses of each crop's image."""
@@ -230,6 +247,8 @@ class CupNetModule(L.LightningModule):
         rim_jitter: scale of those jitters; rim_copies: differently jittered starts per cup.
         rim_refiner_starts: the fraction of ``rim_only`` starts that are instead the frozen
             refiner's fits on crops framed like its second inference pass (its real errors).
+        rim_far_starts: the fraction of the fine stage's ``rim_only`` starts that are instead
+            :func:`far_rim_starts` (a disc's outline or a thin-rim hypothesis).
         locator_only: train the locator alone (its segmentation loss), every other network
             frozen and not run.
         locator_dark_views: the fraction of the locator's views raised to a power in
@@ -270,6 +289,7 @@ class CupNetModule(L.LightningModule):
         rim_jitter: float = 1.0,
         rim_copies: int = 3,
         rim_refiner_starts: float = 0.0,
+        rim_far_starts: float = 0.0,
         locator_only: bool = False,
         locator_dark_views: float = 0.0,
         freeze: tuple[str, ...] = (),
@@ -416,6 +436,9 @@ class CupNetModule(L.LightningModule):
         hp = self.hparams
         jitter = coarse_rim_starts if hp.rim_stage == "coarse" else jittered_rim_starts
         start = jitter(truth, hp.rim_jitter)
+        if hp.rim_far_starts > 0 and hp.rim_stage == "fine":
+            far = torch.rand(len(truth), 1, device=truth.device) < hp.rim_far_starts
+            start = torch.where(far, far_rim_starts(truth), start)
         if hp.rim_refiner_starts <= 0:
             return start
         valid = torch.ones_like(truth[None, :, 0], dtype=torch.bool)
