@@ -25,13 +25,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "temporary folder)")
     parser.add_argument("--n", type=int, default=24, help="number of synthetic images")
     parser.add_argument("--seed", type=int, default=0, help="synthesis seed")
+    parser.add_argument("--size", type=int, default=512,
+                        help="square image side in pixels (default 512: the model trains and "
+                        "is benchmarked on 512-1024 px images)")
     parser.add_argument("--checkpoint", type=Path, help="model weights (default: shipped)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the outputs of an earlier demo in --out")
 
 
 def commands(out: Path, n: int, seed: int, checkpoint: Path | None,
-             overwrite: bool) -> list[list[str]]:
+             overwrite: bool, size: int = 512) -> list[list[str]]:
     """The three ``cupnet`` command lines the demo runs (without the leading ``cupnet``)."""
     data, pred, evaluation = (out / step for step in STEPS)
     again = ["--overwrite"] if overwrite else []
@@ -40,7 +43,8 @@ def commands(out: Path, n: int, seed: int, checkpoint: Path | None,
     if checkpoint is not None:
         predict += ["--checkpoint", str(checkpoint)]
     return [
-        ["synth", "--n", str(n), "--seed", str(seed), "--out", str(data), *again],
+        ["synth", "--n", str(n), "--seed", str(seed), "--size", str(size), str(size),
+         "--out", str(data), *again],
         predict,
         ["evaluate", "--pred", str(pred / "results.csv"), "--truth", str(data / "truth.csv"),
          "--out", str(evaluation)],
@@ -55,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     out = args.out if args.out is not None else Path(tempfile.mkdtemp(prefix="cupnet-demo-"))
     start = time.perf_counter()
-    for argv in commands(out, args.n, args.seed, args.checkpoint, args.overwrite):
+    for argv in commands(out, args.n, args.seed, args.checkpoint, args.overwrite, args.size):
         print(f"\n$ cupnet {shlex.join(argv)}", file=sys.stderr, flush=True)
         code = main(argv)
         if code != 0:
