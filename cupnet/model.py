@@ -29,7 +29,6 @@ import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
-from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -220,15 +219,6 @@ def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
                         for t in geometry.tensors(torch.float64)], -1)
 
 
-class _TrustedPass(NamedTuple):
-    """:meth:`CupNet._most_trusted_pass` per cup: the start ``(K, 5)``, its pass's mean
-    ``log sigma`` ``(K,)`` and weighted fit ``(K, 5)``."""
-
-    start: Tensor
-    doubt: Tensor
-    fit: Tensor
-
-
 class CupNet(nn.Module):
     """Two-stage cup-opening segmentation, soft landmarks, ellipse fit and pose solver."""
 
@@ -408,38 +398,18 @@ class CupNet(nn.Module):
     def thin_rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor
                            ) -> RimLandmarks:
         """The fine rim stage from thin-rim hypotheses around each ellipse ``start`` ``(K, 5)``
-        (:func:`cupnet.rim.thin_rim_starts`), searched coarse to fine: one pass from every
-        other of the ``thin_rim_angles`` orientations, one from each neighbour of the pass the
-        network trusts most (lowest mean ``log sigma``), then ``rim_passes`` more from the
-        weighted fit of the most trusted of those three. (The most trusted of all
-        ``thin_rim_angles`` passes gave the same landmarks on the selection sets, for half as
-        many strips again.)
+        (:func:`cupnet.rim.thin_rim_starts`): one pass from each, then ``rim_passes`` more
+        from the weighted fit of the pass the network trusts most (lowest mean ``log sigma``).
         """
         cfg = self.config
-        step = 180.0 / cfg.thin_rim_angles
-        coarse = thin_rim_starts(start.detach().double(), max(cfg.thin_rim_angles // 2, 1),
-                                 cfg.thin_rim_ratio)
-        best = self._most_trusted_pass(images, index, coarse)
-        turns = torch.tensor([-step, step], dtype=coarse.dtype, device=coarse.device)
-        neighbours = best.start[:, None].repeat(1, 2, 1)
-        neighbours[..., 4] += turns
-        around = self._most_trusted_pass(images, index, neighbours)
-        closer = around.doubt < best.doubt
-        framed = torch.where(closer[:, None], around.fit, best.fit)
-        return self.rim_landmarks(images, index, framed)
-
-    def _most_trusted_pass(self, images: list[Tensor] | Tensor, index: Tensor, starts: Tensor
-                           ) -> _TrustedPass:
-        """One fine rim pass from each of ``A`` starts per cup ``(K, A, 5)``; per cup the start
-        whose pass has the lowest mean ``log sigma``, that doubt and the pass's weighted fit."""
+        starts = thin_rim_starts(start.detach().double(), cfg.thin_rim_angles, cfg.thin_rim_ratio)
         count, angles = starts.shape[:2]
-        flat = starts.flatten(0, 1)
-        rim = self.rim_landmarks(images, index.repeat_interleave(angles), flat, passes=1)
-        doubt = rim.sigma.log().mean(-1).reshape(count, angles).nan_to_num(math.inf)
-        least, choice = doubt.min(-1)
-        pick = torch.arange(count, device=doubt.device) * angles + choice
-        return _TrustedPass(flat[pick], least,
-                            usable_fit(rim.landmarks[pick], rim.weights[pick], flat[pick]))
+        starts = starts.flatten(0, 1)
+        first = self.rim_landmarks(images, index.repeat_interleave(angles), starts, passes=1)
+        doubt = first.sigma.log().mean(-1).reshape(count, angles).nan_to_num(math.inf)
+        pick = torch.arange(count, device=doubt.device) * angles + doubt.argmin(-1)
+        framed = usable_fit(first.landmarks[pick], first.weights[pick], starts[pick])
+        return self.rim_landmarks(images, index, framed)
 
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
                 crop_frames: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
