@@ -192,6 +192,26 @@ def test_freeze_trains_the_other_networks_alone(tmp_path):
         CupNetModule(model=RIM_MODEL, freeze=("encoder",))
 
 
+def test_locator_targets_widen_thin_openings():
+    batch = _smoke_batch()
+    plain, widened = (CupNetModule(locator_only=True, locator_min_ratio=r) for r in (0.0, 0.3))
+    _, letterbox = plain.model.letterbox(list(batch["image"]))
+    mask = plain.locator_targets(batch, letterbox)
+    # From the ellipses (a ratio no opening is under): the synthesised mask's coverage.
+    drawn = CupNetModule(locator_only=True, locator_min_ratio=1e-6).locator_targets(batch,
+                                                                                  letterbox)
+    assert torch.allclose(drawn.sum((1, 2, 3)), mask.sum((1, 2, 3)), rtol=0.01)
+    # A nearly edge-on opening is drawn 0.3 a wide: area pi a (0.3 a) in the view.
+    thin = {**batch, "ellipse": batch["ellipse"].clone()}
+    thin["ellipse"][..., 3] = 0.02 * thin["ellipse"][..., 2]
+    target = widened.locator_targets(thin, letterbox)
+    scale = letterbox[:, 0, 0].double()  # image px per view px
+    valid = thin["cup_valid"].bool()
+    area = (math.pi * 0.3 * (thin["ellipse"][..., 2].double() / scale[:, None]) ** 2
+            * valid).sum(1)
+    assert torch.allclose(target.sum((1, 2, 3)).double(), area, rtol=0.02)
+
+
 def test_locator_only_fit_trains_the_locator_alone(tmp_path):
     module = CupNetModule(model=RIM_MODEL, locator_only=True, locator_dark_views=0.5)
     _fit_moves_only(module, "locator", tmp_path)

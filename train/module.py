@@ -251,6 +251,10 @@ class CupNetModule(L.LightningModule):
             :func:`far_rim_starts` (a disc's outline or a thin-rim hypothesis).
         locator_only: train the locator alone (its segmentation loss), every other network
             frozen and not run.
+        locator_min_ratio: the locator's target is the true openings, each widened to this
+            axis ratio at least (0: the synthesised mask as it is); a nearly edge-on cup's
+            opening is sub-pixel thin in the letterboxed view, and the locator then misses it
+            (its blob only frames the refiner's first, round crop).
         locator_dark_views: the fraction of the locator's views raised to a power in
             ``[0.25, 0.6]``, as :attr:`cupnet.model.CupNetConfig.locator_retry_gamma` shows
             them to it where it found no cup.
@@ -291,6 +295,7 @@ class CupNetModule(L.LightningModule):
         rim_refiner_starts: float = 0.0,
         rim_far_starts: float = 0.0,
         locator_only: bool = False,
+        locator_min_ratio: float = 0.0,
         locator_dark_views: float = 0.0,
         freeze: tuple[str, ...] = (),
         torch_threads: int | None = None,
@@ -366,8 +371,8 @@ class CupNetModule(L.LightningModule):
                                   hp.fine_shift, hp.fine_scale, hp.fine_angle, hp.fine_ratio)
         out = self.model(images, geometry, batch["cup_diameter"].repeat(1, hp.crops_per_cup),
                          crop_frames=self.model.frames(rough), refine_pose=hp.refine_pose)
-        locator_target = resample_batch(batch["mask"], out.letterbox, cfg.locator_size)
-        terms = {"seg_locator": segmentation_loss(out.locator_logits, locator_target)}
+        terms = {"seg_locator": segmentation_loss(out.locator_logits,
+                                                  self.locator_targets(batch, out.letterbox))}
         target = crop_targets(batch["ellipse"], batch["cup_valid"].bool(), out.crop_to_image,
                               out.cup_index, cfg.crop_size)
         terms["seg_crop"] = segmentation_loss(out.crop_logits, target)
@@ -390,6 +395,19 @@ class CupNetModule(L.LightningModule):
         terms.update(_pose_maes(solution, batch["pose"][i, c].double()))
         return terms
 
+    def locator_targets(self, batch: dict, letterbox: Tensor) -> Tensor:
+        """The locator's target ``(B, 1, S, S)`` in its letterboxed views (``letterbox``
+        ``(B, 2, 3)``): the openings' coverage, widened by ``locator_min_ratio``."""
+        size, ratio = self.model.config.locator_size, self.hparams.locator_min_ratio
+        if ratio <= 0:
+            return resample_batch(batch["mask"], letterbox, size)
+        ellipse = batch["ellipse"].double()
+        widened = torch.cat([ellipse[..., :3],
+                             torch.maximum(ellipse[..., 3:4], ratio * ellipse[..., 2:3]),
+                             ellipse[..., 4:]], -1)
+        rows = torch.arange(len(letterbox), device=letterbox.device)[:, None]
+        return crop_targets(widened, batch["cup_valid"].bool(), letterbox, rows, size)
+
     def locator_losses(self, batch: dict) -> dict[str, Tensor]:
         """Segmentation loss of the locator alone (``locator_only``), see :meth:`losses`."""
         images = batch["image"]
@@ -397,8 +415,7 @@ class CupNetModule(L.LightningModule):
         gamma = torch.where(dark, 0.25 + 0.35 * torch.rand(len(images), device=images.device),
                             torch.ones(len(images), device=images.device))
         logits, letterbox = self.model.locate(list(images), gamma)
-        target = resample_batch(batch["mask"], letterbox, self.model.config.locator_size)
-        loss = segmentation_loss(logits, target)
+        loss = segmentation_loss(logits, self.locator_targets(batch, letterbox))
         return {"seg_locator": loss, "loss": loss.float()}
 
     def rim_losses(self, batch: dict) -> dict[str, Tensor]:
