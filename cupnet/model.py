@@ -518,22 +518,18 @@ class CupNet(nn.Module):
         crop_points, crop_weights = self.crop_landmarks(crop_logits, crop_to_image)
         # Each cup's landmarks, weights and (solution, row) from the first source that gives
         # it a pose, each source run on the cups left: (1) the fine rim stage framed on the
-        # refiner's fit (see trusted_rim_landmarks); (2) the fine rim stage framed on the
-        # coarse stage's fit (a rim the refiner missed); (3) with a thin_rim_gate, the fine
-        # rim stage from the thin-rim hypotheses (a nearly edge-on rim the refiner took for
-        # a disc); (4) the refiner's own landmarks (a rim the strips lost).
+        # refiner's fit (see trusted_rim_landmarks); (2, 3) the rim_alternatives: the fine rim
+        # stage framed on the coarse stage's fit (a rim the refiner missed), from the thin-rim
+        # hypotheses (a nearly edge-on rim the refiner took for a disc); (4) the refiner's
+        # own landmarks (a rim the strips lost).
         index = cup_index[:, 0]
         sources: list[Callable[[Tensor], tuple[Tensor, Tensor]]] = []
         if self.rim is not None:
             start = usable_fit(crop_points, crop_weights, _frame_ellipse(frames, self.config))
             sources.append(lambda todo: self.trusted_rim_landmarks(image_list, index[todo],
                                                                    start[todo]))
-            if self.coarse_rim is not None:
-                sources.append(lambda todo: self.coarse_framed_rim_landmarks(
-                    image_list, index[todo], start[todo])[:2])
-            if self.config.thin_rim_gate is not None and self.config.thin_rim_angles > 0:
-                sources.append(lambda todo: self.thin_rim_landmarks(
-                    image_list, index[todo], start[todo])[:2])
+            sources += [lambda todo, other=other: other(image_list, index[todo], start[todo])[:2]
+                        for _, other in self.rim_alternatives()]
         sources.append(lambda todo: (crop_points[todo], crop_weights[todo]))
         chosen: list = [None] * len(cup_index)
         for source in sources:
@@ -569,6 +565,20 @@ class CupNet(nn.Module):
             ))
         return results
 
+    def rim_alternatives(self) -> list[tuple[float | None, Callable[..., RimLandmarks]]]:
+        """The fine rim stage's other starts this model has, in the order tried, each with
+        its gate (the mean ``log sigma`` above which :meth:`trusted_rim_landmarks` tries it;
+        None: only where nothing before gave a pose): framed on the coarse stage's fit (with
+        a coarse rim stage), from the thin-rim hypotheses (with a ``thin_rim_gate``).
+        Each takes ``(images, index, start)`` as :meth:`rim_landmarks` does."""
+        cfg = self.config
+        alternatives: list[tuple[float | None, Callable[..., RimLandmarks]]] = []
+        if self.coarse_rim is not None:
+            alternatives.append((cfg.coarse_rim_gate, self.coarse_framed_rim_landmarks))
+        if cfg.thin_rim_gate is not None and cfg.thin_rim_angles > 0:
+            alternatives.append((cfg.thin_rim_gate, self.thin_rim_landmarks))
+        return alternatives
+
     def trusted_rim_landmarks(self, images: list[Tensor], index: Tensor, start: Tensor
                               ) -> tuple[Tensor, Tensor]:
         """The fine rim stage's landmarks ``(K, n, 2)`` and weights ``(K, n)`` from the
@@ -577,15 +587,12 @@ class CupNet(nn.Module):
         thin-rim hypotheses' best) instead if the fine network trusts them more. Either
         rescues a rim the refiner missed, costs more rim passes, and would only blur a right
         start."""
-        cfg = self.config
         plain = self.rim_landmarks(images, index, start)
         doubt = plain.sigma.log().mean(-1)
         landmarks, weights = plain.landmarks, plain.weights
-        alternatives = [(gate, other) for gate, other, usable in (
-            (cfg.coarse_rim_gate, self.coarse_framed_rim_landmarks, self.coarse_rim is not None),
-            (cfg.thin_rim_gate, self.thin_rim_landmarks, cfg.thin_rim_angles > 0))
-            if usable and gate is not None]
-        for gate, other in alternatives:
+        for gate, other in self.rim_alternatives():
+            if gate is None:
+                continue
             redo = (doubt > gate).nonzero()[:, 0]
             if len(redo) == 0:
                 continue
