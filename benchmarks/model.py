@@ -46,16 +46,20 @@ def geometry_of(sample: dict) -> Geometry:
     return Geometry(*(float(v) for v in sample["geometry"]))
 
 
+def detect_sample(model: CupNet, sample: dict) -> list[CupDetection]:
+    """The cups ``model`` detects in one synthetic sample, with its geometry and cup size."""
+    return model.detect(sample["image"][None], geometry_of(sample),
+                        float(sample["cup_diameter"][0]), return_masks=False)[0]
+
+
 def latency(model: CupNet, images: list[dict], repeats: int = 1) -> dict[str, float]:
     """Mean seconds per image of detect() (segmentation + landmarks + pose), batch of one."""
-    model.detect(images[0]["image"][None], geometry_of(images[0]),
-                 float(images[0]["cup_diameter"][0]), return_masks=False)  # warm-up
+    detect_sample(model, images[0])  # warm-up
     times = []
     for _ in range(repeats):
         for s in images:
             start = time.perf_counter()
-            model.detect(s["image"][None], geometry_of(s), float(s["cup_diameter"][0]),
-                         return_masks=False)
+            detect_sample(model, s)
             times.append(time.perf_counter() - start)
     return {"mean_s": float(np.mean(times)), "median_s": float(np.median(times))}
 
@@ -94,8 +98,7 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
     ``(sample, cup index, detection, errors)`` of each true cup to ``cases`` when given."""
     errors, found, total, false_pos = [], 0, 0, 0
     for s in data:
-        dets = model.detect(s["image"][None], geometry_of(s), float(s["cup_diameter"][0]),
-                            return_masks=False)[0]
+        dets = detect_sample(model, s)
         cups, fp = cup_errors(dets, s["pose"].double().numpy(), s["ellipse"].numpy(),
                               s["cup_valid"].numpy().astype(bool))
         if cases is not None:
@@ -115,8 +118,7 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
 
 def false_detections(model: CupNet, data: list[dict]) -> int:
     """Detections (any status) in images that hold no cup."""
-    return sum(len(model.detect(s["image"][None], geometry_of(s), float(s["cup_diameter"][0]),
-                                return_masks=False)[0]) for s in data)
+    return sum(len(detect_sample(model, s)) for s in data)
 
 
 def main() -> None:
