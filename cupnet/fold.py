@@ -2,7 +2,8 @@
 
 In eval mode a BatchNorm is an affine map per channel, so the convolution that feeds it can
 absorb it (``w' = w g / sqrt(v + eps)``, ``b' = (b - m) g / sqrt(v + eps) + beta``): one
-operator and one module call fewer per layer, about a tenth of CupNet's CPU time.
+operator and one module call fewer per layer: about 2-3 ms of CupNet's 55-60 ms per 512 px
+image on the 2-core CPU (interleaved A/B runs, fifth session).
 """
 
 from __future__ import annotations
@@ -52,4 +53,3 @@ def fold_batchnorm(model: nn.Module) -> nn.Module:
             conv.bias = nn.Parameter(bias, requires_grad=False)
             setattr(parent, name, _folded_replacement(norm))
     return folded
-
