@@ -109,6 +109,12 @@ class CupNetConfig:
             the image raised to this power (None: it does not): a cup under thick anatomy, in
             the dark part of an image with bright regions, has too little contrast left
             after standardisation; a power below 1 stretches the dark range.
+        max_theta_deg: a pose with a larger anteversion (deg) counts as a failure of its
+            landmarks: the cup goes on to :meth:`CupNet.detect`'s next landmark source and
+            keeps that pose only where none gives one within range (None: any anteversion).
+            Set it a little above the largest anteversion of the training data: a pose
+            beyond it is one the network was never shown, in practice the outline of a
+            nearly edge-on cup and its femoral head taken for an open rim.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -138,6 +144,7 @@ class CupNetConfig:
     thin_rim_ratio: float = 0.15
     thin_rim_gate: float | None = None
     locator_retry_gamma: float | None = None
+    max_theta_deg: float | None = None
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -517,21 +524,30 @@ class CupNet(nn.Module):
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
         crop_points, crop_weights = self.crop_landmarks(crop_logits, crop_to_image)
         # Each cup's landmarks, weights and (solution, row) from the first source that gives
-        # it a pose, each source run on the cups left: (1) the fine rim stage framed on the
-        # refiner's fit (see trusted_rim_landmarks); (2, 3) the rim_alternatives: the fine rim
-        # stage framed on the coarse stage's fit (a rim the refiner missed), from the thin-rim
-        # hypotheses (a nearly edge-on rim the refiner took for a disc); (4) the refiner's
-        # own landmarks (a rim the strips lost).
+        # it a pose within range, each source run on the cups left: (1) the fine rim stage
+        # framed on the refiner's fit (see trusted_rim_landmarks); (2) framed on the coarse
+        # stage's fit (a rim the refiner missed); (3) the refiner's own landmarks (a rim the
+        # strips lost); (4) the thin-rim hypotheses (a nearly edge-on rim the refiner took
+        # for a disc). Where none gives a pose within max_theta_deg, the first pose found.
         index = cup_index[:, 0]
-        sources: list[Callable[[Tensor], tuple[Tensor, Tensor]]] = []
+        def refiner(todo: Tensor) -> tuple[Tensor, Tensor]:
+            return crop_points[todo], crop_weights[todo]
+
+        sources: list[Callable[[Tensor], tuple[Tensor, Tensor]]] = [refiner]
         if self.rim is not None:
             start = usable_fit(crop_points, crop_weights, _frame_ellipse(frames, self.config))
-            sources.append(lambda todo: self.trusted_rim_landmarks(image_list, index[todo],
-                                                                   start[todo]))
-            sources += [lambda todo, other=other: other(image_list, index[todo], start[todo])[:2]
-                        for _, other in self.rim_alternatives()]
-        sources.append(lambda todo: (crop_points[todo], crop_weights[todo]))
+
+            def run(method: Callable) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
+                return lambda todo: method(image_list, index[todo], start[todo])[:2]
+
+            alternatives = [other for _, other in self.rim_alternatives()]
+            thin = [other for other in alternatives if other == self.thin_rim_landmarks]
+            sources = [run(self.trusted_rim_landmarks),
+                       *[run(other) for other in alternatives if other not in thin],
+                       refiner, *[run(other) for other in thin]]
         chosen: list = [None] * len(cup_index)
+        fallback: list = [None] * len(cup_index)
+        limit = self.config.max_theta_deg
         for source in sources:
             todo = torch.tensor([k for k, pick in enumerate(chosen) if pick is None],
                                 dtype=torch.long)
@@ -541,8 +557,14 @@ class CupNet(nn.Module):
             solution = self.solve(points, weights, geometry, diameter, cup_index[todo], batch,
                                   refine=True)
             for row, k in enumerate(todo.tolist()):
-                if bool(solution.valid[row]) or source is sources[-1]:
-                    chosen[k] = (points[row], weights[row], solution, row)
+                pick = (points[row], weights[row], solution, row)
+                valid = bool(solution.valid[row])
+                if valid and (limit is None or float(solution.pose[row, 0]) <= limit):
+                    chosen[k] = pick
+                elif fallback[k] is None or (valid and not fallback[k][2].valid[fallback[k][3]]):
+                    fallback[k] = pick  # the first pose found, else the first failure
+        chosen = [pick if pick is not None else other
+                  for pick, other in zip(chosen, fallback, strict=True)]
         for k, (i, c) in enumerate(cup_index.tolist()):
             points, weights, solution, row = chosen[k]
             mask = None

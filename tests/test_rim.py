@@ -300,6 +300,16 @@ class PartlyBrokenRimNet(nn.Module):
         return logits, log_sigma
 
 
+def _threshold_locator_and_refiner(model: CupNet) -> None:
+    """Stand-in locator and refiner that threshold the standardised image: they segment a
+    bright opening exactly (an untrained U-Net's map is arbitrary)."""
+    model.locator, model.refiner = nn.Conv2d(1, 1, 1), nn.Conv2d(1, 1, 1)
+    with torch.no_grad():
+        for net in (model.locator, model.refiner):
+            net.weight.fill_(20.0)
+            net.bias.zero_()
+
+
 @pytest.mark.parametrize("coarse", [False, True])
 def test_detect_falls_back_where_the_rim_stage_fails(coarse):
     # Crops of one cup must not hold the other (the stand-in refiner would segment both).
@@ -311,11 +321,7 @@ def test_detect_falls_back_where_the_rim_stage_fails(coarse):
     # Short coarse strips: the stand-in's slope centroid would take in the other cup's rim.
     config = {**RIM.__dict__, "coarse_rim_passes": int(coarse), "coarse_rim_reach": 0.2}
     model = CupNet(CupNetConfig(**config)).double()
-    model.locator, model.refiner = nn.Conv2d(1, 1, 1), nn.Conv2d(1, 1, 1)
-    with torch.no_grad():
-        for net in (model.locator, model.refiner):
-            net.weight.fill_(20.0)
-            net.bias.zero_()
+    _threshold_locator_and_refiner(model)
     model.rim = PartlyBrokenRimNet().double()
     if coarse:
         model.coarse_rim = EdgeRimNet().double()
@@ -329,3 +335,41 @@ def test_detect_falls_back_where_the_rim_stage_fails(coarse):
     for det in found:
         true = ellipse[int(abs(det.ellipse[0] - ellipse[:, 0]).argmin())]
         assert abs(det.ellipse[2] - float(true[2])) < (0.1 if det is found[0] or coarse else 2.0)
+
+
+@pytest.mark.parametrize("limit", [None, 52.0])
+def test_detect_passes_over_a_pose_beyond_max_theta(limit):
+    # The fine rim stage (stood in for) follows a round outline around the rim, as it does
+    # for a nearly edge-on cup and its femoral head: a pose near theta = 90 deg. Beyond
+    # max_theta_deg the cup goes on to the next landmark source (here the refiner's, which
+    # segments the true opening).
+    geometry = Geometry.for_image(640, 360, 1040.0, 0.5)
+    truth = torch.tensor([[24.0, 33.0, -5.0, -6.0, 300.0]], dtype=torch.float64)
+    ellipse = ellipse_of_pose(truth, 52.0, geometry)
+    image = ellipse_coverage(ellipse[None], 360, 640, supersample=8)[0]
+    model = CupNet(CupNetConfig(**{**RIM.__dict__, "max_theta_deg": limit})).double()
+    _threshold_locator_and_refiner(model)
+    model.rim = EdgeRimNet().double()
+    outline = ellipse.clone()
+    outline[:, 3] = outline[:, 2]
+    t = torch.arange(RIM.rim_points, dtype=torch.float64) * (2 * math.pi / RIM.rim_points)
+    round_points = ellipse_points(outline, t)
+    model.trusted_rim_landmarks = lambda images, index, start: (
+        round_points.expand(len(index), -1, -1), torch.ones(len(index), RIM.rim_points,
+                                                            dtype=torch.float64))
+    ((det,),) = model.detect(image[None], geometry, 52.0)
+    assert det.status in ("ok", "ambiguous")
+    if limit is None:
+        assert det.pose[0] > 60.0 and det.landmarks.shape == (RIM.rim_points, 2)
+    else:
+        assert abs(det.pose[0] - 24.0) < 1.5 and det.landmarks.shape == (RIM.n_rays, 2)
+
+
+def test_detect_keeps_the_first_pose_where_none_is_within_max_theta():
+    image, geometry, ellipse = _rim_scene()  # theta 24 deg
+    model = CupNet(CupNetConfig(**{**RIM.__dict__, "max_theta_deg": 10.0})).double()
+    _threshold_locator_and_refiner(model)
+    model.rim = EdgeRimNet().double()
+    ((det,),) = model.detect(image[None], geometry, 52.0)
+    assert det.status == "ok" and abs(det.pose[0] - 24.0) < 0.5
+    assert det.landmarks.shape == (RIM.rim_points, 2)  # the rim stage's, the first source
