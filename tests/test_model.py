@@ -304,4 +304,8 @@ def test_folded_batchnorm_gives_the_same_outputs(shipped):
                         for m in (folded, model))
         assert theirs and len(ours) == len(theirs)
         for a, b in zip(ours, theirs, strict=True):
-            assert np.allclose(a.ellipse, b.ellipse, atol=1e-2)
+            # Rounding differences grow over the rim passes: 0.01 px, and 0.05 deg on the
+            # angle of this rather round ellipse (b / a = 0.73).
+            assert a.status == b.status
+            assert np.allclose(a.ellipse[:4], b.ellipse[:4], atol=1e-2)
+            assert abs(a.ellipse[4] - b.ellipse[4]) < 0.05

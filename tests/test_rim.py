@@ -115,6 +115,24 @@ def test_rim_net_is_equivariant_to_turning_around_the_rim():
     assert torch.allclose(rolled_sigma, log_sigma.roll(5, -1), atol=1e-5)
 
 
+
+def test_rim_net_runs_strips_one_by_one_only_in_eval_mode():
+    torch.manual_seed(1)
+    net = RimNet(channels=8)
+    for norm in net.modules():  # BatchNorm statistics that differ from a batch's own
+        if isinstance(norm, nn.BatchNorm2d):
+            norm.running_mean.uniform_(-0.5, 0.5)
+            norm.running_var.uniform_(0.5, 2.0)
+    strips = torch.randn(5, 1, 32, 24)
+    net.eval()
+    for ours, theirs in zip(net(strips), net.forward_batch(strips), strict=True):
+        assert torch.allclose(ours, theirs, atol=1e-5)
+    # Training: the batch's BatchNorm statistics, so the outputs of one strip depend on the
+    # others in its batch.
+    net.train()
+    together = net(strips)[0][:1]
+    assert not torch.allclose(together, net(strips[:2])[0][:1], atol=1e-3)
+
 def test_rim_loss_is_the_laplace_likelihood_of_the_offset_error():
     circle = torch.tensor([[0.0, 0.0, 10.0, 10.0, 0.0]], dtype=torch.float64)
     points = torch.tensor([[[12.0, 0.0], [0.0, -9.5], [0.0, 4.0]]], dtype=torch.float64)
