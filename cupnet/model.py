@@ -115,6 +115,10 @@ class CupNetConfig:
             Set it a little above the largest anteversion of the training data: a pose
             beyond it is one the network was never shown, in practice the outline of a
             nearly edge-on cup and its femoral head taken for an open rim.
+        grown_rim_scale: where no other landmark source gives a cup a pose (within
+            ``max_theta_deg``), :meth:`CupNet.detect` starts the coarse rim stage again from
+            the refiner's ellipse enlarged to this many times the smallest rim the cup can
+            make (magnification 1); None: it does not (needs a coarse rim stage).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -145,6 +149,7 @@ class CupNetConfig:
     thin_rim_gate: float | None = None
     locator_retry_gamma: float | None = None
     max_theta_deg: float | None = None
+    grown_rim_scale: float | None = None
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -528,8 +533,10 @@ class CupNet(nn.Module):
         # framed on the refiner's fit (see trusted_rim_landmarks); (2) framed on the coarse
         # stage's fit (a rim the refiner missed); (3) the refiner's own landmarks (a rim the
         # strips lost); (4) the thin-rim hypotheses (a nearly edge-on rim the refiner took
-        # for a disc). Where none gives a pose within max_theta_deg, the first pose found.
+        # for a disc); (5) the coarse stage from a start grown to a possible rim size (see
+        # _grown_rim_source). Where none gives a pose within max_theta_deg, the first found.
         index = cup_index[:, 0]
+
         def refiner(todo: Tensor) -> tuple[Tensor, Tensor]:
             return crop_points[todo], crop_weights[todo]
 
@@ -545,6 +552,9 @@ class CupNet(nn.Module):
             sources = [run(self.trusted_rim_landmarks),
                        *[run(other) for other in alternatives if other not in thin],
                        refiner, *[run(other) for other in thin]]
+            if self.coarse_rim is not None and self.config.grown_rim_scale is not None:
+                sources.append(self._grown_rim_source(image_list, geometry, diameter, cup_index,
+                                                      start))
         chosen: list = [None] * len(cup_index)
         fallback: list = [None] * len(cup_index)
         limit = self.config.max_theta_deg
@@ -586,6 +596,28 @@ class CupNet(nn.Module):
                 score=float(scores[i, c]),
             ))
         return results
+
+    def _grown_rim_source(self, images: list[Tensor], geometry: Geometry, diameter: Tensor,
+                          cup_index: Tensor, start: Tensor
+                          ) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
+        """:meth:`detect`'s last landmark source: the fine rim stage framed on the coarse
+        stage's fit from each start ``(K, 5)`` enlarged (never shrunk) to ``grown_rim_scale``
+        times the smallest rim the cup can make, its radius over the pixel spacing (the
+        magnification is at least 1). Landmarks that give no pose often follow a femoral head's
+        outline, too small for the cup (the solver then puts it below the detector), and the
+        rim lies outside the coarse stage's reach from there."""
+        spacing = geometry_rows(geometry, len(images))[cup_index[:, 0], 1]
+        cup_mm = (diameter[cup_index[:, 0]] if diameter.ndim == 1
+                  else diameter[cup_index[:, 0], cup_index[:, 1]])
+        smallest = cup_mm / 2 / spacing  # px
+
+        def grown(todo: Tensor) -> tuple[Tensor, Tensor]:
+            ellipse = start[todo].clone()
+            scale = (self.config.grown_rim_scale * smallest[todo] / ellipse[:, 2]).clamp_min(1.0)
+            ellipse[:, 2:4] = ellipse[:, 2:4] * scale[:, None]
+            return self.coarse_framed_rim_landmarks(images, cup_index[todo, 0], ellipse)[:2]
+
+        return grown
 
     def rim_alternatives(self) -> list[tuple[float | None, Callable[..., RimLandmarks]]]:
         """The fine rim stage's other starts this model has, in the order tried, each with

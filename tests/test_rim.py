@@ -391,3 +391,36 @@ def test_detect_keeps_the_first_pose_where_none_is_within_max_theta():
     ((det,),) = model.detect(image[None], geometry, 52.0)
     assert det.status == "ok" and abs(det.pose[0] - 24.0) < 0.5
     assert det.landmarks.shape == (RIM.rim_points, 2)  # the rim stage's, the first source
+
+
+class HeadRefiner(nn.Module):
+    """Stand-in refiner that segments a small disc at the centre of every crop, as the real
+    one segments a femoral head inside the cup: each pass frames the next on a smaller
+    ellipse, and the landmarks end far inside the rim."""
+
+    def forward(self, crops: torch.Tensor) -> torch.Tensor:
+        size = crops.shape[-1]
+        head = torch.tensor([[[(size - 1) / 2, (size - 1) / 2, 0.2 * size, 0.2 * size, 0.0]]],
+                            dtype=torch.float64)
+        coverage = ellipse_coverage(head, size, size, supersample=4)[0].to(crops.dtype)
+        return (20.0 * coverage - 10.0).expand(crops.shape[0], 1, size, size)
+
+
+@pytest.mark.parametrize("scale", [None, 1.45])
+def test_detect_grows_a_start_too_small_for_the_cup(scale):
+    geometry = Geometry.for_image(640, 360, 1040.0, 0.5)
+    truth = torch.tensor([[24.0, 33.0, -5.0, -6.0, 300.0]], dtype=torch.float64)
+    ellipse = ellipse_of_pose(truth, 52.0, geometry)  # a = 73 px; 52 px at magnification 1
+    image = ellipse_coverage(ellipse[None], 360, 640, supersample=8)[0]
+    config = {**RIM.__dict__, "coarse_rim_passes": 1, "grown_rim_scale": scale}
+    model = CupNet(CupNetConfig(**config)).double()
+    _threshold_locator_and_refiner(model)
+    model.refiner = HeadRefiner()
+    model.rim, model.coarse_rim = EdgeRimNet().double(), EdgeRimNet().double()
+    ((det,),) = model.detect(image[None], geometry, 52.0)
+    if scale is None:  # every other source keeps to the small disc: no pose
+        assert det.status.startswith("error")
+    else:
+        assert det.status in ("ok", "ambiguous")
+        assert abs(det.pose[0] - 24.0) < 1.0 and abs(det.pose[4] - 300.0) < 15.0
+        assert det.landmarks.shape == (RIM.rim_points, 2)
