@@ -97,8 +97,8 @@ class CupNetConfig:
         coarse_rim_reach: ... their strips reaching this many semi-major axes either side of
             the ellipse, in ``rim_samples`` rows.
         coarse_rim_gate: at inference the coarse stage runs on the cups whose fine landmarks
-            (from the refiner's fit) get no pose, and on those whose mean ``log sigma`` (px)
-            exceeds this (None: on no others).
+            (from the refiner's fit) get no pose (within ``max_theta_deg``), and on those
+            whose mean ``log sigma`` (px) exceeds this (None: on no others).
         thin_rim_angles: orientations of the thin-rim hypotheses (see
             :func:`cupnet.rim.thin_rim_starts`) ...
         thin_rim_ratio: ... their axis ratio ...
@@ -118,7 +118,13 @@ class CupNetConfig:
         grown_rim_scale: where no other landmark source gives a cup a pose (within
             ``max_theta_deg``), :meth:`CupNet.detect` starts the coarse rim stage again from
             the refiner's ellipse enlarged to this many times the smallest rim the cup can
-            make (magnification 1); None: it does not (needs a coarse rim stage).
+            make (magnification 1; never shrunk), then the fine stage from the coarse fit;
+            None: it does not (needs both rim stages).
+        reframe_min_scale: each refiner pass but the last frames the next on its fit grown
+            (never shrunk) to at least this fraction of the semi-major axis of the ellipse its
+            own crop was framed on (None: on the fit as it is): a fit much smaller than its
+            frame is mostly a femoral head inside the cup, and a crop framed on it would cut
+            the rim away.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -150,6 +156,7 @@ class CupNetConfig:
     locator_retry_gamma: float | None = None
     max_theta_deg: float | None = None
     grown_rim_scale: float | None = None
+    reframe_min_scale: float | None = None
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -523,18 +530,22 @@ class CupNet(nn.Module):
         for _ in range(self.config.refine_passes - 1):
             # Re-frame on the fitted ellipse where it is usable; keep the old frame otherwise.
             crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
-            ellipse = usable_fit(*self.crop_landmarks(crop_logits, crop_to_image),
-                                  _frame_ellipse(frames, self.config))
+            framed = _frame_ellipse(frames, self.config)
+            ellipse = usable_fit(*self.crop_landmarks(crop_logits, crop_to_image), framed)
+            if self.config.reframe_min_scale is not None:
+                ellipse = grown_to(ellipse, self.config.reframe_min_scale * framed[:, 2])
             frames = self.frames(ellipse)
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
         crop_points, crop_weights = self.crop_landmarks(crop_logits, crop_to_image)
         # Each cup's landmarks, weights and (solution, row) from the first source that gives
-        # it a pose within range, each source run on the cups left: (1) the fine rim stage
-        # framed on the refiner's fit (see trusted_rim_landmarks); (2) framed on the coarse
-        # stage's fit (a rim the refiner missed); (3) the refiner's own landmarks (a rim the
-        # strips lost); (4) the thin-rim hypotheses (a nearly edge-on rim the refiner took
-        # for a disc); (5) the coarse stage from a start grown to a possible rim size (see
-        # _grown_rim_source). Where none gives a pose within max_theta_deg, the first found.
+        # it a pose within max_theta_deg, each source run on the cups left: (1) the fine rim
+        # stage framed on the refiner's fit (see trusted_rim_landmarks); (2) framed on the
+        # coarse stage's fit (a rim the refiner missed); (3) the refiner's own landmarks (a
+        # rim the strips lost); (4) the thin-rim hypotheses (a nearly edge-on rim the
+        # refiner took for a disc); (5) the coarse stage from a start grown to a size the
+        # rim can have (see _grown_rim_source). Sources 1, 2, 4 and 5 where the model has
+        # them. Where none gives a pose within range: the first pose found, else the
+        # refiner's failure (its ellipse is the one the mask shows).
         index = cup_index[:, 0]
 
         def refiner(todo: Tensor) -> tuple[Tensor, Tensor]:
@@ -555,8 +566,9 @@ class CupNet(nn.Module):
             if self.coarse_rim is not None and self.config.grown_rim_scale is not None:
                 sources.append(self._grown_rim_source(image_list, geometry, diameter, cup_index,
                                                       start))
-        chosen: list = [None] * len(cup_index)
-        fallback: list = [None] * len(cup_index)
+        Pick = tuple[Tensor, Tensor, PoseSolution, int]
+        chosen: list[Pick | None] = [None] * len(cup_index)
+        fallback: list[Pick | None] = [None] * len(cup_index)
         limit = self.config.max_theta_deg
         for source in sources:
             todo = torch.tensor([k for k, pick in enumerate(chosen) if pick is None],
@@ -569,10 +581,11 @@ class CupNet(nn.Module):
             for row, k in enumerate(todo.tolist()):
                 pick = (points[row], weights[row], solution, row)
                 valid = bool(solution.valid[row])
+                kept_valid = fallback[k] is not None and bool(fallback[k][2].valid[fallback[k][3]])
                 if valid and (limit is None or float(solution.pose[row, 0]) <= limit):
                     chosen[k] = pick
-                elif fallback[k] is None or (valid and not fallback[k][2].valid[fallback[k][3]]):
-                    fallback[k] = pick  # the first pose found, else the first failure
+                elif not kept_valid and (valid or source is refiner):
+                    fallback[k] = pick
         chosen = [pick if pick is not None else other
                   for pick, other in zip(chosen, fallback, strict=True)]
         for k, (i, c) in enumerate(cup_index.tolist()):
@@ -607,24 +620,21 @@ class CupNet(nn.Module):
         outline, too small for the cup (the solver then puts it below the detector), and the
         rim lies outside the coarse stage's reach from there."""
         spacing = geometry_rows(geometry, len(images))[cup_index[:, 0], 1]
-        cup_mm = (diameter[cup_index[:, 0]] if diameter.ndim == 1
-                  else diameter[cup_index[:, 0], cup_index[:, 1]])
-        smallest = cup_mm / 2 / spacing  # px
+        smallest = (diameter[cup_index[:, 0]] / 2 / spacing).to(start)  # px
 
         def grown(todo: Tensor) -> tuple[Tensor, Tensor]:
-            ellipse = start[todo].clone()
-            scale = (self.config.grown_rim_scale * smallest[todo] / ellipse[:, 2]).clamp_min(1.0)
-            ellipse[:, 2:4] = ellipse[:, 2:4] * scale[:, None]
+            ellipse = grown_to(start[todo], self.config.grown_rim_scale * smallest[todo])
             return self.coarse_framed_rim_landmarks(images, cup_index[todo, 0], ellipse)[:2]
 
         return grown
 
     def rim_alternatives(self) -> list[tuple[float | None, Callable[..., RimLandmarks]]]:
-        """The fine rim stage's other starts this model has, in the order tried, each with
-        its gate (the mean ``log sigma`` above which :meth:`trusted_rim_landmarks` tries it;
-        None: only where nothing before gave a pose): framed on the coarse stage's fit (with
-        a coarse rim stage), from the thin-rim hypotheses (with a ``thin_rim_gate``).
-        Each takes ``(images, index, start)`` as :meth:`rim_landmarks` does."""
+        """The fine rim stage's other starts this model has, each with its gate (the mean
+        ``log sigma`` above which :meth:`trusted_rim_landmarks` tries it; None: only as one
+        of :meth:`detect`'s later landmark sources): framed on the coarse stage's fit (with
+        a coarse rim stage), from the thin-rim hypotheses (with a ``thin_rim_gate``; detect
+        tries the refiner's own landmarks before these). Each takes ``(images, index,
+        start)`` as :meth:`rim_landmarks` does."""
         cfg = self.config
         alternatives: list[tuple[float | None, Callable[..., RimLandmarks]]] = []
         if self.coarse_rim is not None:
@@ -670,6 +680,13 @@ def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:
     major = frames[:, 2:3] * config.crop_fill / 2
     minor = frames[:, 3:4] * config.crop_fill * config.crop_min_ratio / 2
     return torch.cat([frames[:, :2], major, minor.clamp_max(major), frames[:, 4:]], -1).double()
+
+
+def grown_to(ellipses: Tensor, major: Tensor) -> Tensor:
+    """Ellipses ``(K, 5)`` scaled about their centres (axis ratio and angle kept) so their
+    semi-major axis is at least ``major`` ``(K,)`` px; never shrunk."""
+    scale = (major / ellipses[:, 2]).clamp_min(1.0)
+    return torch.cat([ellipses[:, :2], ellipses[:, 2:4] * scale[:, None], ellipses[:, 4:]], -1)
 
 
 def usable_fit(points: Tensor, weights: Tensor, fallback: Tensor) -> Tensor:

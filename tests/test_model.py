@@ -25,6 +25,7 @@ from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage, ray_landmarks, soft_moments
 from cupnet.model import CupNet, CupNetConfig, load_model, save_model
 from cupnet.pose import ellipse_of_pose
+from data_synth import SynthConfig, synthesize
 
 TINY = CupNetConfig(encoder="resnet18", decoder_channels=(8, 8), n_rays=48, ray_samples=96)
 
@@ -298,14 +299,13 @@ def test_folded_batchnorm_gives_the_same_outputs(shipped):
         strips = torch.rand(3, 1, model.config.rim_samples, model.config.rim_points)
         for ours, theirs in zip(folded.rim(strips), model.rim(strips), strict=True):
             assert torch.allclose(ours, theirs, atol=1e-5)
-        pose = [[25.0, 20.0, 10.0, -5.0, 280.0]]
-        image, geometry, _ = scene(pose, 400, 400)
-        ours, theirs = (m.detect(image.float()[None], geometry, 52.0, return_masks=False)[0]
-                        for m in (folded, model))
-        assert theirs and len(ours) == len(theirs)
-        for a, b in zip(ours, theirs, strict=True):
-            # Rounding differences grow over the rim passes: 0.01 px, and 0.05 deg on the
-            # angle of this rather round ellipse (b / a = 0.73).
-            assert a.status == b.status
-            assert np.allclose(a.ellipse[:4], b.ellipse[:4], atol=1e-2)
-            assert abs(a.ellipse[4] - b.ellipse[4]) < 0.05
+        # A DRR of the training distribution (no anatomy, to keep it quick): the shipped
+        # model solves it, folded or not, to the same digits.
+        sample = synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0), 0, 0)
+        geometry = Geometry(*(float(v) for v in sample["geometry"]))
+        ours, theirs = (m.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
+                                 return_masks=False)[0] for m in (folded, model))
+        assert len(ours) == len(theirs) == 1 and ours[0].status == theirs[0].status == "ok"
+        assert np.allclose(ours[0].ellipse, theirs[0].ellipse, atol=1e-3)
+        assert np.allclose(ours[0].pose, theirs[0].pose, atol=1e-3)
+        assert np.allclose(ours[0].pose[:2], sample["pose"][0, :2].numpy(), atol=0.5)

@@ -124,13 +124,19 @@ def test_rim_net_runs_strips_one_by_one_only_in_eval_mode():
             norm.running_mean.uniform_(-0.5, 0.5)
             norm.running_var.uniform_(0.5, 2.0)
     strips = torch.randn(5, 1, 32, 24)
-    net.eval()
-    for ours, theirs in zip(net(strips), net.forward_batch(strips), strict=True):
+    whole = net.eval().forward_batch(strips)
+    batches: list[int] = []
+    forward_batch = net.forward_batch
+    net.forward_batch = lambda x: batches.append(len(x)) or forward_batch(x)
+    for ours, theirs in zip(net(strips), whole, strict=True):
         assert torch.allclose(ours, theirs, atol=1e-5)
+    assert batches == [1] * 5
     # Training: the batch's BatchNorm statistics, so the outputs of one strip depend on the
     # others in its batch.
+    batches.clear()
     net.train()
     together = net(strips)[0][:1]
+    assert batches == [5]
     assert not torch.allclose(together, net(strips[:2])[0][:1], atol=1e-3)
 
 def test_rim_loss_is_the_laplace_likelihood_of_the_offset_error():
@@ -355,17 +361,18 @@ def test_detect_falls_back_where_the_rim_stage_fails(coarse):
         assert abs(det.ellipse[2] - float(true[2])) < (0.1 if det is found[0] or coarse else 2.0)
 
 
-@pytest.mark.parametrize("limit", [None, 52.0])
-def test_detect_passes_over_a_pose_beyond_max_theta(limit):
+@pytest.mark.parametrize(("limit", "thin_gate"), [(None, None), (52.0, None), (52.0, 0.0)])
+def test_detect_passes_over_a_pose_beyond_max_theta(limit, thin_gate):
     # The fine rim stage (stood in for) follows a round outline around the rim, as it does
     # for a nearly edge-on cup and its femoral head: a pose near theta = 90 deg. Beyond
-    # max_theta_deg the cup goes on to the next landmark source (here the refiner's, which
-    # segments the true opening).
+    # max_theta_deg the cup goes on to the next landmark source: the refiner's, which
+    # segments the true opening, before the thin-rim hypotheses where the model has them.
     geometry = Geometry.for_image(640, 360, 1040.0, 0.5)
     truth = torch.tensor([[24.0, 33.0, -5.0, -6.0, 300.0]], dtype=torch.float64)
     ellipse = ellipse_of_pose(truth, 52.0, geometry)
     image = ellipse_coverage(ellipse[None], 360, 640, supersample=8)[0]
-    model = CupNet(CupNetConfig(**{**RIM.__dict__, "max_theta_deg": limit})).double()
+    config = {**RIM.__dict__, "max_theta_deg": limit, "thin_rim_gate": thin_gate}
+    model = CupNet(CupNetConfig(**config)).double()
     _threshold_locator_and_refiner(model)
     model.rim = EdgeRimNet().double()
     outline = ellipse.clone()
@@ -381,6 +388,24 @@ def test_detect_passes_over_a_pose_beyond_max_theta(limit):
         assert det.pose[0] > 60.0 and det.landmarks.shape == (RIM.rim_points, 2)
     else:
         assert abs(det.pose[0] - 24.0) < 1.5 and det.landmarks.shape == (RIM.n_rays, 2)
+
+
+def test_detect_keeps_a_pose_beyond_max_theta_over_a_failure():
+    image, geometry, _ = _rim_scene()  # theta 24 deg
+    model = CupNet(CupNetConfig(**{**RIM.__dict__, "max_theta_deg": 10.0})).double()
+    _threshold_locator_and_refiner(model)
+    model.rim = NaNRimNet()  # the rim stage gives no pose; the refiner's landmarks one
+    ((det,),) = model.detect(image[None], geometry, 52.0)
+    assert det.status == "ok" and abs(det.pose[0] - 24.0) < 2.0
+    assert det.landmarks.shape == (RIM.n_rays, 2)
+
+
+class NaNRimNet(nn.Module):
+    """Stand-in rim network whose landmarks give no pose."""
+
+    def forward(self, strips: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return (torch.full(strips[:, 0].shape, math.nan, dtype=strips.dtype),
+                torch.full(strips[:, 0, 0].shape, math.nan, dtype=strips.dtype))
 
 
 def test_detect_keeps_the_first_pose_where_none_is_within_max_theta():
@@ -420,7 +445,32 @@ def test_detect_grows_a_start_too_small_for_the_cup(scale):
     ((det,),) = model.detect(image[None], geometry, 52.0)
     if scale is None:  # every other source keeps to the small disc: no pose
         assert det.status.startswith("error")
+        assert det.landmarks.shape == (RIM.n_rays, 2)  # the refiner's, as its mask shows
     else:
         assert det.status in ("ok", "ambiguous")
         assert abs(det.pose[0] - 24.0) < 1.0 and abs(det.pose[4] - 300.0) < 15.0
         assert det.landmarks.shape == (RIM.rim_points, 2)
+
+
+
+@pytest.mark.parametrize("min_scale", [None, 0.8])
+def test_refiner_passes_frame_no_smaller_than_reframe_min_scale(min_scale):
+    image, geometry, _ = _rim_scene()
+    config = {**RIM.__dict__, "reframe_min_scale": min_scale, "refine_passes": 3}
+    model = CupNet(CupNetConfig(**config)).double()
+    _threshold_locator_and_refiner(model)
+    model.refiner = HeadRefiner()  # its fits: about half the frame's ellipse
+    model.rim = EdgeRimNet().double()
+    framed: list[torch.Tensor] = []
+    segment_crops = model.segment_crops
+
+    def recording(images, frames, index):
+        framed.append(frames[:, 2].clone())
+        return segment_crops(images, frames, index)
+
+    model.segment_crops = recording
+    model.detect(image[None], geometry, 52.0)
+    ratios = [float(b / a) for a, b in zip(framed[:-1], framed[1:], strict=True)]
+    assert len(ratios) == 2
+    for ratio in ratios:
+        assert math.isclose(ratio, 0.8, abs_tol=1e-6) if min_scale else ratio < 0.6
