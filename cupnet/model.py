@@ -120,11 +120,11 @@ class CupNetConfig:
             the refiner's ellipse enlarged to this many times the smallest rim the cup can
             make (magnification 1; never shrunk), then the fine stage from the coarse fit;
             None: it does not (needs both rim stages).
-        reframe_min_scale: each refiner pass but the last frames the next on its fit grown
-            (never shrunk) to at least this fraction of the semi-major axis of the ellipse its
-            own crop was framed on (None: on the fit as it is): a fit much smaller than its
-            frame is mostly a femoral head inside the cup, and a crop framed on it would cut
-            the rim away.
+        reframe_min_scale: each refiner pass's fit is grown (never shrunk) to at least this
+            fraction of the semi-major axis of the ellipse its crop was framed on before it
+            frames the next pass or starts the rim stages (None: as it is): a fit much
+            smaller than its frame is mostly a femoral head inside the cup, and a crop or
+            strips framed on it miss the rim.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -530,11 +530,8 @@ class CupNet(nn.Module):
         for _ in range(self.config.refine_passes - 1):
             # Re-frame on the fitted ellipse where it is usable; keep the old frame otherwise.
             crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
-            framed = _frame_ellipse(frames, self.config)
-            ellipse = usable_fit(*self.crop_landmarks(crop_logits, crop_to_image), framed)
-            if self.config.reframe_min_scale is not None:
-                ellipse = grown_to(ellipse, self.config.reframe_min_scale * framed[:, 2])
-            frames = self.frames(ellipse)
+            frames = self.frames(self.refiner_fit(*self.crop_landmarks(crop_logits,
+                                                                       crop_to_image), frames))
         crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
         crop_points, crop_weights = self.crop_landmarks(crop_logits, crop_to_image)
         # Each cup's landmarks, weights and (solution, row) from the first source that gives
@@ -553,7 +550,7 @@ class CupNet(nn.Module):
 
         sources: list[Callable[[Tensor], tuple[Tensor, Tensor]]] = [refiner]
         if self.rim is not None:
-            start = usable_fit(crop_points, crop_weights, _frame_ellipse(frames, self.config))
+            start = self.refiner_fit(crop_points, crop_weights, frames)
 
             def run(method: Callable) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
                 return lambda todo: method(image_list, index[todo], start[todo])[:2]
@@ -609,6 +606,17 @@ class CupNet(nn.Module):
                 score=float(scores[i, c]),
             ))
         return results
+
+    def refiner_fit(self, points: Tensor, weights: Tensor, frames: Tensor) -> Tensor:
+        """The ellipses ``(K, 5)`` a refiner pass's landmarks ``(K, n, 2)`` and weights
+        ``(K, n)`` give the next stage (:func:`usable_fit`, the frame's ellipse where the fit
+        fails), grown to at least ``reframe_min_scale`` of the semi-major axis of the ellipse
+        each crop frame ``(K, 5)`` was made for."""
+        framed = _frame_ellipse(frames, self.config)
+        ellipse = usable_fit(points, weights, framed)
+        if self.config.reframe_min_scale is None:
+            return ellipse
+        return grown_to(ellipse, self.config.reframe_min_scale * framed[:, 2])
 
     def _grown_rim_source(self, images: list[Tensor], geometry: Geometry, diameter: Tensor,
                           cup_index: Tensor, start: Tensor

@@ -454,7 +454,7 @@ def test_detect_grows_a_start_too_small_for_the_cup(scale):
 
 
 @pytest.mark.parametrize("min_scale", [None, 0.8])
-def test_refiner_passes_frame_no_smaller_than_reframe_min_scale(min_scale):
+def test_refiner_fits_grow_to_reframe_min_scale(min_scale):
     image, geometry, _ = _rim_scene()
     config = {**RIM.__dict__, "reframe_min_scale": min_scale, "refine_passes": 3}
     model = CupNet(CupNetConfig(**config)).double()
@@ -469,8 +469,16 @@ def test_refiner_passes_frame_no_smaller_than_reframe_min_scale(min_scale):
         return segment_crops(images, frames, index)
 
     model.segment_crops = recording
+    starts: list[torch.Tensor] = []
+    rim_landmarks = model.trusted_rim_landmarks
+    model.trusted_rim_landmarks = lambda images, index, start: (
+        starts.append(start[:, 2].clone()) or rim_landmarks(images, index, start))
     model.detect(image[None], geometry, 52.0)
+    # Each pass frames the next, and the last pass starts the rim stage, on its fit: a
+    # disc half its frame's size, grown to 0.8 of it where the limit is set.
+    last_frame_ellipse = framed[-1] * RIM.crop_fill / 2
     ratios = [float(b / a) for a, b in zip(framed[:-1], framed[1:], strict=True)]
-    assert len(ratios) == 2
+    ratios.append(float(starts[0] / last_frame_ellipse))
+    assert len(ratios) == 3
     for ratio in ratios:
         assert math.isclose(ratio, 0.8, abs_tol=1e-6) if min_scale else ratio < 0.6
