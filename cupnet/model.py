@@ -104,7 +104,10 @@ class CupNetConfig:
         thin_rim_ratio: ... their axis ratio ...
         thin_rim_gate: ... tried on the cups whose fine landmarks (from the refiner's fit)
             have a mean ``log sigma`` (px) above this (None: on no cup), and on the cups the
-            other sources give no pose.
+            other sources give no pose ...
+        thin_rim_margin: ... and their landmarks replace the first ones where their mean
+            ``log sigma`` is lower by more than this: a thin ellipse across a femoral head's
+            disc can win by chance over an open rim the head partly hides.
         locator_retry_gamma: where the locator finds no cup in an image, it looks again at
             the image raised to this power (None: it does not): a cup under thick anatomy, in
             the dark part of an image with bright regions, has too little contrast left
@@ -153,6 +156,7 @@ class CupNetConfig:
     thin_rim_angles: int = 12
     thin_rim_ratio: float = 0.15
     thin_rim_gate: float | None = None
+    thin_rim_margin: float = 0.0
     locator_retry_gamma: float | None = None
     max_theta_deg: float | None = None
     grown_rim_scale: float | None = None
@@ -656,7 +660,8 @@ class CupNet(nn.Module):
         """The fine rim stage's landmarks ``(K, n, 2)`` and weights ``(K, n)`` from the
         refiner's ellipses ``start`` ``(K, 5)``; where their mean ``log sigma`` exceeds
         ``coarse_rim_gate`` (``thin_rim_gate``), those framed on the coarse stage's fit (the
-        thin-rim hypotheses' best) instead if the fine network trusts them more. Either
+        thin-rim hypotheses' best) instead if the fine network trusts them more (by
+        ``thin_rim_margin`` for the thin-rim hypotheses). Either
         rescues a rim the refiner missed, costs more rim passes, and would only blur a right
         start."""
         plain = self.rim_landmarks(images, index, start)
@@ -670,7 +675,8 @@ class CupNet(nn.Module):
                 continue
             rim = other(images, index[redo], start[redo])
             rim_doubt = rim.sigma.log().mean(-1)
-            better = rim_doubt < doubt[redo]
+            margin = self.config.thin_rim_margin if other == self.thin_rim_landmarks else 0.0
+            better = rim_doubt < doubt[redo] - margin
             rows = redo[better]
             landmarks, weights, doubt = landmarks.clone(), weights.clone(), doubt.clone()
             landmarks[rows], weights[rows] = rim.landmarks[better], rim.weights[better]
