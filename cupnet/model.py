@@ -29,6 +29,7 @@ import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -172,6 +173,24 @@ class CupNetConfig:
         if "decoder_channels" in values:
             values["decoder_channels"] = tuple(values["decoder_channels"])
         return cls(**values)
+
+
+class RimAlternative(NamedTuple):
+    """One of the fine rim stage's other starts (:meth:`CupNet.rim_alternatives`).
+
+    Attributes:
+        landmarks: ``(images, index, start) -> RimLandmarks``, as :meth:`CupNet.rim_landmarks`.
+        gate: the mean ``log sigma`` of the first landmarks above which
+            :meth:`CupNet.trusted_rim_landmarks` tries it (None: only as one of
+            :meth:`CupNet.detect`'s later landmark sources) ...
+        margin: ... replacing them where its mean ``log sigma`` is lower by more than this.
+        after_refiner: :meth:`CupNet.detect` tries the refiner's own landmarks before it.
+    """
+
+    landmarks: Callable[..., RimLandmarks]
+    gate: float | None
+    margin: float
+    after_refiner: bool
 
 
 @dataclass
@@ -559,11 +578,11 @@ class CupNet(nn.Module):
             def run(method: Callable) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
                 return lambda todo: method(image_list, index[todo], start[todo])[:2]
 
-            alternatives = [other for _, other in self.rim_alternatives()]
-            thin = [other for other in alternatives if other == self.thin_rim_landmarks]
+            alternatives = self.rim_alternatives()
             sources = [run(self.trusted_rim_landmarks),
-                       *[run(other) for other in alternatives if other not in thin],
-                       refiner, *[run(other) for other in thin]]
+                       *[run(alt.landmarks) for alt in alternatives if not alt.after_refiner],
+                       refiner,
+                       *[run(alt.landmarks) for alt in alternatives if alt.after_refiner]]
             if self.coarse_rim is not None and self.config.grown_rim_scale is not None:
                 sources.append(self._grown_rim_source(image_list, geometry, diameter, cup_index,
                                                       start))
@@ -631,28 +650,27 @@ class CupNet(nn.Module):
         magnification is at least 1). Landmarks that give no pose often follow a femoral head's
         outline, too small for the cup (the solver then puts it below the detector), and the
         rim lies outside the coarse stage's reach from there."""
-        spacing = geometry_rows(geometry, len(images))[cup_index[:, 0], 1]
-        smallest = (diameter[cup_index[:, 0]] / 2 / spacing).to(start)  # px
-
         def grown(todo: Tensor) -> tuple[Tensor, Tensor]:
-            ellipse = grown_to(start[todo], self.config.grown_rim_scale * smallest[todo])
-            return self.coarse_framed_rim_landmarks(images, cup_index[todo, 0], ellipse)[:2]
+            image = cup_index[todo, 0]
+            spacing = geometry_rows(geometry, len(images))[image, 1]
+            smallest = (diameter[image] / 2 / spacing).to(start)  # px
+            ellipse = grown_to(start[todo], self.config.grown_rim_scale * smallest)
+            return self.coarse_framed_rim_landmarks(images, image, ellipse)[:2]
 
         return grown
 
-    def rim_alternatives(self) -> list[tuple[float | None, Callable[..., RimLandmarks]]]:
-        """The fine rim stage's other starts this model has, each with its gate (the mean
-        ``log sigma`` above which :meth:`trusted_rim_landmarks` tries it; None: only as one
-        of :meth:`detect`'s later landmark sources): framed on the coarse stage's fit (with
-        a coarse rim stage), from the thin-rim hypotheses (with a ``thin_rim_gate``; detect
-        tries the refiner's own landmarks before these). Each takes ``(images, index,
-        start)`` as :meth:`rim_landmarks` does."""
+    def rim_alternatives(self) -> list[RimAlternative]:
+        """The fine rim stage's other starts this model has: framed on the coarse stage's
+        fit (with a coarse rim stage), from the thin-rim hypotheses (with a
+        ``thin_rim_gate``; after the refiner's own landmarks in :meth:`detect`)."""
         cfg = self.config
-        alternatives: list[tuple[float | None, Callable[..., RimLandmarks]]] = []
+        alternatives = []
         if self.coarse_rim is not None:
-            alternatives.append((cfg.coarse_rim_gate, self.coarse_framed_rim_landmarks))
+            alternatives.append(RimAlternative(self.coarse_framed_rim_landmarks,
+                                               cfg.coarse_rim_gate, 0.0, after_refiner=False))
         if cfg.thin_rim_gate is not None and cfg.thin_rim_angles > 0:
-            alternatives.append((cfg.thin_rim_gate, self.thin_rim_landmarks))
+            alternatives.append(RimAlternative(self.thin_rim_landmarks, cfg.thin_rim_gate,
+                                               cfg.thin_rim_margin, after_refiner=True))
         return alternatives
 
     def trusted_rim_landmarks(self, images: list[Tensor], index: Tensor, start: Tensor
@@ -667,16 +685,15 @@ class CupNet(nn.Module):
         plain = self.rim_landmarks(images, index, start)
         doubt = plain.sigma.log().mean(-1)
         landmarks, weights = plain.landmarks, plain.weights
-        for gate, other in self.rim_alternatives():
-            if gate is None:
+        for alt in self.rim_alternatives():
+            if alt.gate is None:
                 continue
-            redo = (doubt > gate).nonzero()[:, 0]
+            redo = (doubt > alt.gate).nonzero()[:, 0]
             if len(redo) == 0:
                 continue
-            rim = other(images, index[redo], start[redo])
+            rim = alt.landmarks(images, index[redo], start[redo])
             rim_doubt = rim.sigma.log().mean(-1)
-            margin = self.config.thin_rim_margin if other == self.thin_rim_landmarks else 0.0
-            better = rim_doubt < doubt[redo] - margin
+            better = rim_doubt < doubt[redo] - alt.margin
             rows = redo[better]
             landmarks, weights, doubt = landmarks.clone(), weights.clone(), doubt.clone()
             landmarks[rows], weights[rows] = rim.landmarks[better], rim.weights[better]
