@@ -239,7 +239,7 @@ def test_coarse_rim_starts_perturb_towards_a_round_outline():
 def test_far_rim_starts_are_discs_or_thin_ellipses_at_any_angle():
     truth = torch.tensor([[100.0, 80.0, 60.0, 6.0, 30.0]], dtype=torch.float64).repeat(2000, 1)
     torch.manual_seed(0)
-    start = far_rim_starts(truth)
+    start = far_rim_starts(truth, 0.15)
     ratio = start[:, 3] / start[:, 2]
     thin, disc = ratio < 0.2, ratio >= 0.8
     assert (thin | disc).all() and 0.45 < thin.float().mean() < 0.55

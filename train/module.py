@@ -122,11 +122,12 @@ def coarse_rim_starts(ellipse: Tensor, scale: float, head: float = 0.5) -> Tenso
     return torch.where(is_head < head, outline, jittered)
 
 
-def far_rim_starts(ellipse: Tensor) -> Tensor:
+def far_rim_starts(ellipse: Tensor, ratio: float) -> Tensor:
     """True ellipses ``(K, 5)`` replaced by the starts the thin-rim hypotheses and a disc give
     the fine rim stage at inference, mostly out of its reach: half a disc's round outline
-    (:func:`coarse_rim_starts`' femoral heads), half a thin ellipse (axis ratio 0.15, the
-    semi-major axis ``a exp(N(0, 0.1))``, the centre within ``N(0, 0.05 a)``) at any angle.
+    (:func:`coarse_rim_starts`' femoral heads), half a thin ellipse (axis ratio ``ratio``, as
+    :attr:`cupnet.model.CupNetConfig.thin_rim_ratio`; the semi-major axis
+    ``a exp(N(0, 0.1))``, the centre within ``N(0, 0.05 a)``) at any angle.
     The rim stage learns to say where it cannot see the rim (a large ``sigma``), which is how
     :meth:`cupnet.model.CupNet.trusted_rim_landmarks` chooses among its starts."""
     count = ellipse.shape[0]
@@ -134,8 +135,8 @@ def far_rim_starts(ellipse: Tensor) -> Tensor:
     turn, is_disc = torch.rand(count, 2, dtype=ellipse.dtype, device=ellipse.device).split(1, -1)
     a = ellipse[:, 2:3]
     major = a * torch.exp(0.1 * noise[:, 2:3])
-    thin = torch.cat([ellipse[:, :2] + 0.05 * a * noise[:, :2], major, 0.15 * major, 180 * turn],
-                     -1)
+    thin = torch.cat([ellipse[:, :2] + 0.05 * a * noise[:, :2], major, ratio * major,
+                      180 * turn], -1)
     return torch.where(is_disc < 0.5, coarse_rim_starts(ellipse, 0.0, head=1.0), thin)
 
 
@@ -455,7 +456,8 @@ class CupNetModule(L.LightningModule):
         start = jitter(truth, hp.rim_jitter)
         if hp.rim_far_starts > 0 and hp.rim_stage == "fine":
             far = torch.rand(len(truth), 1, device=truth.device) < hp.rim_far_starts
-            start = torch.where(far, far_rim_starts(truth), start)
+            start = torch.where(far, far_rim_starts(truth, self.model.config.thin_rim_ratio),
+                                start)
         if hp.rim_refiner_starts <= 0:
             return start
         valid = torch.ones_like(truth[None, :, 0], dtype=torch.bool)
