@@ -329,6 +329,14 @@ class PartlyBrokenRimNet(nn.Module):
         return logits, log_sigma
 
 
+def _wide_scene(poses_deg: list[list[float]]) -> tuple[torch.Tensor, Geometry, torch.Tensor]:
+    """A 640 x 360 image (0.5 mm pixels) of the cups' openings as step edges, its geometry
+    and the true ellipses."""
+    geometry = Geometry.for_image(640, 360, 1040.0, 0.5)
+    ellipse = ellipse_of_pose(torch.tensor(poses_deg, dtype=torch.float64), 52.0, geometry)
+    return ellipse_coverage(ellipse[None], 360, 640, supersample=8)[0], geometry, ellipse
+
+
 def _threshold_locator_and_refiner(model: CupNet) -> None:
     """Stand-in locator and refiner that threshold the standardised image: they segment a
     bright opening exactly (an untrained U-Net's map is arbitrary)."""
@@ -342,11 +350,8 @@ def _threshold_locator_and_refiner(model: CupNet) -> None:
 @pytest.mark.parametrize("coarse", [False, True])
 def test_detect_falls_back_where_the_rim_stage_fails(coarse):
     # Crops of one cup must not hold the other (the stand-in refiner would segment both).
-    geometry = Geometry.for_image(640, 360, 1040.0, 0.5)
-    truth = torch.tensor([[24.0, 33.0, -45.0, -6.0, 300.0], [18.0, -28.0, 50.0, 8.0, 320.0]],
-                         dtype=torch.float64)
-    ellipse = ellipse_of_pose(truth, 52.0, geometry)
-    image = ellipse_coverage(ellipse[None], 360, 640, supersample=8)[0]
+    image, geometry, ellipse = _wide_scene([[24.0, 33.0, -45.0, -6.0, 300.0],
+                                            [18.0, -28.0, 50.0, 8.0, 320.0]])
     # Short coarse strips: the stand-in's slope centroid would take in the other cup's rim.
     config = {**RIM.__dict__, "coarse_rim_passes": int(coarse), "coarse_rim_reach": 0.2}
     model = CupNet(CupNetConfig(**config)).double()
@@ -372,10 +377,7 @@ def test_detect_passes_over_a_pose_beyond_max_theta(limit, thin_gate):
     # for a nearly edge-on cup and its femoral head: a pose near theta = 90 deg. Beyond
     # max_theta_deg the cup goes on to the next landmark source: the refiner's, which
     # segments the true opening, before the thin-rim hypotheses where the model has them.
-    geometry = Geometry.for_image(640, 360, 1040.0, 0.5)
-    truth = torch.tensor([[24.0, 33.0, -5.0, -6.0, 300.0]], dtype=torch.float64)
-    ellipse = ellipse_of_pose(truth, 52.0, geometry)
-    image = ellipse_coverage(ellipse[None], 360, 640, supersample=8)[0]
+    image, geometry, ellipse = _wide_scene([[24.0, 33.0, -5.0, -6.0, 300.0]])
     config = {**RIM.__dict__, "max_theta_deg": limit, "thin_rim_gate": thin_gate}
     model = CupNet(CupNetConfig(**config)).double()
     _threshold_locator_and_refiner(model)
@@ -438,10 +440,8 @@ class HeadRefiner(nn.Module):
 
 @pytest.mark.parametrize("scale", [None, 1.45])
 def test_detect_grows_a_start_too_small_for_the_cup(scale):
-    geometry = Geometry.for_image(640, 360, 1040.0, 0.5)
-    truth = torch.tensor([[24.0, 33.0, -5.0, -6.0, 300.0]], dtype=torch.float64)
-    ellipse = ellipse_of_pose(truth, 52.0, geometry)  # a = 73 px; 52 px at magnification 1
-    image = ellipse_coverage(ellipse[None], 360, 640, supersample=8)[0]
+    # a = 73 px; 52 px at magnification 1
+    image, geometry, _ = _wide_scene([[24.0, 33.0, -5.0, -6.0, 300.0]])
     config = {**RIM.__dict__, "coarse_rim_passes": 1, "grown_rim_scale": scale}
     model = CupNet(CupNetConfig(**config)).double()
     _threshold_locator_and_refiner(model)
