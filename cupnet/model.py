@@ -37,6 +37,7 @@ import segmentation_models_pytorch as smp
 import torch
 from kornia.geometry.transform import warp_affine
 from torch import Tensor, nn
+from torch.nn.utils.rnn import pad_sequence
 
 from cupnet.crops import (
     ellipse_crop_affine,
@@ -47,9 +48,10 @@ from cupnet.crops import (
 )
 from cupnet.detection import CupDetection
 from cupnet.ellipse import fit_ellipse
-from cupnet.geometry import Geometry
+from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import ray_landmarks, soft_moments
-from cupnet.pose import PoseSolution, solve_pose
+from cupnet.outline import outline_distances, sphere_outline
+from cupnet.pose import PoseSolution, canonical_pose, refine_pose_with_outline, solve_pose
 from cupnet.rim import (
     RimLandmarks,
     RimNet,
@@ -129,6 +131,13 @@ class CupNetConfig:
             frames the next pass or starts the rim stages (None: as it is): a fit much
             smaller than its frame is mostly a femoral head inside the cup, and a crop or
             strips framed on it miss the rim.
+        outline_passes: passes of the dome-outline refinement of each solved pose
+            (:meth:`CupNet.outline_refined`; 0: none): the fine rim network locates the
+            sphere's outline on the dome's side of the pose's rim plane, and the solver fits
+            those landmarks beside the rim's. Needs the fine rim stage.
+        outline_min_side: outline points nearer the rim plane than this many radii are left
+            out: there the dome's outline meets the rim's tips, and a wrong pose's side of
+            the plane may not be the dome's.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -162,6 +171,8 @@ class CupNetConfig:
     max_theta_deg: float | None = None
     grown_rim_scale: float | None = None
     reframe_min_scale: float | None = None
+    outline_passes: int = 0
+    outline_min_side: float = 0.3
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -608,6 +619,18 @@ class CupNet(nn.Module):
                     fallback[k] = pick
         chosen = [pick if pick is not None else other
                   for pick, other in zip(chosen, fallback, strict=True)]
+        poses = [solution.pose[row] for _, _, solution, row in chosen]
+        solved = [k for k, (_, _, solution, row) in enumerate(chosen) if solution.valid[row]]
+        if self.config.outline_passes and self.rim is not None and solved:
+            # Landmark sets differ in size (refiner 64, rim stages 128): zero weights pad them.
+            refined = self.outline_refined(
+                image_list, index[solved], torch.stack([poses[k] for k in solved]),
+                pad_sequence([chosen[k][0] for k in solved], batch_first=True),
+                pad_sequence([chosen[k][1] for k in solved], batch_first=True),
+                torch.stack([chosen[k][2].residual_px[chosen[k][3]] for k in solved]),
+                geometry_rows(geometry, batch)[index[solved]], diameter[index[solved]])
+            for k, pose in zip(solved, refined, strict=True):
+                poses[k] = pose
         for k, (i, c) in enumerate(cup_index.tolist()):
             points, weights, solution, row = chosen[k]
             mask = None
@@ -617,7 +640,7 @@ class CupNet(nn.Module):
                                    (height, width), align_corners=True)[0, 0].numpy()
             ambiguous = bool(solution.ambiguous[row])
             results[i].append(CupDetection(
-                pose=solution.pose[row].numpy(),
+                pose=poses[k].numpy(),
                 alt_pose=solution.alt_pose[row].numpy() if ambiguous else None,
                 ambiguous=ambiguous,
                 ellipse=solution.ellipse[row].numpy(),
@@ -629,6 +652,55 @@ class CupNet(nn.Module):
                 score=float(scores[i, c]),
             ))
         return results
+
+    def outline_refined(self, images: list[Tensor], index: Tensor, poses: Tensor,
+                        points: Tensor, weights: Tensor, residual: Tensor, geometry: Tensor,
+                        diameter: Tensor) -> Tensor:
+        """Solved poses refined with the dome's outline (``outline_passes`` passes).
+
+        Each pass samples the fine rim stage's strips across the outline of the pose's
+        sphere (:func:`cupnet.outline.sphere_outline`) and takes the network's landmarks on
+        the dome's side (beyond ``outline_min_side``, inside the image, within three robust
+        standard deviations of the others' distance to the outline), weighted ``1 / (2
+        sigma^2)`` (the network's sigma is a Laplace scale); the solver fits them beside the
+        rim landmarks, weighted by their residual's inverse variance
+        (:func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves ``0 < h < sdd``
+        keeps its rim-only value.
+
+        Args:
+            images: the batch's images; index ``(K,)`` image of each cup.
+            poses: ``(K, 5)`` deg / mm; points ``(K, N, 2)`` px, weights ``(K, N)`` (mean 1)
+            and residual ``(K,)`` px: the rim landmarks the poses were solved from.
+            geometry: ``(K, 4)`` rows (sdd, spacing, u0, v0); diameter ``(K,)`` mm.
+        Returns:
+            ``(K, 5)`` deg / mm.
+        """
+        cfg = self.config
+        radius = diameter.to(poses) / 2
+        frame = Geometry(*geometry.unbind(-1))
+        rim_weights = weights / residual.clamp_min(0.3)[:, None] ** 2
+        size = torch.tensor([images[int(i)].shape[-1:-3:-1] for i in index], dtype=poses.dtype)
+        offsets = strip_offsets(cfg.rim_samples, cfg.rim_step)
+        pose = pose_to_radians(poses)
+        for _ in range(cfg.outline_passes):
+            outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points)
+            strips = sample_strips(images, index, outline, normals, offsets)
+            found = strip_landmarks(*self.rim(strips.to(self.dtype)), outline, normals, offsets)
+            landmarks = found.landmarks
+            keep = (side > cfg.outline_min_side) & (landmarks >= 0).all(-1) & (
+                landmarks <= size[:, None] - 1).all(-1)
+            dist = outline_distances(pose[:, 2:5], landmarks, radius, geometry)[0]
+            dist = dist.masked_fill(~keep, math.nan)
+            middle = dist.nanmedian(-1, keepdim=True).values
+            spread = 1.4826 * (dist - middle).abs().nanmedian(-1, keepdim=True).values
+            keep &= (dist - middle).abs() <= (3 * spread).clamp_min(1.0)
+            outline_weights = torch.where(keep, 0.5 / found.sigma**2, 0.0)
+            pose = refine_pose_with_outline(pose, points, rim_weights, landmarks,
+                                            outline_weights, frame, radius)
+        refined = pose_to_degrees(canonical_pose(pose))
+        usable = torch.isfinite(refined).all(-1) & (refined[:, 4] > 0) & (
+            refined[:, 4] < geometry[:, 0])
+        return torch.where(usable[:, None], refined, poses)
 
     def refiner_fit(self, points: Tensor, weights: Tensor, frames: Tensor) -> Tensor:
         """The ellipses ``(K, 5)`` a refiner pass's landmarks ``(K, n, 2)`` and weights

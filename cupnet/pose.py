@@ -43,6 +43,7 @@ from cupnet.geometry import (
     rotation,
     source_position,
 )
+from cupnet.outline import outline_distances
 
 HALF_PI = math.pi / 2
 # Smallest semi-major axis (pixels) from which a pose is attempted. The semi-minor axis may
@@ -438,9 +439,24 @@ def _run(function: Callable[..., Any], compiled: bool, *args: Any) -> Any:
     return function(*args)
 
 
+def _outline_equations(pose: Tensor, points: Tensor, weights: Tensor, radius: Tensor,
+                       geom: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The sphere-outline landmarks' share of the normal equations: ``J^T J`` ``(B, 5, 5)``
+    and ``J^T res`` ``(B, 5)`` (in the centre's block only) and cost ``(B,)``."""
+    dist, jac = outline_distances(pose[:, 2:5], points, radius, geom)
+    # The model's outline moves along the normal by -d dist: J = -jac, residual = dist.
+    weighted = weights[..., None] * jac
+    jtj = torch.zeros(*pose.shape, 5, dtype=pose.dtype, device=pose.device)
+    rhs = torch.zeros_like(pose)
+    jtj[:, 2:, 2:] = jac.transpose(-1, -2) @ weighted
+    rhs[:, 2:] = -(weighted * dist[..., None]).sum(-2)
+    return jtj, rhs, (weights * dist**2).sum(-1)
+
+
 def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tensor,
                          geom: Tensor, radius: Tensor, max_iter: int, tol: float,
-                         corrected: bool, compiled: bool = False) -> tuple[Tensor, Tensor]:
+                         corrected: bool, compiled: bool = False,
+                         outline: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
     """Orthogonal-distance regression of the rim: ``min sum_i w_i |x_i - rim(pose, t_i)|^2``
     over the pose and one rim parameter per landmark, the maximum-likelihood estimate for
     Gaussian landmark noise (with ``corrected``, its curvature-bias-corrected score).
@@ -449,16 +465,23 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
     so the pose step is a 5-parameter Levenberg-Marquardt step on the signed distances (the
     Schur complement of the diagonal ``t`` block, in closed form).
 
+    ``outline``: sphere-outline landmarks ``(B, M, 2)`` px and weights ``(B, M)``, whose
+    weighted squared distances to the projected sphere (:mod:`cupnet.outline`) join the cost.
+
     Items that have converged leave the working set. Every tensor has a leading batch dim.
     Returns the pose ``(B, 5)`` and rim parameters ``(B, N)``.
     """
     pose, t = pose.clone(), t.clone()
     root_w = weights.sqrt()
     pts = points.unbind(-1)  # contiguous u and v: strided views slow every elementwise op
+    outline_points, outline_weights = (None, None) if outline is None else outline
 
-    def evaluate(p, tt, x, w, rw, g, r):
+    def evaluate(p, tt, x, w, rw, g, r, active):
         jtj, rhs, cost, tt = _run(_normal_equations, compiled, p, tt, x[0], x[1], w, rw, g, r,
                                   corrected)
+        if outline_points is not None:
+            more = _outline_equations(p, outline_points[active], outline_weights[active], r, g)
+            jtj, rhs, cost = jtj + more[0], rhs + more[1], cost + more[2]
         # Newton decrement of the pose equations: the corrected score is not the gradient of
         # the cost, so near its root steps are judged by this instead (plain ML needs none).
         if not corrected:
@@ -466,10 +489,10 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
         decrement = (rhs * torch.linalg.solve_ex(jtj, rhs[..., None])[0].squeeze(-1)).sum(-1)
         return jtj, rhs, cost, decrement, tt
 
-    jtj, rhs, cost, decrement, t = evaluate(pose, t, pts, weights, root_w, geom, radius)
+    active = torch.arange(pose.shape[0], device=pose.device)
+    jtj, rhs, cost, decrement, t = evaluate(pose, t, pts, weights, root_w, geom, radius, active)
     lowest, dof = cost, ((weights > 0).sum(-1) - 5).clamp_min(1)
     damping = torch.full(pose.shape[:1], 1e-3, dtype=pose.dtype, device=pose.device)
-    active = torch.arange(pose.shape[0], device=pose.device)
     for _ in range(max_iter):
         damped = jtj + damping[:, None, None] * torch.diag_embed(jtj.diagonal(dim1=-2, dim2=-1))
         step = torch.linalg.solve_ex(damped, rhs[..., None])[0].squeeze(-1)
@@ -488,7 +511,7 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
         x = tuple(c[active] for c in pts)
         w, rw, g, r = (v[active] for v in (weights, root_w, geom, radius))
         p, tt = pose[active], t[active]
-        trial = evaluate(p + step, tt, x, w, rw, g, r)
+        trial = evaluate(p + step, tt, x, w, rw, g, r, active)
         # Accept ties within round-off, so the last digits still converge. Steps towards the
         # corrected root may raise the cost, but only within two noise variances of the
         # lowest cost seen (the root lies about a standard deviation from the ML pose; on
@@ -595,6 +618,31 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
     radius = torch.as_tensor(radius, dtype=start.dtype, device=start.device).expand(batch)
     return _RefinePose.apply(start.detach(), points, weights, geom, radius.contiguous(),
                              max_iter, tol, corrected, compiled)
+
+
+def refine_pose_with_outline(start: Tensor, points: Tensor, weights: Tensor,
+                             outline_points: Tensor, outline_weights: Tensor,
+                             geometry: Geometry, radius: Tensor, max_iter: int = 10,
+                             tol: float = 1e-4) -> Tensor:
+    """:func:`refine_pose` with the sphere's outline too: the rim landmarks' cost plus the
+    weighted squared distances of dome-outline landmarks to the projected sphere
+    (:func:`cupnet.outline.outline_distances`), which pins the centre, and so ``h``, where
+    the rim alone leaves it loose (a nearly edge-on rim's major axis). Both sets' weights are
+    inverse noise variances (px^-2) on one scale. Inference only: no gradient.
+
+    Args:
+        start: ``(B, 5)`` rad / mm; points ``(B, N, 2)`` px and weights ``(B, N)`` of the
+        rim; outline_points ``(B, M, 2)`` px and outline_weights ``(B, M)`` (0 drops one);
+        geometry: fields ``(B,)`` or scalars; radius ``(B,)`` mm.
+    Returns:
+        ``(B, 5)`` rad / mm.
+    """
+    with torch.no_grad():
+        geom = _batch_geometry(geometry, start.shape[0], start.dtype, start.device)
+        t = _initial_rim_parameters(start, points, radius, geom)
+        pose, _ = _levenberg_marquardt(start, t, points, weights, geom, radius, max_iter, tol,
+                                       True, outline=(outline_points, outline_weights))
+    return pose
 
 
 def _preferred(solutions: Tensor) -> Tensor:

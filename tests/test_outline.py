@@ -1,0 +1,150 @@
+"""The sphere's outline: geometry against back-projected rays, distances and their Jacobian
+against finite differences, the joint rim + outline refinement, and the shipped model's
+outline landmarks on a DRR."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from cup_cases import paper_poses, rim_landmarks
+
+from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project_rim
+from cupnet.model import geometry_rows, load_model
+from cupnet.outline import outline_distances, sphere_outline
+from cupnet.pose import refine_pose, refine_pose_with_outline
+from data_synth import SynthConfig, synthesize
+
+GEOMETRY = Geometry(1040.0, 0.5, 500.0, 480.0)
+RADIUS = 25.0
+
+
+def _rays(points: torch.Tensor, geometry: Geometry) -> tuple[torch.Tensor, torch.Tensor]:
+    """Source ``(3,)`` and unit directions ``(..., 3)`` of the rays through pixels."""
+    sdd, spacing, u0, v0 = geometry.tensors()
+    detector = torch.stack([(points[..., 0] - u0) * spacing, (points[..., 1] - v0) * spacing,
+                            torch.zeros_like(points[..., 0])], -1)
+    source = torch.stack([torch.zeros(()), torch.zeros(()), sdd]).double()
+    ray = detector - source
+    return source, ray / ray.norm(dim=-1, keepdim=True)
+
+
+def _ray_distance(points: torch.Tensor, centre: torch.Tensor, geometry: Geometry) -> torch.Tensor:
+    """Distance (mm) of each pixel's ray from a sphere centre ``(K, 3)``: ``r`` on the outline."""
+    source, direction = _rays(points, geometry)
+    return torch.linalg.cross(centre[:, None] - source, direction).norm(dim=-1)
+
+
+def test_outline_rays_touch_the_sphere_and_normals_point_out(generator):
+    pose = pose_to_radians(paper_poses(50, generator))
+    radius = torch.full((50,), RADIUS, dtype=torch.float64)
+    points, normals, side = sphere_outline(pose, radius, GEOMETRY, 96)
+    centre = pose[:, 2:5]
+    assert torch.allclose(_ray_distance(points, centre, GEOMETRY), radius[:, None], atol=1e-9)
+    assert (_ray_distance(points + 0.5 * normals, centre, GEOMETRY) > RADIUS).all()
+    assert (_ray_distance(points - 0.5 * normals, centre, GEOMETRY) < RADIUS).all()
+    # side: the tangent point (the foot of the ray nearest the centre) above the rim plane,
+    # towards the dome (-axis), in radii.
+    source, direction = _rays(points, GEOMETRY)
+    along = ((centre[:, None] - source) * direction).sum(-1, keepdim=True)
+    touch = source + along * direction
+    expected = -((touch - centre[:, None]) * cup_axis(pose)[:, None]).sum(-1) / RADIUS
+    assert torch.allclose(side, expected, atol=1e-9)
+
+
+def test_outline_side_of_an_edge_on_cup():
+    """theta = phi = 0: the axis is +y (down the image), so the dome is the upper half."""
+    pose = torch.tensor([[0.0, 0.0, 0.0, 0.0, 300.0]], dtype=torch.float64)
+    points, _, side = sphere_outline(pose, torch.tensor([RADIUS], dtype=torch.float64),
+                                     GEOMETRY, 64)
+    v_centre = float(GEOMETRY.principal_v)
+    far = side.abs() > 0.2
+    assert torch.equal((side > 0)[far], (points[..., 1] < v_centre)[far])
+
+
+def test_outline_distances_along_normals_and_jacobian(generator):
+    pose = pose_to_radians(paper_poses(20, generator))
+    radius = torch.full((20,), RADIUS, dtype=torch.float64)
+    rows = geometry_rows(GEOMETRY, 20)
+    points, normals, _ = sphere_outline(pose, radius, GEOMETRY, 48)
+    for offset in (-2.0, 0.0, 0.5, 3.0):  # px along the outward normal
+        dist, _ = outline_distances(pose[:, 2:5], points + offset * normals, radius, rows)
+        assert torch.allclose(dist, torch.full_like(dist, offset), atol=0.02 * abs(offset) + 1e-9)
+    moved = points + 1.5 * normals
+    _, jac = outline_distances(pose[:, 2:5], moved, radius, rows)
+    step = 1e-4
+    for j in range(3):
+        shift = torch.zeros(20, 3, dtype=torch.float64)
+        shift[:, j] = step
+        ahead = outline_distances(pose[:, 2:5] + shift, moved, radius, rows)[0]
+        behind = outline_distances(pose[:, 2:5] - shift, moved, radius, rows)[0]
+        assert torch.allclose(jac[..., j], (ahead - behind) / (2 * step), rtol=1e-6, atol=1e-8)
+
+
+def _thin_cups(count: int, generator: torch.Generator) -> torch.Tensor:
+    """``(count, 5)`` deg / mm: nearly edge-on cups (theta 1-6 deg) over the paper's ranges."""
+    pose = paper_poses(count, generator)
+    pose[:, 0] = 1 + 5 * torch.rand(count, generator=generator, dtype=torch.float64)
+    return pose
+
+
+def test_noise_free_outline_and_rim_give_the_pose(generator):
+    """A local refinement, as the rim's alone (from a start degrees off, both can stall)."""
+    truth = paper_poses(10, generator)
+    radius = torch.full((10,), RADIUS, dtype=torch.float64)
+    rim = rim_landmarks(truth, GEOMETRY, 2 * RADIUS, 64)
+    outline, _, side = sphere_outline(pose_to_radians(truth), radius, GEOMETRY, 64)
+    start = pose_to_radians(truth + torch.tensor([0.05, 0.1, 0.3, -0.3, 3.0],
+                                                 dtype=torch.float64))
+    pose = refine_pose_with_outline(start, rim, torch.ones(10, 64, dtype=torch.float64),
+                                    outline, (side > 0).double(), GEOMETRY, radius)
+    assert torch.allclose(pose, pose_to_radians(truth), atol=1e-6)
+
+
+def test_outline_pins_h_where_the_rim_tips_are_missing(generator):
+    """Noisy rim landmarks on a thin rim's long sides only leave its major axis, so ``h``,
+    loose; outline landmarks as noisy pin it."""
+    count, noise = 40, 0.7  # px
+    truth = _thin_cups(count, generator)
+    radius = torch.full((count,), RADIUS, dtype=torch.float64)
+    t = torch.linspace(-0.9, 0.9, 24, dtype=torch.float64)
+    t = torch.cat([t.asin() + math.pi / 2, t.asin() - math.pi / 2])  # away from t = 0, pi
+    rim = project_rim(pose_to_radians(truth), RADIUS, GEOMETRY, t)
+    rim = rim + noise * torch.randn(rim.shape, generator=generator, dtype=torch.float64)
+    outline, normals, side = sphere_outline(pose_to_radians(truth), radius, GEOMETRY, 64)
+    outline = outline + noise * torch.randn(side.shape, generator=generator,
+                                            dtype=torch.float64)[..., None] * normals
+    start = pose_to_radians(truth)
+    ones = torch.ones(rim.shape[:2], dtype=torch.float64)
+    rim_only, _ = refine_pose(start, rim, GEOMETRY, radius, ones)
+    both = refine_pose_with_outline(start, rim, ones, outline, (side > 0).double(), GEOMETRY,
+                                    radius)
+    h_rim = (rim_only[:, 4] - truth[:, 4]).abs().mean()
+    h_both = (both[:, 4] - truth[:, 4]).abs().mean()
+    assert h_both < 0.3 * h_rim and h_both < 3.0  # mm
+
+
+@pytest.fixture(scope="module")
+def shipped_on_drr():
+    sample = synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0), 0, 0)
+    return load_model(), sample
+
+
+def test_shipped_model_finds_the_dome_outline_on_a_drr(shipped_on_drr):
+    """From a pose 25 mm off in h, with the rim's weight made negligible (a 100 px residual),
+    the outline the rim network finds on the DRR alone brings h back."""
+    model, sample = shipped_on_drr
+    model.config.outline_passes = 3
+    truth = sample["pose"][:1].double()
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    rim = rim_landmarks(truth, geometry, float(diameter), 128)
+    start = truth + torch.tensor([0.0, 0.0, 0.0, 0.0, 25.0], dtype=torch.float64)
+    with torch.no_grad():
+        pose = model.outline_refined([sample["image"]], torch.tensor([0]), start, rim,
+                                     torch.ones(1, 128, dtype=torch.float64),
+                                     torch.tensor([100.0], dtype=torch.float64),
+                                     geometry_rows(geometry, 1), diameter)
+    assert abs(float(pose[0, 4] - truth[0, 4])) < 4.0  # mm (about 0.3 px of outline at h 490)
+    assert torch.allclose(pose[0, 2:4], truth[0, 2:4], atol=1.0)
