@@ -50,7 +50,7 @@ from cupnet.detection import CupDetection
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import ray_landmarks, soft_moments
-from cupnet.outline import outline_distances, sphere_outline
+from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.pose import PoseSolution, canonical_pose, refine_pose_with_outline, solve_pose
 from cupnet.rim import (
     RimLandmarks,
@@ -138,6 +138,9 @@ class CupNetConfig:
         outline_min_side: outline points nearer the rim plane than this many radii are left
             out: there the dome's outline meets the rim's tips, and a wrong pose's side of
             the plane may not be the dome's.
+        outline_inner_rim_weight: in the dome-outline refinement, the rim landmarks over the
+            dome's own shadow (:func:`cupnet.outline.over_dome`) count this much: the edge the
+            network finds there is the shell's inner surface, inside the rim.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -173,6 +176,7 @@ class CupNetConfig:
     reframe_min_scale: float | None = None
     outline_passes: int = 0
     outline_min_side: float = 0.3
+    outline_inner_rim_weight: float = 1.0
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -663,8 +667,9 @@ class CupNet(nn.Module):
         the dome's side (beyond ``outline_min_side``, inside the image, within three robust
         standard deviations of the others' distance to the outline), weighted ``1 / (2
         sigma^2)`` (the network's sigma is a Laplace scale); the solver fits them beside the
-        rim landmarks, weighted by their residual's inverse variance
-        (:func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves ``0 < h < sdd``
+        rim landmarks, weighted by their residual's inverse variance (times
+        ``outline_inner_rim_weight`` over the dome's shadow;
+        :func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves ``0 < h < sdd``
         keeps its rim-only value.
 
         Args:
@@ -695,8 +700,10 @@ class CupNet(nn.Module):
             spread = 1.4826 * (dist - middle).abs().nanmedian(-1, keepdim=True).values
             keep &= (dist - middle).abs() <= (3 * spread).clamp_min(1.0)
             outline_weights = torch.where(keep, 0.5 / found.sigma**2, 0.0)
-            pose = refine_pose_with_outline(pose, points, rim_weights, landmarks,
-                                            outline_weights, frame, radius)
+            inner = over_dome(points, pose, frame)
+            pose = refine_pose_with_outline(
+                pose, points, torch.where(inner, cfg.outline_inner_rim_weight * rim_weights,
+                                          rim_weights), landmarks, outline_weights, frame, radius)
         refined = pose_to_degrees(canonical_pose(pose))
         usable = torch.isfinite(refined).all(-1) & (refined[:, 4] > 0) & (
             refined[:, 4] < geometry[:, 0])

@@ -103,3 +103,22 @@ def outline_distances(centre: Tensor, points: Tensor, radius: Tensor, geom: Tens
     d_psi = -across / (distance[:, None, None] * sin_psi.clamp_min(1e-12))
     d_alpha = -(torch.tan(alpha) / distance)[:, None, None] * axis
     return (psi - alpha[:, None]) * px_per_rad, (d_psi - d_alpha) * px_per_rad[..., None]
+
+
+def over_dome(points: Tensor, pose: Tensor, geometry: Geometry) -> Tensor:
+    """Whether image points lie on the dome's side of the projected rim centre (split by the
+    line through it across the projected cup axis, a straight stand-in for the perspective
+    boundary through the rim's tips): the half of the rim over the dome's own shadow, whose
+    visible edge is the shell's inner surface (the outer rim's edge is hidden in the metal
+    there), not the rim the pose is of.
+
+    Args:
+        points: ``(K, N, 2)`` px; pose: ``(K, 5)`` rad / mm; geometry: fields ``(K,)`` or
+            scalars.
+    Returns:
+        ``(K, N)`` bool.
+    """
+    centre = pose[:, 2:5]
+    ends = project(torch.stack([centre, centre - cup_axis(pose)], 1), geometry)  # (K, 2, 2)
+    towards_dome = ends[:, 1] - ends[:, 0]
+    return ((points - ends[:, :1]) * towards_dome[:, None]).sum(-1) > 0

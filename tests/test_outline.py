@@ -10,9 +10,9 @@ import pytest
 import torch
 from cup_cases import paper_poses, rim_landmarks
 
-from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project_rim
+from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
 from cupnet.model import geometry_rows, load_model
-from cupnet.outline import outline_distances, sphere_outline
+from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.pose import refine_pose, refine_pose_with_outline
 from data_synth import SynthConfig, synthesize
 
@@ -61,6 +61,29 @@ def test_outline_side_of_an_edge_on_cup():
     v_centre = float(GEOMETRY.principal_v)
     far = side.abs() > 0.2
     assert torch.equal((side > 0)[far], (points[..., 1] < v_centre)[far])
+
+
+def test_over_dome_is_where_the_ray_meets_the_dome_again(generator):
+    """A rim point lies over the dome's shadow when its ray from the source meets the sphere
+    a second time on the dome's side (ray-sphere intersection, no projection geometry)."""
+    truth = paper_poses(30, generator)
+    truth[:, 0] = 5 + 45 * torch.rand(30, generator=generator, dtype=torch.float64)
+    pose = pose_to_radians(truth)
+    t = torch.arange(72, dtype=torch.float64) * (2 * math.pi / 72)
+    rim = rim_points(pose, RADIUS, t)  # (30, 72, 3)
+    source = torch.tensor([0.0, 0.0, float(GEOMETRY.sdd)], dtype=torch.float64)
+    direction = (rim - source) / (rim - source).norm(dim=-1, keepdim=True)
+    centre = pose[:, None, 2:5]
+    # |S + s d - c|^2 = r^2 has roots s_rim and s_other; their sum is 2 d.(c - S).
+    along = 2 * (direction * (centre - source)).sum(-1)
+    other = source + (along - (rim - source).norm(dim=-1))[..., None] * direction
+    height = ((other - centre) * cup_axis(pose)[:, None]).sum(-1) / RADIUS  # < 0: dome
+    # Near the tips both roots meet, and the split through the projected centre is a
+    # straight-line stand-in for the perspective boundary.
+    clear = height.abs() > 0.1
+    found = over_dome(project(rim, GEOMETRY), pose, GEOMETRY)
+    assert clear.float().mean() > 0.8
+    assert torch.equal(found[clear], (height < 0)[clear])
 
 
 def test_outline_distances_along_normals_and_jacobian(generator):
