@@ -623,18 +623,26 @@ class CupNet(nn.Module):
                     fallback[k] = pick
         chosen = [pick if pick is not None else other
                   for pick, other in zip(chosen, fallback, strict=True)]
+        # Each solved cup's pose (and its ambiguous pair's second pose), refined with the
+        # dome's outline where the model does that.
         poses = [solution.pose[row] for _, _, solution, row in chosen]
+        alt_poses = [solution.alt_pose[row] for _, _, solution, row in chosen]
         solved = [k for k, (_, _, solution, row) in enumerate(chosen) if solution.valid[row]]
         if self.config.outline_passes and self.rim is not None and solved:
+            paired = [k for k in solved if chosen[k][2].ambiguous[chosen[k][3]]]
+            rows = solved + paired
             # Landmark sets differ in size (refiner 64, rim stages 128): zero weights pad them.
             refined = self.outline_refined(
-                image_list, index[solved], torch.stack([poses[k] for k in solved]),
-                pad_sequence([chosen[k][0] for k in solved], batch_first=True),
-                pad_sequence([chosen[k][1] for k in solved], batch_first=True),
-                torch.stack([chosen[k][2].residual_px[chosen[k][3]] for k in solved]),
-                geometry_rows(geometry, batch)[index[solved]], diameter[index[solved]])
-            for k, pose in zip(solved, refined, strict=True):
+                image_list, index[rows],
+                torch.stack([poses[k] for k in solved] + [alt_poses[k] for k in paired]),
+                pad_sequence([chosen[k][0] for k in rows], batch_first=True),
+                pad_sequence([chosen[k][1] for k in rows], batch_first=True),
+                torch.stack([chosen[k][2].residual_px[chosen[k][3]] for k in rows]),
+                geometry_rows(geometry, batch)[index[rows]], diameter[index[rows]])
+            for k, pose in zip(solved, refined[:len(solved)], strict=True):
                 poses[k] = pose
+            for k, pose in zip(paired, refined[len(solved):], strict=True):
+                alt_poses[k] = pose
         for k, (i, c) in enumerate(cup_index.tolist()):
             points, weights, solution, row = chosen[k]
             mask = None
@@ -645,7 +653,7 @@ class CupNet(nn.Module):
             ambiguous = bool(solution.ambiguous[row])
             results[i].append(CupDetection(
                 pose=poses[k].numpy(),
-                alt_pose=solution.alt_pose[row].numpy() if ambiguous else None,
+                alt_pose=alt_poses[k].numpy() if ambiguous else None,
                 ambiguous=ambiguous,
                 ellipse=solution.ellipse[row].numpy(),
                 landmarks=points.numpy(),
