@@ -19,7 +19,9 @@ class CupDetection:
         pose: ``(5,)`` (theta_deg, phi_deg, k_mm, l_mm, h_mm); NaN where ``status`` is an error.
         alt_pose: ``(5,)`` the second in-range pose where ``ambiguous``, else None.
         ambiguous: both poses of the ellipse lie in range.
-        ellipse: ``(5,)`` (cx, cy, a, b, alpha_deg) original-image pixels.
+        ellipse: ``(5,)`` (cx, cy, a, b, alpha_deg) original-image pixels: the rim ellipse
+            of ``pose`` where the model refined it with the dome's outline, else the
+            landmarks' weighted fit.
         landmarks: ``(N, 2)`` original-image pixels (u, v).
         weights: ``(N,)`` landmark weights in [0, 1].
         residual_px: RMS distance of the landmarks to the solved rim.

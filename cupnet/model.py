@@ -51,7 +51,13 @@ from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import ray_landmarks, soft_moments
 from cupnet.outline import outline_distances, over_dome, sphere_outline
-from cupnet.pose import PoseSolution, canonical_pose, refine_pose_with_outline, solve_pose
+from cupnet.pose import (
+    PoseSolution,
+    canonical_pose,
+    ellipse_of_pose,
+    refine_pose_with_outline,
+    solve_pose,
+)
 from cupnet.rim import (
     RimLandmarks,
     RimNet,
@@ -627,6 +633,7 @@ class CupNet(nn.Module):
         # dome's outline where the model does that.
         poses = [solution.pose[row] for _, _, solution, row in chosen]
         alt_poses = [solution.alt_pose[row] for _, _, solution, row in chosen]
+        ellipses = [solution.ellipse[row] for _, _, solution, row in chosen]
         solved = [k for k, (_, _, solution, row) in enumerate(chosen) if solution.valid[row]]
         if self.config.outline_passes and self.rim is not None and solved:
             paired = [k for k in solved if chosen[k][2].ambiguous[chosen[k][3]]]
@@ -639,8 +646,13 @@ class CupNet(nn.Module):
                 pad_sequence([chosen[k][1] for k in rows], batch_first=True),
                 torch.stack([chosen[k][2].residual_px[chosen[k][3]] for k in rows]),
                 geometry_rows(geometry, batch)[index[rows]], diameter[index[rows]])
-            for k, pose in zip(solved, refined[:len(solved)], strict=True):
-                poses[k] = pose
+            # The rim the refined pose projects to, not the landmarks' fit: the two differ
+            # where the outline moved the pose (a thin rim's fit is short), and the overlay
+            # should show the pose's rim.
+            cup_geometry = Geometry(*geometry_rows(geometry, batch)[index[solved]].unbind(-1))
+            rims = ellipse_of_pose(refined[:len(solved)], diameter[index[solved]], cup_geometry)
+            for k, pose, rim in zip(solved, refined[:len(solved)], rims, strict=True):
+                poses[k], ellipses[k] = pose, rim
             for k, pose in zip(paired, refined[len(solved):], strict=True):
                 alt_poses[k] = pose
         for k, (i, c) in enumerate(cup_index.tolist()):
@@ -655,7 +667,7 @@ class CupNet(nn.Module):
                 pose=poses[k].numpy(),
                 alt_pose=alt_poses[k].numpy() if ambiguous else None,
                 ambiguous=ambiguous,
-                ellipse=solution.ellipse[row].numpy(),
+                ellipse=ellipses[k].numpy(),
                 landmarks=points.numpy(),
                 weights=weights.numpy(),
                 residual_px=float(solution.residual_px[row]),

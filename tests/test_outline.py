@@ -13,7 +13,7 @@ from cup_cases import paper_poses, rim_landmarks
 from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
 from cupnet.model import geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
-from cupnet.pose import refine_pose, refine_pose_with_outline
+from cupnet.pose import ellipse_of_pose, refine_pose, refine_pose_with_outline
 from data_synth import SynthConfig, synthesize
 
 GEOMETRY = Geometry(1040.0, 0.5, 500.0, 480.0)
@@ -158,7 +158,6 @@ def test_shipped_model_finds_the_dome_outline_on_a_drr(shipped_on_drr):
     """From a pose 25 mm off in h, with the rim's weight made negligible (a 100 px residual),
     the outline the rim network finds on the DRR alone brings h back."""
     model, sample = shipped_on_drr
-    model.config.outline_passes = 3
     truth = sample["pose"][:1].double()
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     diameter = sample["cup_diameter"][:1].double()
@@ -171,3 +170,18 @@ def test_shipped_model_finds_the_dome_outline_on_a_drr(shipped_on_drr):
                                      geometry_rows(geometry, 1), diameter)
     assert abs(float(pose[0, 4] - truth[0, 4])) < 4.0  # mm (about 0.3 px of outline at h 490)
     assert torch.allclose(pose[0, 2:4], truth[0, 2:4], atol=1.0)
+
+
+def test_detect_reports_the_rim_of_its_outline_refined_pose(shipped_on_drr):
+    model, sample = shipped_on_drr
+    assert model.config.outline_passes > 0  # the shipped model refines with the outline
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = float(sample["cup_diameter"][0])
+    found = model.detect(sample["image"][None], geometry, diameter, return_masks=False)[0]
+    assert len(found) == 1 and found[0].status == "ok"
+    pose = torch.from_numpy(found[0].pose)[None]
+    assert torch.allclose(torch.from_numpy(found[0].ellipse),
+                          ellipse_of_pose(pose, diameter, geometry)[0], atol=1e-6)
+    truth = sample["pose"][0].double()
+    assert torch.allclose(pose[0, :2], truth[:2], atol=0.5)  # deg
+    assert ((pose[0, 2:] - truth[2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()  # mm
