@@ -682,9 +682,10 @@ class CupNet(nn.Module):
                         diameter: Tensor) -> Tensor:
         """Solved poses refined with the dome's outline (``outline_passes`` passes).
 
-        Each pass samples the fine rim stage's strips across the outline of the pose's
-        sphere (:func:`cupnet.outline.sphere_outline`) and takes the network's landmarks on
-        the dome's side (beyond ``outline_min_side``, inside the image, within three robust
+        Each pass samples the fine rim stage's strips across the dome's half of the outline
+        of the pose's sphere (:func:`cupnet.outline.sphere_outline`, ``rim_points``
+        normals) and takes the network's landmarks there (beyond ``outline_min_side``, away
+        from the arc's ends, inside the image, within three robust
         standard deviations of the others' distance to the outline), weighted ``1 / (2
         sigma^2)`` (the network's sigma is a Laplace scale); the solver fits them beside the
         rim landmarks, weighted by their residual's inverse variance (times
@@ -708,12 +709,18 @@ class CupNet(nn.Module):
         offsets = strip_offsets(cfg.rim_samples, cfg.rim_step)
         pose = pose_to_radians(poses)
         for _ in range(cfg.outline_passes):
-            outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points)
+            outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
+                                                    dome_only=True)
             strips = sample_strips(images, index, outline, normals, offsets)
             found = strip_landmarks(*self.rim(strips.to(self.dtype)), outline, normals, offsets)
             landmarks = found.landmarks
             keep = (side > cfg.outline_min_side) & (landmarks >= 0).all(-1) & (
                 landmarks <= size[:, None] - 1).all(-1)
+            # The strip is an open arc: the rim network's columns near its ends see the
+            # other end through its circular padding.
+            ends = self.rim.columns_seen
+            keep[:, :ends] = False
+            keep[:, -ends:] = False
             dist = outline_distances(pose[:, 2:5], landmarks, radius, geometry)[0]
             dist = dist.masked_fill(~keep, math.nan)
             middle = dist.nanmedian(-1, keepdim=True).values

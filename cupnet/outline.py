@@ -31,15 +31,18 @@ def _cone(centre: Tensor, radius: Tensor, sdd: Tensor) -> tuple[Tensor, Tensor, 
     return w, distance, torch.asin((radius / distance).clamp(max=1.0))
 
 
-def sphere_outline(pose: Tensor, radius: Tensor, geometry: Geometry, n: int
-                   ) -> tuple[Tensor, Tensor, Tensor]:
+def sphere_outline(pose: Tensor, radius: Tensor, geometry: Geometry, n: int,
+                   dome_only: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """Points on the projected outline of each cup's sphere, their outward normals, and on
     which side of the rim plane each lies.
 
     Args:
         pose: ``(K, 5)`` rad / mm (only the rim plane's side needs the angles).
         radius: ``(K,)`` mm; geometry: fields ``(K,)`` or scalars.
-        n: points per outline, equally spaced around the tangent circle on the sphere.
+        n: points per outline, equally spaced around the tangent circle on the sphere ...
+        dome_only: ... or along its half on the dome's side of the rim plane (centred where
+            the tangent circle lies farthest towards the dome), for twice the density where
+            the dome is.
     Returns:
         points ``(K, n, 2)`` px; normals ``(K, n, 2)`` unit, pointing away from the sphere;
         side ``(K, n)``: the tangent point's height above the rim plane in radii, towards
@@ -57,17 +60,33 @@ def sphere_outline(pose: Tensor, radius: Tensor, geometry: Geometry, n: int
     e1 = torch.linalg.cross(axis, helper)
     e1 = e1 / e1.norm(dim=-1, keepdim=True)
     e2 = torch.linalg.cross(axis, e1)
-    t = torch.arange(n, dtype=pose.dtype, device=pose.device) * (2 * math.pi / n)
-    ring = (torch.cos(t)[None, :, None] * e1[:, None] + torch.sin(t)[None, :, None] * e2[:, None])
-    tangent_points = middle[:, None] + (radius * torch.cos(alpha))[:, None, None] * ring
-    points = project(tangent_points, geometry)
-    # Outward normals: the outline is convex, so its tangent turned away from its centre.
-    tangent = torch.roll(points, -1, 1) - torch.roll(points, 1, 1)
+    dome = -cup_axis(pose)
+    if dome_only:  # half a turn about the direction of the dome in the circle's plane
+        apex = torch.atan2((e2 * dome).sum(-1), (e1 * dome).sum(-1))[:, None]
+        t = apex + torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=pose.dtype,
+                                  device=pose.device)
+    else:
+        t = torch.arange(n, dtype=pose.dtype, device=pose.device).expand(len(pose), -1) * (
+            2 * math.pi / n)
+    rho = (radius * torch.cos(alpha))[:, None, None]
+
+    def tangent_points(t: Tensor) -> Tensor:
+        return middle[:, None] + rho * (torch.cos(t)[..., None] * e1[:, None]
+                                        + torch.sin(t)[..., None] * e2[:, None])
+
+    touching = tangent_points(t)
+    points = project(touching, geometry)
+    # Outward normals: the outline's tangent turned away from the projected sphere centre
+    # (inside the convex outline).
+    step = 1e-4
+    tangent = project(tangent_points(t + step), geometry) - project(tangent_points(t - step),
+                                                                  geometry)
     normals = torch.stack([tangent[..., 1], -tangent[..., 0]], -1)
     normals = normals / normals.norm(dim=-1, keepdim=True)
-    outwards = ((points - points.mean(1, keepdim=True)) * normals).sum(-1, keepdim=True)
+    inside = project(centre[:, None], geometry)
+    outwards = ((points - inside) * normals).sum(-1, keepdim=True)
     normals = torch.where(outwards < 0, -normals, normals)
-    side = -((tangent_points - centre[:, None]) * cup_axis(pose)[:, None]).sum(-1) / radius[:, None]
+    side = ((touching - centre[:, None]) * dome[:, None]).sum(-1) / radius[:, None]
     return points, normals, side
 
 

@@ -176,6 +176,11 @@ class RimNet(nn.Module):
         self.offset_head = nn.Conv2d(channels, 1, 1)
         self.sigma_head = nn.Conv1d(channels + 1, 1, 1)
 
+    @property
+    def columns_seen(self) -> int:
+        """How many columns either side of its own a column's output sees (around the rim)."""
+        return sum(layer.pad_n for layer in self.body)
+
     def forward(self, strips: Tensor) -> tuple[Tensor, Tensor]:
         if not self.training and strips.device.type == "cpu" and strips.shape[0] > 1:
             # One strip at a time on a CPU: its activations stay in cache, a batch's do not

@@ -36,10 +36,11 @@ def _ray_distance(points: torch.Tensor, centre: torch.Tensor, geometry: Geometry
     return torch.linalg.cross(centre[:, None] - source, direction).norm(dim=-1)
 
 
-def test_outline_rays_touch_the_sphere_and_normals_point_out(generator):
+@pytest.mark.parametrize("dome_only", [False, True])
+def test_outline_rays_touch_the_sphere_and_normals_point_out(generator, dome_only):
     pose = pose_to_radians(paper_poses(50, generator))
     radius = torch.full((50,), RADIUS, dtype=torch.float64)
-    points, normals, side = sphere_outline(pose, radius, GEOMETRY, 96)
+    points, normals, side = sphere_outline(pose, radius, GEOMETRY, 96, dome_only)
     centre = pose[:, 2:5]
     assert torch.allclose(_ray_distance(points, centre, GEOMETRY), radius[:, None], atol=1e-9)
     assert (_ray_distance(points + 0.5 * normals, centre, GEOMETRY) > RADIUS).all()
@@ -51,6 +52,12 @@ def test_outline_rays_touch_the_sphere_and_normals_point_out(generator):
     touch = source + along * direction
     expected = -((touch - centre[:, None]) * cup_axis(pose)[:, None]).sum(-1) / RADIUS
     assert torch.allclose(side, expected, atol=1e-9)
+    if dome_only:  # the dome's half of the whole outline: its highest half-turn
+        whole = sphere_outline(pose, radius, GEOMETRY, 960)[2]
+        assert torch.allclose(side.amax(-1), whole.amax(-1), atol=1e-3)  # apex between points
+        assert (side.amin(-1) >= whole.amin(-1)).all()
+        assert (side.amin(-1) < whole.quantile(0.52, -1)).all()
+        assert (side.amin(-1) > whole.quantile(0.48, -1)).all()
 
 
 def test_outline_side_of_an_edge_on_cup():
