@@ -690,8 +690,8 @@ class CupNet(nn.Module):
         sigma^2)`` (the network's sigma is a Laplace scale); the solver fits them beside the
         rim landmarks, weighted by their residual's inverse variance (times
         ``outline_inner_rim_weight`` over the dome's shadow;
-        :func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves ``0 < h < sdd``
-        keeps its rim-only value.
+        :func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves ``0 < h < sdd``, or
+        crosses ``max_theta_deg``, keeps its rim-only value.
 
         Args:
             images: the batch's images; index ``(K,)`` image of each cup.
@@ -734,6 +734,8 @@ class CupNet(nn.Module):
         refined = pose_to_degrees(canonical_pose(pose))
         usable = torch.isfinite(refined).all(-1) & (refined[:, 4] > 0) & (
             refined[:, 4] < geometry[:, 0])
+        if cfg.max_theta_deg is not None:  # nor one the anteversion limit would have refused
+            usable &= (refined[:, 0] <= cfg.max_theta_deg) | (poses[:, 0] > cfg.max_theta_deg)
         return torch.where(usable[:, None], refined, poses)
 
     def refiner_fit(self, points: Tensor, weights: Tensor, frames: Tensor) -> Tensor:

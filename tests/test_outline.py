@@ -192,3 +192,28 @@ def test_detect_reports_the_rim_of_its_outline_refined_pose(shipped_on_drr):
     truth = sample["pose"][0].double()
     assert torch.allclose(pose[0, :2], truth[:2], atol=0.5)  # deg
     assert ((pose[0, 2:] - truth[2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()  # mm
+
+
+def test_refinement_beyond_the_anteversion_limit_keeps_the_rim_pose(shipped_on_drr):
+    """From 3 deg under the truth, with exact rim landmarks, the refinement goes back to the
+    truth; with the limit 2 deg under the truth, that is refused and the start kept."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    rim = rim_landmarks(truth, geometry, float(diameter), 128)
+    start = truth - torch.tensor([3.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    args = ([sample["image"]], torch.tensor([0]), start, rim,
+            torch.ones(1, 128, dtype=torch.float64), torch.tensor([0.5], dtype=torch.float64),
+            geometry_rows(geometry, 1), diameter)
+    limit = model.config.max_theta_deg
+    try:
+        with torch.no_grad():
+            model.config.max_theta_deg = None
+            free = model.outline_refined(*args)
+            model.config.max_theta_deg = float(truth[0, 0]) - 2.0
+            limited = model.outline_refined(*args)
+    finally:
+        model.config.max_theta_deg = limit
+    assert abs(float(free[0, 0] - truth[0, 0])) < 0.5
+    assert torch.equal(limited, start)
