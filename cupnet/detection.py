@@ -28,6 +28,9 @@ class CupDetection:
         mask: ``(H, W)`` opening probability in original-image pixels, or None.
         status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"``.
         score: mean locator probability of the cup's component.
+        outline: ``(M, 2)`` original-image pixels along the dome's half of the outline of
+            ``pose``'s sphere where the model refined the pose with it (for checking by eye
+            that it follows the dome), else None.
     """
 
     pose: np.ndarray
@@ -40,3 +43,4 @@ class CupDetection:
     mask: np.ndarray | None = None
     status: str = "ok"
     score: float = 1.0
+    outline: np.ndarray | None = None

@@ -634,6 +634,7 @@ class CupNet(nn.Module):
         poses = [solution.pose[row] for _, _, solution, row in chosen]
         alt_poses = [solution.alt_pose[row] for _, _, solution, row in chosen]
         ellipses = [solution.ellipse[row] for _, _, solution, row in chosen]
+        outlines: list[Tensor | None] = [None] * len(chosen)
         solved = [k for k, (_, _, solution, row) in enumerate(chosen) if solution.valid[row]]
         if self.config.outline_passes and self.rim is not None and solved:
             paired = [k for k in solved if chosen[k][2].ambiguous[chosen[k][3]]]
@@ -651,8 +652,12 @@ class CupNet(nn.Module):
             # should show the pose's rim.
             cup_geometry = Geometry(*geometry_rows(geometry, batch)[index[solved]].unbind(-1))
             rims = ellipse_of_pose(refined[:len(solved)], diameter[index[solved]], cup_geometry)
-            for k, pose, rim in zip(solved, refined[:len(solved)], rims, strict=True):
-                poses[k], ellipses[k] = pose, rim
+            domes = sphere_outline(pose_to_radians(refined[:len(solved)]),
+                                   diameter[index[solved]] / 2, cup_geometry, 64,
+                                   dome_only=True)[0]
+            for k, pose, rim, dome in zip(solved, refined[:len(solved)], rims, domes,
+                                          strict=True):
+                poses[k], ellipses[k], outlines[k] = pose, rim, dome
             for k, pose in zip(paired, refined[len(solved):], strict=True):
                 alt_poses[k] = pose
         for k, (i, c) in enumerate(cup_index.tolist()):
@@ -674,6 +679,7 @@ class CupNet(nn.Module):
                 mask=mask,
                 status=solution.status[row],
                 score=float(scores[i, c]),
+                outline=None if outlines[k] is None else outlines[k].numpy(),
             ))
         return results
 

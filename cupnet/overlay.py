@@ -1,4 +1,5 @@
-"""Overlay images for checking results by eye: fitted rim ellipse, landmarks, pose as text.
+"""Overlay images for checking results by eye: rim ellipse, landmarks, the dome's outline,
+pose as text.
 
 Drawn with OpenCV on a contrast-stretched 8-bit copy of the image, scaled so the longer side
 lies between ``min_side`` (small images are enlarged, so the text stays readable) and
@@ -36,6 +37,8 @@ class CupDrawing:
         weights: ``(N,)`` in [0, 1] (landmark shading) or None.
         lines: text lines describing the cup.
         status: ``ok``, ``ambiguous`` or ``error: ...`` (sets the colour).
+        outline: ``(M, 2)`` (u, v) along the dome's outline (an open curve, drawn thin), or
+            None.
     """
 
     ellipse: np.ndarray | None
@@ -43,6 +46,7 @@ class CupDrawing:
     weights: np.ndarray | None
     lines: list[str]
     status: str = "ok"
+    outline: np.ndarray | None = None
 
 
 def display_image(image: np.ndarray) -> np.ndarray:
@@ -112,6 +116,10 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
                 shade = tuple(int(c * (0.3 + 0.7 * float(np.clip(w, 0, 1)))) for c in (255, 80, 0))
                 cv2.circle(canvas, (_fixed(u), _fixed(v)), _fixed(thickness), shade, -1,
                            cv2.LINE_AA, _SHIFT)
+        if cup.outline is not None and np.isfinite(cup.outline).all():
+            curve = np.round(to_view(cup.outline) * (1 << _SHIFT)).astype(np.int32)
+            cv2.polylines(canvas, [curve], False, colour, max(1, thickness // 2), cv2.LINE_AA,
+                          _SHIFT)
         if cup.ellipse is not None and np.isfinite(cup.ellipse).all():
             cx, cy = to_view(cup.ellipse[:2])
             axes = (_fixed(cup.ellipse[2] * scale), _fixed(cup.ellipse[3] * scale))

@@ -475,7 +475,8 @@ class Predictor:
         if not self.args.no_overlays:
             drawings = [CupDrawing(c.ellipse, c.landmarks, c.weights,
                                    pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose),
-                                   c.status) for j, c in enumerate(cups)]
+                                   c.status, c.outline)
+                        for j, c in enumerate(cups)]
             title = f"{frame.name}: " + (f"{len(cups)} cup(s)" if cups else "no_cup")
             record["overlay"] = f"overlays/{output_name(frame.name, '.png')}"
             write_png(out / record["overlay"], draw_overlay(frame.image, drawings, title))

@@ -189,6 +189,9 @@ def test_detect_reports_the_rim_of_its_outline_refined_pose(shipped_on_drr):
     pose = torch.from_numpy(found[0].pose)[None]
     assert torch.allclose(torch.from_numpy(found[0].ellipse),
                           ellipse_of_pose(pose, diameter, geometry)[0], atol=1e-6)
+    dome = torch.from_numpy(found[0].outline)[None]  # the outline drawn on the overlay
+    assert torch.allclose(_ray_distance(dome, pose[:, 2:], geometry),
+                          torch.tensor(diameter / 2, dtype=torch.float64), atol=1e-6)
     truth = sample["pose"][0].double()
     assert torch.allclose(pose[0, :2], truth[:2], atol=0.5)  # deg
     assert ((pose[0, 2:] - truth[2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()  # mm

@@ -379,3 +379,22 @@ def test_assumptions_printed_once_and_recorded(tmp_path: Path, blind_checkpoint:
     assert geometry["pixel_spacing_mm"] == {"value": predict.ASSUMED_DETECTOR_WIDTH_MM / 100,
                                             "source": "assumed"}
     assert geometry["sdd_mm"]["source"] == "command line"
+
+
+def test_overlay_draws_the_dome_outline_where_given() -> None:
+    """An open curve through the given points, in the cup's colour, and nothing else."""
+    from cupnet.overlay import CupDrawing, draw_overlay
+
+    t = np.linspace(0.2 * np.pi, 0.8 * np.pi, 40)
+    outline = np.stack([400 + 90 * np.cos(t), 300 - 90 * np.sin(t)], -1)  # an upper arc
+    canvas = draw_overlay(np.zeros((600, 800)), [CupDrawing(None, None, None, [], "ok",
+                                                            outline)], "").astype(int)
+    green = (canvas[..., 1] > 60) & (canvas[..., 1] > canvas[..., 2] + 30)
+    drawn = np.argwhere(green)[:, ::-1].astype(float)
+    dense = np.stack([400 + 90 * np.cos(np.linspace(t[0], t[-1], 2000)),
+                      300 - 90 * np.sin(np.linspace(t[0], t[-1], 2000))], -1)
+    dist = np.linalg.norm(drawn[:, None] - dense[None], axis=-1)
+    assert len(drawn) > 100
+    assert dist.min(1).max() < 2.0  # every drawn pixel on the arc (chords sag < 0.2 px)
+    assert dist.min(0).max() < 2.0  # the whole arc drawn, and not closed:
+    assert not green[300, 300:500].any()
