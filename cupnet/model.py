@@ -137,7 +137,7 @@ class CupNetConfig:
             frames the next pass or starts the rim stages (None: as it is): a fit much
             smaller than its frame is mostly a femoral head inside the cup, and a crop or
             strips framed on it miss the rim.
-        outline_passes: passes of the dome-outline refinement of each solved pose
+        outline_passes: passes at most of the dome-outline refinement of each solved pose
             (:meth:`CupNet.outline_refined`; 0: none): the fine rim network locates the
             sphere's outline on the dome's side of the pose's rim plane, and the solver fits
             those landmarks beside the rim's. Needs the fine rim stage.
@@ -280,6 +280,11 @@ def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
     """``(B, 4)`` float64 rows (sdd, spacing, u0, v0) of a batch geometry."""
     return torch.stack([t.expand(batch) if t.ndim == 0 else t.reshape(batch)
                         for t in geometry.tensors(torch.float64)], -1)
+
+
+# Pose change (deg, deg, mm, mm, mm) below which a cup's dome-outline refinement is done: a
+# twentieth of the issue's target accuracy.
+_OUTLINE_SETTLED = (0.05, 0.05, 0.05, 0.05, 0.4)
 
 
 class CupNet(nn.Module):
@@ -686,7 +691,8 @@ class CupNet(nn.Module):
     def outline_refined(self, images: list[Tensor], index: Tensor, poses: Tensor,
                         points: Tensor, weights: Tensor, residual: Tensor, geometry: Tensor,
                         diameter: Tensor) -> Tensor:
-        """Solved poses refined with the dome's outline (``outline_passes`` passes).
+        """Solved poses refined with the dome's outline (at most ``outline_passes`` passes; a
+        cup leaves once a pass moves it by less than ``_OUTLINE_SETTLED``).
 
         Each pass samples the fine rim stage's strips across the dome's half of the outline
         of the pose's sphere (:func:`cupnet.outline.sphere_outline`, ``rim_points``
@@ -709,40 +715,59 @@ class CupNet(nn.Module):
         """
         cfg = self.config
         radius = diameter.to(poses) / 2
-        frame = Geometry(*geometry.unbind(-1))
         rim_weights = weights / residual.clamp_min(0.3)[:, None] ** 2
         size = torch.tensor([images[int(i)].shape[-1:-3:-1] for i in index], dtype=poses.dtype)
-        offsets = strip_offsets(cfg.rim_samples, cfg.rim_step)
         pose = pose_to_radians(poses)
+        active = torch.ones(len(pose), dtype=torch.bool)
         for _ in range(cfg.outline_passes):
-            outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
-                                                    dome_only=True)
-            strips = sample_strips(images, index, outline, normals, offsets)
-            found = strip_landmarks(*self.rim(strips.to(self.dtype)), outline, normals, offsets)
-            landmarks = found.landmarks
-            keep = (side > cfg.outline_min_side) & (landmarks >= 0).all(-1) & (
-                landmarks <= size[:, None] - 1).all(-1)
-            # The strip is an open arc: the rim network's columns near its ends see the
-            # other end through its circular padding.
-            ends = self.rim.columns_seen
-            keep[:, :ends] = False
-            keep[:, -ends:] = False
-            dist = outline_distances(pose[:, 2:5], landmarks, radius, geometry)[0]
-            dist = dist.masked_fill(~keep, math.nan)
-            middle = dist.nanmedian(-1, keepdim=True).values
-            spread = 1.4826 * (dist - middle).abs().nanmedian(-1, keepdim=True).values
-            keep &= (dist - middle).abs() <= (3 * spread).clamp_min(1.0)
-            outline_weights = torch.where(keep, 0.5 / found.sigma**2, 0.0)
-            inner = over_dome(points, pose, frame)
-            pose = refine_pose_with_outline(
-                pose, points, torch.where(inner, cfg.outline_inner_rim_weight * rim_weights,
-                                          rim_weights), landmarks, outline_weights, frame, radius)
+            rows = active.nonzero()[:, 0]
+            if len(rows) == 0:
+                break
+            moved = self._outline_pass(images, index[rows], pose[rows], points[rows],
+                                       rim_weights[rows], radius[rows], geometry[rows],
+                                       size[rows])
+            step = pose_to_degrees(moved) - pose_to_degrees(pose[rows])
+            pose[rows] = moved
+            # A cup whose pass moved it by under a twentieth of the issue's target accuracy
+            # is done: the passes after would move it less (about half the cups by pass 2).
+            active[rows] = ~(step.abs() < step.new_tensor(_OUTLINE_SETTLED)).all(-1)
         refined = pose_to_degrees(canonical_pose(pose))
         usable = torch.isfinite(refined).all(-1) & (refined[:, 4] > 0) & (
             refined[:, 4] < geometry[:, 0])
         if cfg.max_theta_deg is not None:  # nor one the anteversion limit would have refused
             usable &= (refined[:, 0] <= cfg.max_theta_deg) | (poses[:, 0] > cfg.max_theta_deg)
         return torch.where(usable[:, None], refined, poses)
+
+    def _outline_pass(self, images: list[Tensor], index: Tensor, pose: Tensor, points: Tensor,
+                      rim_weights: Tensor, radius: Tensor, geometry: Tensor, size: Tensor
+                      ) -> Tensor:
+        """One pass of :meth:`outline_refined` on ``K`` cups: poses ``(K, 5)`` rad / mm in
+        and out; ``size`` ``(K, 2)`` each cup's image width and height."""
+        cfg = self.config
+        frame = Geometry(*geometry.unbind(-1))
+        offsets = strip_offsets(cfg.rim_samples, cfg.rim_step)
+        outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
+                                                dome_only=True)
+        strips = sample_strips(images, index, outline, normals, offsets)
+        found = strip_landmarks(*self.rim(strips.to(self.dtype)), outline, normals, offsets)
+        landmarks = found.landmarks
+        keep = (side > cfg.outline_min_side) & (landmarks >= 0).all(-1) & (
+            landmarks <= size[:, None] - 1).all(-1)
+        # The strip is an open arc: the rim network's columns near its ends see the other
+        # end through its circular padding.
+        ends = self.rim.columns_seen
+        keep[:, :ends] = False
+        keep[:, -ends:] = False
+        dist = outline_distances(pose[:, 2:5], landmarks, radius, geometry)[0]
+        dist = dist.masked_fill(~keep, math.nan)
+        middle = dist.nanmedian(-1, keepdim=True).values
+        spread = 1.4826 * (dist - middle).abs().nanmedian(-1, keepdim=True).values
+        keep &= (dist - middle).abs() <= (3 * spread).clamp_min(1.0)
+        outline_weights = torch.where(keep, 0.5 / found.sigma**2, 0.0)
+        inner = over_dome(points, pose, frame)
+        return refine_pose_with_outline(
+            pose, points, torch.where(inner, cfg.outline_inner_rim_weight * rim_weights,
+                                      rim_weights), landmarks, outline_weights, frame, radius)
 
     def refiner_fit(self, points: Tensor, weights: Tensor, frames: Tensor) -> Tensor:
         """The ellipses ``(K, 5)`` a refiner pass's landmarks ``(K, n, 2)`` and weights
