@@ -220,3 +220,24 @@ def test_refinement_beyond_the_anteversion_limit_keeps_the_rim_pose(shipped_on_d
         model.config.max_theta_deg = limit
     assert abs(float(free[0, 0] - truth[0, 0])) < 0.5
     assert torch.equal(limited, start)
+
+
+def test_outline_refinement_stops_once_a_cup_settles(shipped_on_drr, monkeypatch):
+    """From the true pose and rim, a pass or two settle the cup: no more passes run."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    passes = []
+    run_pass = model._outline_pass
+    monkeypatch.setattr(model, "_outline_pass",
+                        lambda *args: passes.append(len(args[1])) or run_pass(*args))
+    monkeypatch.setattr(model.config, "outline_passes", 20)
+    with torch.no_grad():
+        pose = model.outline_refined([sample["image"]], torch.tensor([0]), truth,
+                                     rim_landmarks(truth, geometry, float(diameter), 128),
+                                     torch.ones(1, 128, dtype=torch.float64),
+                                     torch.tensor([0.5], dtype=torch.float64),
+                                     geometry_rows(geometry, 1), diameter)
+    assert 1 <= len(passes) <= 3
+    assert abs(float(pose[0, 4] - truth[0, 4])) < 4.0
