@@ -697,13 +697,12 @@ class CupNet(nn.Module):
         Each pass samples the fine rim stage's strips across the dome's half of the outline
         of the pose's sphere (:func:`cupnet.outline.sphere_outline`, ``rim_points``
         normals) and takes the network's landmarks there (beyond ``outline_min_side``, away
-        from the arc's ends, inside the image, within three robust
-        standard deviations of the others' distance to the outline), weighted ``1 / (2
-        sigma^2)`` (the network's sigma is a Laplace scale); the solver fits them beside the
-        rim landmarks, weighted by their residual's inverse variance (times
-        ``outline_inner_rim_weight`` over the dome's shadow;
-        :func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves ``0 < h < sdd``, or
-        crosses ``max_theta_deg``, keeps its rim-only value.
+        from the arc's ends, inside the image, within three robust standard deviations of
+        the others' distance to the outline), weighted ``1 / (2 sigma^2)`` (the network's
+        sigma is a Laplace scale); the solver fits them beside the rim landmarks, weighted
+        by their residual's inverse variance (times ``outline_inner_rim_weight`` over the
+        dome's shadow; :func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves
+        ``0 < h < sdd``, or crosses ``max_theta_deg``, keeps its rim-only value.
 
         Args:
             images: the batch's images; index ``(K,)`` image of each cup.
