@@ -144,6 +144,8 @@ class CupNetConfig:
         outline_min_side: outline points nearer the rim plane than this many radii are left
             out: there the dome's outline meets the rim's tips, and a wrong pose's side of
             the plane may not be the dome's.
+        outline_weight: the outline landmarks' weights are this over their ``sigma^2`` (the
+            rim landmarks' are their residual's inverse variance).
         outline_inner_rim_weight: in the dome-outline refinement, the rim landmarks over the
             dome's own shadow (:func:`cupnet.outline.over_dome`) count this much: the edge the
             network finds there is the shell's inner surface, inside the rim.
@@ -182,6 +184,7 @@ class CupNetConfig:
     reframe_min_scale: float | None = None
     outline_passes: int = 0
     outline_min_side: float = 0.3
+    outline_weight: float = 0.5
     outline_inner_rim_weight: float = 1.0
 
     @classmethod
@@ -698,10 +701,10 @@ class CupNet(nn.Module):
         of the pose's sphere (:func:`cupnet.outline.sphere_outline`, ``rim_points``
         normals) and takes the network's landmarks there (beyond ``outline_min_side``, away
         from the arc's ends, inside the image, within three robust standard deviations of
-        the others' distance to the outline), weighted ``1 / (2 sigma^2)`` (the network's
-        sigma is a Laplace scale); the solver fits them beside the rim landmarks, weighted
-        by their residual's inverse variance (times ``outline_inner_rim_weight`` over the
-        dome's shadow; :func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves
+        the others' distance to the outline), weighted ``outline_weight / sigma^2``; the
+        solver fits them beside the rim landmarks, weighted by their residual's inverse
+        variance (times ``outline_inner_rim_weight`` over the dome's shadow;
+        :func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves
         ``0 < h < sdd``, or crosses ``max_theta_deg``, keeps its rim-only value.
 
         Args:
@@ -762,7 +765,7 @@ class CupNet(nn.Module):
         middle = dist.nanmedian(-1, keepdim=True).values
         spread = 1.4826 * (dist - middle).abs().nanmedian(-1, keepdim=True).values
         keep &= (dist - middle).abs() <= (3 * spread).clamp_min(1.0)
-        outline_weights = torch.where(keep, 0.5 / found.sigma**2, 0.0)
+        outline_weights = torch.where(keep, cfg.outline_weight / found.sigma**2, 0.0)
         inner = over_dome(points, pose, frame)
         return refine_pose_with_outline(
             pose, points, torch.where(inner, cfg.outline_inner_rim_weight * rim_weights,
