@@ -52,6 +52,12 @@ class Geometry:
             principal_v=(height - 1) / 2 if principal_v is None else principal_v,
         )
 
+    @classmethod
+    def from_rows(cls, rows: Tensor) -> Geometry:
+        """Geometry of rows ``(..., 4)`` (sdd, spacing, u0, v0), one per image (also for one
+        row under ``vmap``)."""
+        return cls(*rows.unbind(-1))
+
     def tensors(
         self, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:

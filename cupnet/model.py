@@ -537,7 +537,7 @@ class CupNet(nn.Module):
             empty = points.new_zeros(0, 5)
             return PoseSolution(empty, empty, torch.zeros(0, dtype=torch.bool), empty,
                                 points.new_zeros(0), torch.zeros(0, dtype=torch.bool), [])
-        return solve_pose(points, Geometry(*rows.unbind(-1)), diameter, weights, refine=refine,
+        return solve_pose(points, Geometry.from_rows(rows), diameter, weights, refine=refine,
                           on_error="flag")
 
     # -- inference -------------------------------------------------------------------------
@@ -647,6 +647,7 @@ class CupNet(nn.Module):
         if self.config.outline_passes and self.rim is not None and solved:
             paired = [k for k in solved if chosen[k][2].ambiguous[chosen[k][3]]]
             rows = solved + paired
+            cup_rows = geometry_rows(geometry, batch)[index[rows]]
             # Landmark sets differ in size (refiner 64, rim stages 128): zero weights pad them.
             refined = self.outline_refined(
                 image_list, index[rows],
@@ -654,11 +655,11 @@ class CupNet(nn.Module):
                 pad_sequence([chosen[k][0] for k in rows], batch_first=True),
                 pad_sequence([chosen[k][1] for k in rows], batch_first=True),
                 torch.stack([chosen[k][2].residual_px[chosen[k][3]] for k in rows]),
-                geometry_rows(geometry, batch)[index[rows]], diameter[index[rows]])
+                cup_rows, diameter[index[rows]])
             # The rim the refined pose projects to, not the landmarks' fit: the two differ
             # where the outline moved the pose (a thin rim's fit is short), and the overlay
             # should show the pose's rim.
-            cup_geometry = Geometry(*geometry_rows(geometry, batch)[index[solved]].unbind(-1))
+            cup_geometry = Geometry.from_rows(cup_rows[:len(solved)])
             rims = ellipse_of_pose(refined[:len(solved)], diameter[index[solved]], cup_geometry)
             domes = sphere_outline(pose_to_radians(refined[:len(solved)]),
                                    diameter[index[solved]] / 2, cup_geometry, 64,
@@ -746,7 +747,7 @@ class CupNet(nn.Module):
         """One pass of :meth:`outline_refined` on ``K`` cups: poses ``(K, 5)`` rad / mm in
         and out; ``size`` ``(K, 2)`` each cup's image width and height."""
         cfg = self.config
-        frame = Geometry(*geometry.unbind(-1))
+        frame = Geometry.from_rows(geometry)
         offsets = strip_offsets(cfg.rim_samples, cfg.rim_step)
         outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
                                                 dome_only=True)

@@ -85,11 +85,6 @@ def _batch_geometry(geometry: Geometry, batch: int, dtype: torch.dtype,
     return torch.stack(fields, -1)
 
 
-def _geometry_of(rows: Tensor) -> Geometry:
-    """Inverse of :func:`_batch_geometry` (also for one row under ``vmap``)."""
-    return Geometry(*rows.unbind(-1))
-
-
 def geometry_problems(geometry: Geometry, radius: Tensor) -> list[str | None]:
     """Per-item reason a geometry / radius is unusable (None where fine).
 
@@ -326,7 +321,7 @@ def _initial_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: 
     Args: pose ``(B, 5)``, points ``(B, N, 2)`` px, radius ``(B,)``, geom ``(B, 4)``.
     Returns: ``(B, N)`` rad.
     """
-    geometry = _geometry_of(geom)
+    geometry = Geometry.from_rows(geom)
     rot = rotation(pose[:, 0], pose[:, 1])
     cam = camera_matrix(geometry, pose.dtype, pose.device)
     centre = pose[:, 2:5] - source_position(geometry, pose.dtype, pose.device)
@@ -810,7 +805,7 @@ def _refine_candidates(solutions: Tensor, points: Tensor, weights: Tensor | None
     items = torch.cat([torch.arange(batch, device=device), maybe_both.nonzero()[:, 0]])
     which = torch.cat([chosen, 1 - chosen[maybe_both]])
     rows = _batch_geometry(geometry, batch, dtype, device)[items]
-    refined, _ = refine_pose(solutions[items, which], points[items], _geometry_of(rows),
+    refined, _ = refine_pose(solutions[items, which], points[items], Geometry.from_rows(rows),
                              radius[items], weights[items], **options)
     out = solutions.detach().clone()
     out[items, which] = refined
@@ -828,7 +823,7 @@ def _safe_geometry(geometry: Geometry, ok: Tensor, batch: int, dtype: torch.dtyp
                    device: torch.device) -> Geometry:
     rows = _batch_geometry(geometry, batch, dtype, device)
     stand_in = torch.tensor([1000.0, 1.0, 0.0, 0.0], dtype=dtype, device=device)
-    return _geometry_of(torch.where(ok[:, None], rows, stand_in))
+    return Geometry.from_rows(torch.where(ok[:, None], rows, stand_in))
 
 
 def _stand_in_pose(batch: int, dtype: torch.dtype) -> Tensor:
@@ -885,7 +880,7 @@ def cramer_rao_bound(pose: Tensor, radius: Tensor | float, geometry: Geometry, t
     radius = torch.as_tensor(radius, dtype=pose.dtype, device=pose.device).expand(batch)
 
     def landmarks(p: Tensor, tt: Tensor, g: Tensor, r: Tensor) -> Tensor:
-        return project_rim(p[None], r, _geometry_of(g), tt)[0]  # (N, 2)
+        return project_rim(p[None], r, Geometry.from_rows(g), tt)[0]  # (N, 2)
 
     jac = vmap(jacfwd(landmarks), in_dims=(0, None, 0, 0))(pose, t, geom, radius)  # (B,N,2,5)
     tangent = vmap(jacfwd(landmarks, argnums=1), in_dims=(0, None, 0, 0))(pose, t, geom, radius)

@@ -31,7 +31,7 @@ from train.losses import (
 
 def batch_geometry(geometry: Tensor) -> Geometry:
     """``(B, 4)`` rows (sdd, spacing, u0, v0) of a collated batch -> :class:`Geometry`."""
-    return Geometry(*geometry.double().unbind(-1))
+    return Geometry.from_rows(geometry.double())
 
 
 def jittered_ellipses(ellipse: Tensor, valid: Tensor, coarse: float, coarse_shift: float,
