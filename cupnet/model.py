@@ -149,6 +149,15 @@ class CupNetConfig:
         outline_inner_rim_weight: in the dome-outline refinement, the rim landmarks over the
             dome's own shadow (:func:`cupnet.outline.over_dome`) count this much: the edge the
             network finds there is the shell's inner surface, inside the rim.
+        verify_gate: after the dome-outline refinement, a cup whose refined pose the fine rim
+            network doubts (:meth:`CupNet.pose_doubt` at least this) is solved again from
+            every landmark source (:meth:`CupNet.verified`), each pose refined with the
+            outline, and keeps the one the network doubts least ... (None: no cup; needs
+            ``outline_passes``)
+        verify_margin: ... where it beats the first pose's doubt by more than this.
+        verify_thin_rims: the thin-rim hypotheses among those sources: the fine rim stage from
+            each of the hypotheses it trusts most after one pass (at most
+            ``thin_rim_angles``).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -186,6 +195,9 @@ class CupNetConfig:
     outline_min_side: float = 0.3
     outline_weight: float = 0.5
     outline_inner_rim_weight: float = 1.0
+    verify_gate: float | None = None
+    verify_margin: float = 0.8
+    verify_thin_rims: int = 3
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -288,6 +300,10 @@ def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
 # Pose change (deg, deg, mm, mm, mm) below which a cup's dome-outline refinement is done: a
 # twentieth of the issue's target accuracy.
 _OUTLINE_SETTLED = (0.05, 0.05, 0.05, 0.05, 0.4)
+# One cup's landmarks (N, 2), weights (N,), the solution of its source's batch, and its row.
+_Pick = tuple[Tensor, Tensor, PoseSolution, int]
+# A landmark source of CupNet.detect: cups (K,) -> landmarks (K, N, 2), weights (K, N).
+_Source = Callable[[Tensor], tuple[Tensor, Tensor]]
 
 
 class CupNet(nn.Module):
@@ -472,15 +488,25 @@ class CupNet(nn.Module):
         (:func:`cupnet.rim.thin_rim_starts`): one pass from each, then ``rim_passes`` more
         from the weighted fit of the pass the network trusts most (lowest mean ``log sigma``).
         """
+        return self.ranked_thin_rim_landmarks(images, index, start, 1)[0]
+
+    def ranked_thin_rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor,
+                                  start: Tensor, top: int) -> list[RimLandmarks]:
+        """:meth:`thin_rim_landmarks` from each of the ``top`` hypotheses the network trusts
+        most after one pass, most trusted first."""
         cfg = self.config
         starts = thin_rim_starts(start.detach().double(), cfg.thin_rim_angles, cfg.thin_rim_ratio)
         count, angles = starts.shape[:2]
         starts = starts.flatten(0, 1)
         first = self.rim_landmarks(images, index.repeat_interleave(angles), starts, passes=1)
         doubt = first.sigma.log().mean(-1).reshape(count, angles).nan_to_num(math.inf)
-        pick = torch.arange(count, device=doubt.device) * angles + doubt.argmin(-1)
-        framed = usable_fit(first.landmarks[pick], first.weights[pick], starts[pick])
-        return self.rim_landmarks(images, index, framed)
+        ranked = doubt.argsort(-1)[:, :top]
+        found = []
+        for rank in range(ranked.shape[1]):
+            pick = torch.arange(count, device=doubt.device) * angles + ranked[:, rank]
+            framed = usable_fit(first.landmarks[pick], first.weights[pick], starts[pick])
+            found.append(self.rim_landmarks(images, index, framed))
+        return found
 
     def forward(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor,
                 crop_frames: Tensor | None = None, refine_pose: bool = False) -> CupNetOutput:
@@ -600,11 +626,13 @@ class CupNet(nn.Module):
         def refiner(todo: Tensor) -> tuple[Tensor, Tensor]:
             return crop_points[todo], crop_weights[todo]
 
-        sources: list[Callable[[Tensor], tuple[Tensor, Tensor]]] = [refiner]
+        sources: list[_Source] = [refiner]
+        every_source = sources
+        start: Tensor | None = None
         if self.rim is not None:
             start = self.refiner_fit(crop_points, crop_weights, frames)
 
-            def run(method: Callable) -> Callable[[Tensor], tuple[Tensor, Tensor]]:
+            def run(method: Callable) -> _Source:
                 return lambda todo: method(image_list, index[todo], start[todo])[:2]
 
             alternatives = self.rim_alternatives()
@@ -612,65 +640,59 @@ class CupNet(nn.Module):
                        *[run(alt.landmarks) for alt in alternatives if not alt.after_refiner],
                        refiner,
                        *[run(alt.landmarks) for alt in alternatives if alt.after_refiner]]
+            grown = []
             if self.coarse_rim is not None and self.config.grown_rim_scale is not None:
-                sources.append(self._grown_rim_source(image_list, geometry, diameter, cup_index,
-                                                      start))
-        Pick = tuple[Tensor, Tensor, PoseSolution, int]
-        chosen: list[Pick | None] = [None] * len(cup_index)
-        fallback: list[Pick | None] = [None] * len(cup_index)
+                grown = [self._grown_rim_source(image_list, geometry, diameter, cup_index,
+                                                start)]
+            sources += grown
+            # What :meth:`verified` re-solves a doubtful cup from: each start on its own.
+            every_source = [run(self.rim_landmarks),
+                            *([run(self.coarse_framed_rim_landmarks)] if self.coarse_rim
+                              is not None else []),
+                            refiner, *grown]
+        chosen: list[_Pick | None] = [None] * len(cup_index)
+        fallback: list[_Pick | None] = [None] * len(cup_index)
         limit = self.config.max_theta_deg
         for source in sources:
             todo = torch.tensor([k for k, pick in enumerate(chosen) if pick is None],
                                 dtype=torch.long)
             if len(todo) == 0:
                 break
-            points, weights = source(todo)
-            solution = self.solve(points, weights, geometry, diameter, cup_index[todo], batch,
-                                  refine=True)
-            for row, k in enumerate(todo.tolist()):
-                pick = (points[row], weights[row], solution, row)
+            for k, pick in self._solved_picks(source, todo, geometry, diameter, cup_index,
+                                              batch):
+                solution, row = pick[2], pick[3]
                 valid = bool(solution.valid[row])
                 kept_valid = fallback[k] is not None and bool(fallback[k][2].valid[fallback[k][3]])
                 if valid and (limit is None or float(solution.pose[row, 0]) <= limit):
                     chosen[k] = pick
                 elif not kept_valid and (valid or source is refiner):
                     fallback[k] = pick
-        chosen = [pick if pick is not None else other
-                  for pick, other in zip(chosen, fallback, strict=True)]
-        # Each solved cup's pose (and its ambiguous pair's second pose), refined with the
-        # dome's outline where the model does that.
-        poses = [solution.pose[row] for _, _, solution, row in chosen]
-        alt_poses = [solution.alt_pose[row] for _, _, solution, row in chosen]
-        ellipses = [solution.ellipse[row] for _, _, solution, row in chosen]
-        outlines: list[Tensor | None] = [None] * len(chosen)
-        solved = [k for k, (_, _, solution, row) in enumerate(chosen) if solution.valid[row]]
+        picks = [pick if pick is not None else other
+                 for pick, other in zip(chosen, fallback, strict=True)]
+        poses = [solution.pose[row] for _, _, solution, row in picks]
+        alt_poses = [solution.alt_pose[row] for _, _, solution, row in picks]
+        ellipses = [solution.ellipse[row] for _, _, solution, row in picks]
+        outlines: list[Tensor | None] = [None] * len(picks)
+        solved = [k for k, (_, _, solution, row) in enumerate(picks) if solution.valid[row]]
         if self.config.outline_passes and self.rim is not None and solved:
-            paired = [k for k in solved if chosen[k][2].ambiguous[chosen[k][3]]]
-            rows = solved + paired
-            cup_rows = geometry_rows(geometry, batch)[index[rows]]
-            # Landmark sets differ in size (refiner 64, rim stages 128): zero weights pad them.
-            refined = self.outline_refined(
-                image_list, index[rows],
-                torch.stack([poses[k] for k in solved] + [alt_poses[k] for k in paired]),
-                pad_sequence([chosen[k][0] for k in rows], batch_first=True),
-                pad_sequence([chosen[k][1] for k in rows], batch_first=True),
-                torch.stack([chosen[k][2].residual_px[chosen[k][3]] for k in rows]),
-                cup_rows, diameter[index[rows]])
+            rows = geometry_rows(geometry, batch)
+            self._outline_refine_picks(image_list, index, picks, solved, poses, alt_poses, rows,
+                                       diameter)
+            if self.config.verify_gate is not None:
+                self.verified(image_list, index, picks, solved, poses, alt_poses, every_source,
+                              start, geometry, diameter, cup_index, batch)
             # The rim the refined pose projects to, not the landmarks' fit: the two differ
             # where the outline moved the pose (a thin rim's fit is short), and the overlay
             # should show the pose's rim.
-            cup_geometry = Geometry.from_rows(cup_rows[:len(solved)])
-            rims = ellipse_of_pose(refined[:len(solved)], diameter[index[solved]], cup_geometry)
-            domes = sphere_outline(pose_to_radians(refined[:len(solved)]),
-                                   diameter[index[solved]] / 2, cup_geometry, 64,
-                                   dome_only=True)[0]
-            for k, pose, rim, dome in zip(solved, refined[:len(solved)], rims, domes,
-                                          strict=True):
-                poses[k], ellipses[k], outlines[k] = pose, rim, dome
-            for k, pose in zip(paired, refined[len(solved):], strict=True):
-                alt_poses[k] = pose
+            refined = torch.stack([poses[k] for k in solved])
+            cup_geometry = Geometry.from_rows(rows[index[solved]])
+            rims = ellipse_of_pose(refined, diameter[index[solved]], cup_geometry)
+            domes = sphere_outline(pose_to_radians(refined), diameter[index[solved]] / 2,
+                                   cup_geometry, 64, dome_only=True)[0]
+            for k, rim, dome in zip(solved, rims, domes, strict=True):
+                ellipses[k], outlines[k] = rim, dome
         for k, (i, c) in enumerate(cup_index.tolist()):
-            points, weights, solution, row = chosen[k]
+            points, weights, solution, row = picks[k]
             mask = None
             if return_masks:
                 height, width = image_list[i].shape[-2:]
@@ -691,6 +713,144 @@ class CupNet(nn.Module):
                 outline=None if outlines[k] is None else outlines[k].numpy(),
             ))
         return results
+
+    def _solved_picks(self, source: _Source, todo: Tensor, geometry: Geometry,
+                      diameter: Tensor, cup_index: Tensor, batch: int
+                      ) -> list[tuple[int, _Pick]]:
+        """``(cup, pick)`` of each cup in ``todo`` ``(K,)``: ``source``'s landmarks solved
+        (with the ML refinement)."""
+        points, weights = source(todo)
+        solution = self.solve(points, weights, geometry, diameter, cup_index[todo], batch,
+                              refine=True)
+        return [(k, (points[row], weights[row], solution, row))
+                for row, k in enumerate(todo.tolist())]
+
+    def _outline_refine_picks(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
+                              solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
+                              rows: Tensor, diameter: Tensor) -> None:
+        """:meth:`outline_refined` on the ``solved`` cups' poses and their ambiguous pairs'
+        second poses, in place in ``poses`` and ``alt_poses``.
+
+        Args:
+            index: ``(K,)`` image of each cup; picks: each cup's landmarks and solution.
+            rows: ``(B, 4)`` each image's geometry; diameter: ``(B,)`` mm.
+        """
+        paired = [k for k in solved if picks[k][2].ambiguous[picks[k][3]]]
+        cups = solved + paired
+        refined = self._refined_picks(images, index[cups], [picks[k] for k in cups],
+                                      [poses[k] for k in solved] + [alt_poses[k] for k in paired],
+                                      rows, diameter)
+        for k, pose in zip(solved, refined[:len(solved)], strict=True):
+            poses[k] = pose
+        for k, pose in zip(paired, refined[len(solved):], strict=True):
+            alt_poses[k] = pose
+
+    def _refined_picks(self, images: list[Tensor], image: Tensor, picks: list[_Pick],
+                       poses: list[Tensor], rows: Tensor, diameter: Tensor) -> Tensor:
+        """:meth:`outline_refined` of ``poses`` (each ``(5,)``) solved from ``picks`` in the
+        images ``image`` ``(P,)``; ``rows`` ``(B, 4)``, ``diameter`` ``(B,)`` per image.
+        Returns ``(P, 5)``."""
+        # Landmark sets differ in size (refiner 64, rim stages 128): zero weights pad them.
+        return self.outline_refined(
+            images, image, torch.stack(poses),
+            pad_sequence([pick[0] for pick in picks], batch_first=True),
+            pad_sequence([pick[1] for pick in picks], batch_first=True),
+            torch.stack([pick[2].residual_px[pick[3]] for pick in picks]),
+            rows[image], diameter[image])
+
+    def verified(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
+                 solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
+                 sources: list[_Source], start: Tensor | None, geometry: Geometry,
+                 diameter: Tensor, cup_index: Tensor, batch: int) -> None:
+        """Doubtful cups solved again from every landmark source, in place.
+
+        A solved cup whose outline-refined pose :meth:`pose_doubt` puts at ``verify_gate`` or
+        more is solved from each of ``sources`` and from the ``verify_thin_rims`` thin-rim
+        hypotheses around ``start`` the fine rim stage trusts most; each distinct pose
+        within ``max_theta_deg`` is refined with the outline (:meth:`outline_refined`), and
+        the one with the least doubt replaces the cup's pick, pose and second pose (that one
+        not refined) where it beats the first pose's doubt by more than ``verify_margin``.
+        The gross failures left after the outline are rims taken from the wrong contour (a
+        femoral head's, a thin rim at the wrong angle); the source that finds the right one
+        is not the same from cup to cup, and the right pose explains both the rim and the
+        dome's outline where the others do not.
+
+        Args:
+            index: ``(K,)`` image of each cup; picks, poses (deg / mm), alt_poses: per cup.
+            solved: the cups with a pose; sources: as :meth:`detect`'s, cups -> landmarks.
+            start: ``(K, 5)`` the refiner's ellipses (None: no thin-rim hypotheses).
+            geometry, diameter: per image; cup_index: ``(K, 2)``; batch: images.
+        """
+        cfg = self.config
+        rows = geometry_rows(geometry, batch)
+        first = torch.stack([poses[k] for k in solved])
+        doubt = self.pose_doubt(images, index[solved], first, rows[index[solved]],
+                                diameter[index[solved]])
+        todo = torch.tensor([k for k, d in zip(solved, doubt.tolist(), strict=True)
+                             if d >= cfg.verify_gate], dtype=torch.long)
+        if len(todo) == 0:
+            return
+        if start is not None and cfg.verify_thin_rims > 0:
+            # Each thin-rim hypothesis's landmarks are a source: their first pass is shared.
+            thin = self.ranked_thin_rim_landmarks(images, index[todo], start[todo],
+                                                  cfg.verify_thin_rims)
+            row = torch.full((len(index),), -1, dtype=torch.long)
+            row[todo] = torch.arange(len(todo))
+            sources = [*sources, *[lambda cups, found=found: (found.landmarks[row[cups]],
+                                                               found.weights[row[cups]])
+                                   for found in thin]]
+        candidates = [(k, pick) for source in sources
+                      for k, pick in self._solved_picks(source, todo, geometry, diameter,
+                                                        cup_index, batch)
+                      if pick[2].valid[pick[3]] and (cfg.max_theta_deg is None or float(
+                          pick[2].pose[pick[3], 0]) <= cfg.max_theta_deg)]
+        candidates = _distinct(candidates)
+        if not candidates:
+            return
+        cups = torch.tensor([k for k, _ in candidates], dtype=torch.long)
+        refined = self._refined_picks(images, index[cups], [pick for _, pick in candidates],
+                                      [pick[2].pose[pick[3]] for _, pick in candidates],
+                                      rows, diameter)
+        usable = torch.isfinite(refined).all(-1)
+        if cfg.max_theta_deg is not None:
+            usable &= refined[:, 0] <= cfg.max_theta_deg
+        doubts = self.pose_doubt(images, index[cups], refined.nan_to_num(), rows[index[cups]],
+                                 diameter[index[cups]]).masked_fill(~usable, math.inf)
+        best = dict(zip(solved, (doubt - cfg.verify_margin).tolist(), strict=True))
+        for (k, pick), pose, cost in zip(candidates, refined, doubts.tolist(), strict=True):
+            if cost < best[k]:
+                best[k] = cost
+                picks[k], poses[k], alt_poses[k] = pick, pose, pick[2].alt_pose[pick[3]]
+
+    def pose_doubt(self, images: list[Tensor], index: Tensor, poses: Tensor, geometry: Tensor,
+                   diameter: Tensor) -> Tensor:
+        """How little the fine rim network believes each pose: the mean Laplace negative
+        log-likelihood ``|s| / sigma + log sigma`` (``s`` the column's landmark offset, px)
+        that the image's edge lies where the pose puts it, over strips across the pose's rim
+        (``rim_points`` normals) plus over strips across the dome's half of its sphere's
+        outline (as :meth:`outline_refined` samples it).
+
+        Args:
+            images: the batch's images; index ``(K,)`` image of each pose.
+            poses: ``(K, 5)`` deg / mm; geometry: ``(K, 4)`` rows; diameter: ``(K,)`` mm.
+        Returns:
+            ``(K,)``; lower: the network finds both edges where the pose puts them.
+        """
+        cfg = self.config
+        frame = Geometry.from_rows(geometry)
+        rim = ellipse_of_pose(poses, diameter, frame)
+        points, normals = rim_frame(rim, cfg.rim_points)
+        offsets = strip_offsets(cfg.rim_samples, cfg.rim_step)
+        strips = sample_strips(images, index, points, normals, offsets)
+        on_rim = strip_landmarks(*self.rim(strips.to(self.dtype)), points, normals, offsets)
+        on_dome, keep = self._outline_landmarks(images, index, pose_to_radians(poses),
+                                                diameter.to(poses) / 2, frame)
+
+        def nll(found: RimLandmarks) -> Tensor:
+            return found.offset.abs() / found.sigma + found.sigma.log()
+
+        dome = (nll(on_dome) * keep).sum(-1) / keep.sum(-1).clamp_min(1)
+        return nll(on_rim).mean(-1) + dome
 
     def outline_refined(self, images: list[Tensor], index: Tensor, poses: Tensor,
                         points: Tensor, weights: Tensor, residual: Tensor, geometry: Tensor,
@@ -719,7 +879,6 @@ class CupNet(nn.Module):
         cfg = self.config
         radius = diameter.to(poses) / 2
         rim_weights = weights / residual.clamp_min(0.3)[:, None] ** 2
-        size = torch.tensor([images[int(i)].shape[-1:-3:-1] for i in index], dtype=poses.dtype)
         pose = pose_to_radians(poses)
         active = torch.ones(len(pose), dtype=torch.bool)
         for _ in range(cfg.outline_passes):
@@ -727,8 +886,7 @@ class CupNet(nn.Module):
             if len(rows) == 0:
                 break
             moved = self._outline_pass(images, index[rows], pose[rows], points[rows],
-                                       rim_weights[rows], radius[rows], geometry[rows],
-                                       size[rows])
+                                       rim_weights[rows], radius[rows], geometry[rows])
             step = pose_to_degrees(moved) - pose_to_degrees(pose[rows])
             pose[rows] = moved
             # A cup whose pass moved it by under a twentieth of the issue's target accuracy
@@ -741,26 +899,40 @@ class CupNet(nn.Module):
             usable &= (refined[:, 0] <= cfg.max_theta_deg) | (poses[:, 0] > cfg.max_theta_deg)
         return torch.where(usable[:, None], refined, poses)
 
-    def _outline_pass(self, images: list[Tensor], index: Tensor, pose: Tensor, points: Tensor,
-                      rim_weights: Tensor, radius: Tensor, geometry: Tensor, size: Tensor
-                      ) -> Tensor:
-        """One pass of :meth:`outline_refined` on ``K`` cups: poses ``(K, 5)`` rad / mm in
-        and out; ``size`` ``(K, 2)`` each cup's image width and height."""
+    def _outline_landmarks(self, images: list[Tensor], index: Tensor, pose: Tensor,
+                           radius: Tensor, frame: Geometry) -> tuple[RimLandmarks, Tensor]:
+        """The fine rim network's landmarks across the dome's half of each pose's sphere
+        outline (``rim_points`` normals), and which to keep ``(K, n)``: beyond
+        ``outline_min_side``, inside the image, away from the arc's ends.
+
+        Args:
+            images: the batch's images; index ``(K,)`` image of each pose.
+            pose: ``(K, 5)`` rad / mm; radius: ``(K,)`` mm; frame: fields ``(K,)``.
+        """
         cfg = self.config
-        frame = Geometry.from_rows(geometry)
         offsets = strip_offsets(cfg.rim_samples, cfg.rim_step)
         outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
                                                 dome_only=True)
         strips = sample_strips(images, index, outline, normals, offsets)
         found = strip_landmarks(*self.rim(strips.to(self.dtype)), outline, normals, offsets)
-        landmarks = found.landmarks
-        keep = (side > cfg.outline_min_side) & (landmarks >= 0).all(-1) & (
-            landmarks <= size[:, None] - 1).all(-1)
+        size = torch.tensor([images[int(i)].shape[-1:-3:-1] for i in index], dtype=pose.dtype)
+        keep = (side > cfg.outline_min_side) & (found.landmarks >= 0).all(-1) & (
+            found.landmarks <= size[:, None] - 1).all(-1)
         # The strip is an open arc: the rim network's columns near its ends see the other
         # end through its circular padding.
         ends = self.rim.columns_seen
         keep[:, :ends] = False
         keep[:, -ends:] = False
+        return found, keep
+
+    def _outline_pass(self, images: list[Tensor], index: Tensor, pose: Tensor, points: Tensor,
+                      rim_weights: Tensor, radius: Tensor, geometry: Tensor) -> Tensor:
+        """One pass of :meth:`outline_refined` on ``K`` cups: poses ``(K, 5)`` rad / mm in
+        and out."""
+        cfg = self.config
+        frame = Geometry.from_rows(geometry)
+        found, keep = self._outline_landmarks(images, index, pose, radius, frame)
+        landmarks = found.landmarks
         dist = outline_distances(pose[:, 2:5], landmarks, radius, geometry)[0]
         dist = dist.masked_fill(~keep, math.nan)
         middle = dist.nanmedian(-1, keepdim=True).values
@@ -853,6 +1025,19 @@ def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:
     major = frames[:, 2:3] * config.crop_fill / 2
     minor = frames[:, 3:4] * config.crop_fill * config.crop_min_ratio / 2
     return torch.cat([frames[:, :2], major, minor.clamp_max(major), frames[:, 4:]], -1).double()
+
+
+def _distinct(candidates: list[tuple[int, _Pick]]) -> list[tuple[int, _Pick]]:
+    """``(cup, pick)`` pairs without the picks whose pose repeats an earlier one of the same
+    cup (within 0.2 deg, 0.2 mm and 1 mm in h): sources often find the same rim."""
+    tolerance = torch.tensor([0.2, 0.2, 0.2, 0.2, 1.0], dtype=torch.float64)
+    kept: list[tuple[int, _Pick]] = []
+    for k, pick in candidates:
+        pose = pick[2].pose[pick[3]]
+        if not any(j == k and ((other[2].pose[other[3]] - pose).abs() <= tolerance).all()
+                   for j, other in kept):
+            kept.append((k, pick))
+    return kept
 
 
 def grown_to(ellipses: Tensor, major: Tensor) -> Tensor:

@@ -241,3 +241,60 @@ def test_outline_refinement_stops_once_a_cup_settles(shipped_on_drr, monkeypatch
                                      geometry_rows(geometry, 1), diameter)
     assert 1 <= len(passes) <= 3
     assert abs(float(pose[0, 4] - truth[0, 4])) < 4.0
+
+
+def _doubt(model, sample, poses: torch.Tensor) -> torch.Tensor:
+    """:meth:`CupNet.pose_doubt` of poses ``(P, 5)`` on the sample's image."""
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    count = len(poses)
+    with torch.no_grad():
+        return model.pose_doubt([sample["image"]], torch.zeros(count, dtype=torch.long), poses,
+                                geometry_rows(geometry, 1).expand(count, 4),
+                                sample["cup_diameter"][:1].double().expand(count))
+
+
+def test_pose_doubt_is_least_at_the_true_pose(shipped_on_drr):
+    """Poses 8 deg off in anteversion or inclination, 3 mm off in k or 30 mm in h: the
+    network doubts each more than the true pose, by more than the verification margin."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    steps = torch.tensor([[-8.0, 0, 0, 0, 0], [0, 8.0, 0, 0, 0], [0, 0, 3.0, 0, 0],
+                          [0, 0, 0, 0, 30.0]], dtype=torch.float64)
+    doubt = _doubt(model, sample, torch.cat([truth, truth + steps]))
+    assert (doubt[1:] > doubt[0] + model.config.verify_margin).all()
+
+
+def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
+    """:meth:`CupNet.verified` on one cup solved from exact rim landmarks of the pose
+    ``first`` ``(1, 5)``, the sources giving those of ``others``; its pose and pick after."""
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    landmarks = [rim_landmarks(pose, geometry, float(diameter), 128) for pose in [first, *others]]
+    ones = torch.ones(1, 128, dtype=torch.float64)
+    cup_index = torch.zeros(1, 2, dtype=torch.long)
+    with torch.no_grad():
+        solution = model.solve(landmarks[0], ones, geometry, diameter, cup_index, 1, refine=True)
+        picks = [(landmarks[0][0], ones[0], solution, 0)]
+        poses, alt_poses = [solution.pose[0]], [solution.alt_pose[0]]
+        sources = [lambda todo, points=points: (points[todo], ones[todo])
+                   for points in landmarks[1:]]
+        model.verified([sample["image"]], torch.tensor([0]), picks, [0], poses, alt_poses,
+                       sources, None, geometry, diameter, cup_index, 1)
+    return poses[0], picks[0], landmarks
+
+
+@pytest.mark.parametrize("wrong_first", [True, False])
+def test_verification_keeps_the_pose_the_network_believes(shipped_on_drr, monkeypatch,
+                                                          wrong_first):
+    """A cup solved from a rim 20 deg off in inclination is solved again from the sources
+    (here: the true rim's landmarks) and takes the true pose; solved from the true rim, it
+    keeps it against a source of the wrong rim."""
+    model, sample = shipped_on_drr
+    monkeypatch.setattr(model.config, "verify_gate", 0.0)  # every cup is doubtful
+    truth = sample["pose"][:1].double()
+    wrong = truth + torch.tensor([[0.0, 20.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    order = [wrong, truth] if wrong_first else [truth, wrong]
+    pose, pick, landmarks = _verify(model, sample, order[0], order[1:])
+    assert torch.equal(pick[0], landmarks[1 if wrong_first else 0][0])
+    assert torch.allclose(pose[:2], truth[0, :2], atol=0.5)  # deg
+    assert ((pose[2:] - truth[0, 2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()  # mm
