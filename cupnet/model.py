@@ -158,6 +158,11 @@ class CupNetConfig:
         verify_thin_rims: the thin-rim hypotheses among those sources: the fine rim stage from
             each of the hypotheses it trusts most after one pass (at most
             ``thin_rim_angles``).
+        verify_turn_deg: a candidate whose anteversion differs from the first pose's by more
+            than this (deg) must also beat its doubt on the rim alone by ``verify_margin``
+            (None: no such rule): the dome's outline tells the centre, not the rim's
+            orientation, and a thin rim at the wrong angle through the right centre fits the
+            outline as well as the right rim.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -198,6 +203,7 @@ class CupNetConfig:
     verify_gate: float | None = None
     verify_margin: float = 0.8
     verify_thin_rims: int = 3
+    verify_turn_deg: float | None = None
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -769,7 +775,8 @@ class CupNet(nn.Module):
         hypotheses around ``start`` the fine rim stage trusts most; each distinct pose
         within ``max_theta_deg`` is refined with the outline (:meth:`outline_refined`), and
         the one with the least doubt replaces the cup's pick, pose and second pose (that one
-        not refined) where it beats the first pose's doubt by more than ``verify_margin``.
+        not refined) where it beats the first pose's doubt by more than ``verify_margin``
+        (and, where it turns the rim by more than ``verify_turn_deg``, the rim's doubt too).
         The gross failures left after the outline are rims taken from the wrong contour (a
         femoral head's, a thin rim at the wrong angle); the source that finds the right one
         is not the same from cup to cup, and the right pose explains both the rim and the
@@ -784,8 +791,9 @@ class CupNet(nn.Module):
         cfg = self.config
         rows = geometry_rows(geometry, batch)
         first = torch.stack([poses[k] for k in solved])
-        doubt = self.pose_doubt(images, index[solved], first, rows[index[solved]],
+        parts = self.pose_doubt(images, index[solved], first, rows[index[solved]],
                                 diameter[index[solved]])
+        doubt = parts.sum(-1)
         todo = torch.tensor([k for k, d in zip(solved, doubt.tolist(), strict=True)
                              if d >= cfg.verify_gate], dtype=torch.long)
         if len(todo) == 0:
@@ -814,8 +822,16 @@ class CupNet(nn.Module):
         usable = torch.isfinite(refined).all(-1)
         if cfg.max_theta_deg is not None:
             usable &= refined[:, 0] <= cfg.max_theta_deg
-        doubts = self.pose_doubt(images, index[cups], refined.nan_to_num(), rows[index[cups]],
-                                 diameter[index[cups]]).masked_fill(~usable, math.inf)
+        their = self.pose_doubt(images, index[cups], refined.nan_to_num(), rows[index[cups]],
+                                diameter[index[cups]])
+        if cfg.verify_turn_deg is not None:
+            # The dome's outline tells the centre, not the rim's orientation: a candidate
+            # that turns the rim must explain the rim alone better by the margin.
+            slot = {k: j for j, k in enumerate(solved)}
+            row = torch.tensor([slot[k] for k in cups.tolist()], dtype=torch.long)
+            turned = (refined[:, 0] - first[row, 0]).abs() > cfg.verify_turn_deg
+            usable &= ~turned | (their[:, 0] < parts[row, 0] - cfg.verify_margin)
+        doubts = their.sum(-1).masked_fill(~usable, math.inf)
         best = dict(zip(solved, (doubt - cfg.verify_margin).tolist(), strict=True))
         for (k, pick), pose, cost in zip(candidates, refined, doubts.tolist(), strict=True):
             if cost < best[k]:
@@ -827,14 +843,15 @@ class CupNet(nn.Module):
         """How little the fine rim network believes each pose: the mean Laplace negative
         log-likelihood ``|s| / sigma + log sigma`` (``s`` the column's landmark offset, px)
         that the image's edge lies where the pose puts it, over strips across the pose's rim
-        (``rim_points`` normals) plus over strips across the dome's half of its sphere's
-        outline (as :meth:`outline_refined` samples it).
+        (``rim_points`` normals), and over strips across the dome's half of its sphere's
+        outline (as :meth:`outline_refined` samples it); their sum is the pose's doubt.
 
         Args:
             images: the batch's images; index ``(K,)`` image of each pose.
             poses: ``(K, 5)`` deg / mm; geometry: ``(K, 4)`` rows; diameter: ``(K,)`` mm.
         Returns:
-            ``(K,)``; lower: the network finds both edges where the pose puts them.
+            ``(K, 2)``: the rim's and the outline's; lower: the network finds the edge where
+            the pose puts it.
         """
         cfg = self.config
         frame = Geometry.from_rows(geometry)
@@ -850,7 +867,7 @@ class CupNet(nn.Module):
             return found.offset.abs() / found.sigma + found.sigma.log()
 
         dome = (nll(on_dome) * keep).sum(-1) / keep.sum(-1).clamp_min(1)
-        return nll(on_rim).mean(-1) + dome
+        return torch.stack([nll(on_rim).mean(-1), dome], -1)
 
     def outline_refined(self, images: list[Tensor], index: Tensor, poses: Tensor,
                         points: Tensor, weights: Tensor, residual: Tensor, geometry: Tensor,

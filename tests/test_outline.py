@@ -260,7 +260,7 @@ def test_pose_doubt_is_least_at_the_true_pose(shipped_on_drr):
     truth = sample["pose"][:1].double()
     steps = torch.tensor([[-8.0, 0, 0, 0, 0], [0, 8.0, 0, 0, 0], [0, 0, 3.0, 0, 0],
                           [0, 0, 0, 0, 30.0]], dtype=torch.float64)
-    doubt = _doubt(model, sample, torch.cat([truth, truth + steps]))
+    doubt = _doubt(model, sample, torch.cat([truth, truth + steps])).sum(-1)
     assert (doubt[1:] > doubt[0] + model.config.verify_margin).all()
 
 
@@ -298,3 +298,26 @@ def test_verification_keeps_the_pose_the_network_believes(shipped_on_drr, monkey
     assert torch.equal(pick[0], landmarks[1 if wrong_first else 0][0])
     assert torch.allclose(pose[:2], truth[0, :2], atol=0.5)  # deg
     assert ((pose[2:] - truth[0, 2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()  # mm
+
+
+@pytest.mark.parametrize("turn_deg", [None, 15.0])
+def test_verification_turning_the_rim_needs_the_rims_own_evidence(shipped_on_drr, monkeypatch,
+                                                                   turn_deg):
+    """A candidate 20 deg off in anteversion whose doubt beats the first pose's only on the
+    outline replaces it without ``verify_turn_deg``, and not with it."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    step = -20.0 if float(truth[0, 0]) > 25.0 else 20.0
+    turned = truth + torch.tensor([[step, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+
+    def doubt(images, index, poses, geometry, diameter):
+        """Rim 2, outline 3 for poses near the truth; rim 1.9, outline 0 for turned ones."""
+        far = (poses[:, 0] - truth[0, 0]).abs() > 10.0
+        return torch.where(far[:, None], torch.tensor([1.9, 0.0], dtype=torch.float64),
+                           torch.tensor([2.0, 3.0], dtype=torch.float64))
+
+    monkeypatch.setattr(model, "pose_doubt", doubt)
+    monkeypatch.setattr(model.config, "verify_gate", 0.0)
+    monkeypatch.setattr(model.config, "verify_turn_deg", turn_deg)
+    _, pick, landmarks = _verify(model, sample, truth, [turned])
+    assert torch.equal(pick[0], landmarks[1][0]) == (turn_deg is None)
