@@ -811,7 +811,9 @@ class CupNet(nn.Module):
                       for k, pick in self._solved_picks(source, todo, geometry, diameter,
                                                         cup_index, batch)
                       if pick[2].valid[pick[3]] and (cfg.max_theta_deg is None or float(
-                          pick[2].pose[pick[3], 0]) <= cfg.max_theta_deg)]
+                          pick[2].pose[pick[3], 0]) <= cfg.max_theta_deg)
+                      # the cup's own landmarks again (its source rerun) would give its pose
+                      and not _same_landmarks(pick, picks[k])]
         candidates = _distinct(candidates)
         if not candidates:
             return
@@ -1042,6 +1044,12 @@ def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:
     major = frames[:, 2:3] * config.crop_fill / 2
     minor = frames[:, 3:4] * config.crop_fill * config.crop_min_ratio / 2
     return torch.cat([frames[:, :2], major, minor.clamp_max(major), frames[:, 4:]], -1).double()
+
+
+def _same_landmarks(pick: _Pick, other: _Pick) -> bool:
+    """Both picks hold the same landmarks and weights."""
+    return (pick[0].shape == other[0].shape and torch.equal(pick[0], other[0])
+            and torch.equal(pick[1], other[1]))
 
 
 def _distinct(candidates: list[tuple[int, _Pick]]) -> list[tuple[int, _Pick]]:
