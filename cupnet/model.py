@@ -163,6 +163,9 @@ class CupNetConfig:
             (None: no such rule): the dome's outline tells the centre, not the rim's
             orientation, and a thin rim at the wrong angle through the right centre fits the
             outline as well as the right rim.
+        ambiguous_by_doubt: of an ambiguous cup's two poses, report first the one
+            :meth:`CupNet.pose_doubt` doubts less (otherwise the larger anteversion); needs
+            ``outline_passes``.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -204,6 +207,7 @@ class CupNetConfig:
     verify_margin: float = 0.8
     verify_thin_rims: int = 3
     verify_turn_deg: float | None = None
+    ambiguous_by_doubt: bool = False
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -687,6 +691,9 @@ class CupNet(nn.Module):
             if self.config.verify_gate is not None:
                 self.verified(image_list, index, picks, solved, poses, alt_poses, every_source,
                               start, geometry, diameter, cup_index, batch)
+            if self.config.ambiguous_by_doubt:
+                self._order_ambiguous(image_list, index, picks, solved, poses, alt_poses, rows,
+                                      diameter)
             # The rim the refined pose projects to, not the landmarks' fit: the two differ
             # where the outline moved the pose (a thin rim's fit is short), and the overlay
             # should show the pose's rim.
@@ -839,6 +846,28 @@ class CupNet(nn.Module):
             if cost < best[k]:
                 best[k] = cost
                 picks[k], poses[k], alt_poses[k] = pick, pose, pick[2].alt_pose[pick[3]]
+
+    def _order_ambiguous(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
+                         solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
+                         rows: Tensor, diameter: Tensor) -> None:
+        """Each ambiguous cup's two poses, the one :meth:`pose_doubt` doubts less first (in
+        place in ``poses`` and ``alt_poses``). Both give the cup's rim; they differ in the
+        sphere's centre, so in where the dome's outline lies and in the rim's fine shape.
+
+        Args:
+            index: ``(K,)`` image of each cup; rows: ``(B, 4)`` each image's geometry;
+            diameter: ``(B,)`` mm.
+        """
+        pairs = [k for k in solved if picks[k][2].ambiguous[picks[k][3]]
+                 and bool(torch.isfinite(alt_poses[k]).all())]
+        if not pairs:
+            return
+        cups = index[pairs].repeat_interleave(2)
+        both = torch.stack([pose for k in pairs for pose in (poses[k], alt_poses[k])])
+        doubt = self.pose_doubt(images, cups, both, rows[cups], diameter[cups]).sum(-1)
+        for k, (first, second) in zip(pairs, doubt.reshape(-1, 2).tolist(), strict=True):
+            if second < first:
+                poses[k], alt_poses[k] = alt_poses[k], poses[k]
 
     def pose_doubt(self, images: list[Tensor], index: Tensor, poses: Tensor, geometry: Tensor,
                    diameter: Tensor) -> Tensor:

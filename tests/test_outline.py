@@ -13,7 +13,7 @@ from cup_cases import paper_poses, rim_landmarks
 from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
 from cupnet.model import geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
-from cupnet.pose import ellipse_of_pose, refine_pose, refine_pose_with_outline
+from cupnet.pose import PoseSolution, ellipse_of_pose, refine_pose, refine_pose_with_outline
 from data_synth import SynthConfig, synthesize
 
 GEOMETRY = Geometry(1040.0, 0.5, 500.0, 480.0)
@@ -321,3 +321,36 @@ def test_verification_turning_the_rim_needs_the_rims_own_evidence(shipped_on_drr
     monkeypatch.setattr(model.config, "verify_turn_deg", turn_deg)
     _, pick, landmarks = _verify(model, sample, truth, [turned])
     assert torch.equal(pick[0], landmarks[1][0]) == (turn_deg is None)
+
+
+@pytest.mark.parametrize("alt_doubted_less", [True, False])
+def test_ambiguous_pair_reports_the_pose_doubted_less_first(shipped_on_drr, monkeypatch,
+                                                            alt_doubted_less):
+    """Of an ambiguous cup's two poses the one with the lower doubt comes first; a cup that
+    is not ambiguous keeps its pose whatever the doubts."""
+    model, sample = shipped_on_drr
+    first = sample["pose"][0].double()
+    second = first + torch.tensor([6.0, 0.0, 1.0, 0.5, 9.0], dtype=torch.float64)
+
+    def doubt(images, index, poses, geometry, diameter):
+        """Lower for the second pose where ``alt_doubted_less``."""
+        is_second = (poses[:, 0] - second[0]).abs() < 1e-9
+        low = is_second if alt_doubted_less else ~is_second
+        return torch.stack([low.double() * -1.0 + 2.0, torch.ones(len(poses))], -1)
+
+    monkeypatch.setattr(model, "pose_doubt", doubt)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    rows = geometry_rows(geometry, 1)
+    diameter = sample["cup_diameter"][:1].double()
+    picks = []
+    for ambiguous in (True, False):
+        solution = PoseSolution(first[None], second[None], torch.tensor([ambiguous]),
+                                torch.zeros(1, 5), torch.zeros(1), torch.tensor([True]),
+                                ["ambiguous" if ambiguous else "ok"])
+        picks.append((torch.zeros(4, 2), torch.ones(4), solution, 0))
+    poses, alt_poses = [first, first], [second, second]
+    model._order_ambiguous([sample["image"]], torch.tensor([0, 0]), picks, [0, 1], poses,
+                           alt_poses, rows, diameter)
+    assert torch.equal(poses[0], second if alt_doubted_less else first)
+    assert torch.equal(alt_poses[0], first if alt_doubted_less else second)
+    assert torch.equal(poses[1], first) and torch.equal(alt_poses[1], second)
