@@ -809,10 +809,10 @@ class CupNet(nn.Module):
             # Each thin-rim hypothesis's landmarks are a source: their first pass is shared.
             thin = self.ranked_thin_rim_landmarks(images, index[todo], start[todo],
                                                   cfg.verify_thin_rims)
-            row = torch.full((len(index),), -1, dtype=torch.long)
-            row[todo] = torch.arange(len(todo))
-            sources = [*sources, *[lambda cups, found=found: (found.landmarks[row[cups]],
-                                                               found.weights[row[cups]])
+            thin_row = torch.full((len(index),), -1, dtype=torch.long)
+            thin_row[todo] = torch.arange(len(todo))
+            sources = [*sources, *[lambda cups, found=found: (found.landmarks[thin_row[cups]],
+                                                               found.weights[thin_row[cups]])
                                    for found in thin]]
         candidates = [(k, pick) for source in sources
                       for k, pick in self._solved_picks(source, todo, geometry, diameter,
@@ -837,9 +837,9 @@ class CupNet(nn.Module):
             # The dome's outline tells the centre, not the rim's orientation: a candidate
             # that turns the rim must explain the rim alone better by the margin.
             slot = {k: j for j, k in enumerate(solved)}
-            row = torch.tensor([slot[k] for k in cups.tolist()], dtype=torch.long)
-            turned = (refined[:, 0] - first[row, 0]).abs() > cfg.verify_turn_deg
-            usable &= ~turned | (their[:, 0] < parts[row, 0] - cfg.verify_margin)
+            own = torch.tensor([slot[k] for k in cups.tolist()], dtype=torch.long)
+            turned = (refined[:, 0] - first[own, 0]).abs() > cfg.verify_turn_deg
+            usable &= ~turned | (their[:, 0] < parts[own, 0] - cfg.verify_margin)
         doubts = their.sum(-1).masked_fill(~usable, math.inf)
         best = dict(zip(solved, (doubt - cfg.verify_margin).tolist(), strict=True))
         for (k, pick), pose, cost in zip(candidates, refined, doubts.tolist(), strict=True):
