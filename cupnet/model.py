@@ -149,6 +149,12 @@ class CupNetConfig:
         outline_inner_rim_weight: in the dome-outline refinement, the rim landmarks over the
             dome's own shadow (:func:`cupnet.outline.over_dome`) count this much: the edge the
             network finds there is the shell's inner surface, inside the rim.
+        outline_rim_resample: each dome-outline pass also takes the fine rim network's
+            landmarks across the current pose's own rim, weighted by their inverse variance
+            ``1 / sigma^2`` (on the outline landmarks' scale), in place of the landmarks the
+            pose was solved from: those came from strips framed on an ellipse fit, often a
+            few pixels off where a femoral head's edge crosses the rim, and the pose's rim
+            is nearer the true one each pass.
         verify_gate: after the dome-outline refinement, a cup whose refined pose the fine rim
             network doubts (:meth:`CupNet.pose_doubt` at least this) is solved again from
             every landmark source (:meth:`CupNet.verified`), each pose refined with the
@@ -163,6 +169,12 @@ class CupNetConfig:
             (None: no such rule): the dome's outline tells the centre, not the rim's
             orientation, and a thin rim at the wrong angle through the right centre fits the
             outline as well as the right rim.
+        verify_anteversions: anteversions (deg) to which the first pose's rim is turned (its
+            inclination and centre kept) for more of those sources: the fine rim network's
+            landmarks across each turned rim. A gross failure left after the outline has the
+            centre and mostly the inclination right and the anteversion far off; a turned rim
+            within the network's reach of the true one is then drawn to it
+            (``outline_rim_resample``).
         ambiguous_by_doubt: of an ambiguous cup's two poses, report first the one
             :meth:`CupNet.pose_doubt` doubts less (otherwise the larger anteversion); needs
             ``outline_passes``.
@@ -203,10 +215,12 @@ class CupNetConfig:
     outline_min_side: float = 0.3
     outline_weight: float = 0.5
     outline_inner_rim_weight: float = 1.0
+    outline_rim_resample: bool = False
     verify_gate: float | None = None
     verify_margin: float = 0.8
     verify_thin_rims: int = 3
     verify_turn_deg: float | None = None
+    verify_anteversions: tuple[float, ...] = ()
     ambiguous_by_doubt: bool = False
 
     @classmethod
@@ -216,8 +230,9 @@ class CupNetConfig:
         if unknown:
             raise ValueError(f"unknown CupNet config keys: {sorted(unknown)}")
         values = dict(values)
-        if "decoder_channels" in values:
-            values["decoder_channels"] = tuple(values["decoder_channels"])
+        for key in ("decoder_channels", "verify_anteversions"):  # JSON has lists
+            if key in values:
+                values[key] = tuple(values[key])
         return cls(**values)
 
 
@@ -688,12 +703,14 @@ class CupNet(nn.Module):
             rows = geometry_rows(geometry, batch)
             self._outline_refine_picks(image_list, index, picks, solved, poses, alt_poses, rows,
                                        diameter)
-            if self.config.verify_gate is not None:
-                self.verified(image_list, index, picks, solved, poses, alt_poses, every_source,
-                              start, geometry, diameter, cup_index, batch)
+            # Ordered before the verification, which then doubts an ambiguous cup by its
+            # better pose and keeps both where that one is believed.
             if self.config.ambiguous_by_doubt:
                 self._order_ambiguous(image_list, index, picks, solved, poses, alt_poses, rows,
                                       diameter)
+            if self.config.verify_gate is not None:
+                self.verified(image_list, index, picks, solved, poses, alt_poses, every_source,
+                              start, geometry, diameter, cup_index, batch)
             # The rim the refined pose projects to, not the landmarks' fit: the two differ
             # where the outline moved the pose (a thin rim's fit is short), and the overlay
             # should show the pose's rim.
@@ -778,8 +795,9 @@ class CupNet(nn.Module):
         """Doubtful cups solved again from every landmark source, in place.
 
         A solved cup whose outline-refined pose :meth:`pose_doubt` puts at ``verify_gate`` or
-        more is solved from each of ``sources`` and from the ``verify_thin_rims`` thin-rim
-        hypotheses around ``start`` the fine rim stage trusts most; each distinct pose
+        more is solved from each of ``sources``, from the ``verify_thin_rims`` thin-rim
+        hypotheses around ``start`` the fine rim stage trusts most and from the rims of its
+        pose turned to each of ``verify_anteversions``; each distinct pose
         within ``max_theta_deg`` is refined with the outline (:meth:`outline_refined`), and
         the one with the least doubt replaces the cup's pick, pose and second pose (that one
         not refined) where it beats the first pose's doubt by more than ``verify_margin``
@@ -805,15 +823,29 @@ class CupNet(nn.Module):
                              if d >= cfg.verify_gate], dtype=torch.long)
         if len(todo) == 0:
             return
+        slot = {k: j for j, k in enumerate(solved)}
+        # More sources, each some landmarks per doubtful cup: the thin-rim hypotheses
+        # (their first pass shared), then the rims of the first pose turned to each of
+        # verify_anteversions (one network call for all).
+        found: list[RimLandmarks] = []
         if start is not None and cfg.verify_thin_rims > 0:
-            # Each thin-rim hypothesis's landmarks are a source: their first pass is shared.
-            thin = self.ranked_thin_rim_landmarks(images, index[todo], start[todo],
-                                                  cfg.verify_thin_rims)
-            thin_row = torch.full((len(index),), -1, dtype=torch.long)
-            thin_row[todo] = torch.arange(len(todo))
-            sources = [*sources, *[lambda cups, found=found: (found.landmarks[thin_row[cups]],
-                                                               found.weights[thin_row[cups]])
-                                   for found in thin]]
+            found += self.ranked_thin_rim_landmarks(images, index[todo], start[todo],
+                                                    cfg.verify_thin_rims)
+        if cfg.verify_anteversions:
+            turns = len(cfg.verify_anteversions)
+            turned = first[[slot[k] for k in todo.tolist()]].repeat(turns, 1)
+            turned[:, 0] = torch.tensor(cfg.verify_anteversions).to(turned).repeat_interleave(
+                len(todo))
+            on_turned = self._pose_rim_landmarks(
+                images, index[todo].repeat(turns), turned, diameter[index[todo]].repeat(turns),
+                Geometry.from_rows(rows[index[todo]].repeat(turns, 1)))
+            found += [RimLandmarks(*(field[j * len(todo):(j + 1) * len(todo)]
+                                     for field in on_turned)) for j in range(turns)]
+        row = torch.full((len(index),), -1, dtype=torch.long)  # each doubtful cup's row
+        row[todo] = torch.arange(len(todo))
+        sources = [*sources, *[lambda cups, rim=rim: (rim.landmarks[row[cups]],
+                                                       rim.weights[row[cups]])
+                               for rim in found]]
         candidates = [(k, pick) for source in sources
                       for k, pick in self._solved_picks(source, todo, geometry, diameter,
                                                         cup_index, batch)
@@ -836,7 +868,6 @@ class CupNet(nn.Module):
         if cfg.verify_turn_deg is not None:
             # The dome's outline tells the centre, not the rim's orientation: a candidate
             # that turns the rim must explain the rim alone better by the margin.
-            slot = {k: j for j, k in enumerate(solved)}
             own = torch.tensor([slot[k] for k in cups.tolist()], dtype=torch.long)
             turned = (refined[:, 0] - first[own, 0]).abs() > cfg.verify_turn_deg
             usable &= ~turned | (their[:, 0] < parts[own, 0] - cfg.verify_margin)
@@ -884,13 +915,8 @@ class CupNet(nn.Module):
             ``(K, 2)``: the rim's and the outline's; lower: the network finds the edge where
             the pose puts it.
         """
-        cfg = self.config
         frame = Geometry.from_rows(geometry)
-        rim = ellipse_of_pose(poses, diameter, frame)
-        points, normals = rim_frame(rim, cfg.rim_points)
-        offsets = strip_offsets(cfg.rim_samples, cfg.rim_step)
-        strips = sample_strips(images, index, points, normals, offsets)
-        on_rim = strip_landmarks(*self.rim(strips.to(self.dtype)), points, normals, offsets)
+        on_rim = self._pose_rim_landmarks(images, index, poses, diameter, frame)
         on_dome, keep = self._outline_landmarks(images, index, pose_to_radians(poses),
                                                 diameter.to(poses) / 2, frame)
 
@@ -913,7 +939,9 @@ class CupNet(nn.Module):
         the others' distance to the outline), weighted ``outline_weight / sigma^2``; the
         solver fits them beside the rim landmarks, weighted by their residual's inverse
         variance (times ``outline_inner_rim_weight`` over the dome's shadow;
-        :func:`cupnet.pose.refine_pose_with_outline`). A pose that leaves
+        :func:`cupnet.pose.refine_pose_with_outline`); with ``outline_rim_resample``, the rim
+        landmarks too are the network's across the pose's own rim, taken anew each pass and
+        weighted ``1 / sigma^2`` (those off the others' offset left out). A pose that leaves
         ``0 < h < sdd``, or crosses ``max_theta_deg``, keeps its rim-only value.
 
         Args:
@@ -958,14 +986,10 @@ class CupNet(nn.Module):
             pose: ``(K, 5)`` rad / mm; radius: ``(K,)`` mm; frame: fields ``(K,)``.
         """
         cfg = self.config
-        offsets = strip_offsets(cfg.rim_samples, cfg.rim_step)
         outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
                                                 dome_only=True)
-        strips = sample_strips(images, index, outline, normals, offsets)
-        found = strip_landmarks(*self.rim(strips.to(self.dtype)), outline, normals, offsets)
-        size = torch.tensor([images[int(i)].shape[-1:-3:-1] for i in index], dtype=pose.dtype)
-        keep = (side > cfg.outline_min_side) & (found.landmarks >= 0).all(-1) & (
-            found.landmarks <= size[:, None] - 1).all(-1)
+        found = self._fine_landmarks_across(images, index, outline, normals)
+        keep = (side > cfg.outline_min_side) & _inside(found.landmarks, images, index)
         # The strip is an open arc: the rim network's columns near its ends see the other
         # end through its circular padding.
         ends = self.rim.columns_seen
@@ -981,16 +1005,35 @@ class CupNet(nn.Module):
         frame = Geometry.from_rows(geometry)
         found, keep = self._outline_landmarks(images, index, pose, radius, frame)
         landmarks = found.landmarks
-        dist = outline_distances(pose[:, 2:5], landmarks, radius, geometry)[0]
-        dist = dist.masked_fill(~keep, math.nan)
-        middle = dist.nanmedian(-1, keepdim=True).values
-        spread = 1.4826 * (dist - middle).abs().nanmedian(-1, keepdim=True).values
-        keep &= (dist - middle).abs() <= (3 * spread).clamp_min(1.0)
+        keep = _consistent(outline_distances(pose[:, 2:5], landmarks, radius, geometry)[0],
+                           keep)
         outline_weights = torch.where(keep, cfg.outline_weight / found.sigma**2, 0.0)
+        if cfg.outline_rim_resample:
+            rim = self._pose_rim_landmarks(images, index, pose_to_degrees(pose), 2 * radius,
+                                           frame)
+            points = rim.landmarks
+            usable = _consistent(rim.offset, _inside(points, images, index))
+            rim_weights = torch.where(usable, 1 / rim.sigma**2, 0.0)
         inner = over_dome(points, pose, frame)
         return refine_pose_with_outline(
             pose, points, torch.where(inner, cfg.outline_inner_rim_weight * rim_weights,
                                       rim_weights), landmarks, outline_weights, frame, radius)
+
+    def _fine_landmarks_across(self, images: list[Tensor], index: Tensor, points: Tensor,
+                               normals: Tensor) -> RimLandmarks:
+        """The fine rim network's landmarks on strips across ``points`` ``(K, n, 2)`` px along
+        ``normals`` ``(K, n, 2)``, in the images ``index`` ``(K,)``."""
+        offsets = strip_offsets(self.config.rim_samples, self.config.rim_step)
+        strips = sample_strips(images, index, points, normals, offsets)
+        return strip_landmarks(*self.rim(strips.to(self.dtype)), points, normals, offsets)
+
+    def _pose_rim_landmarks(self, images: list[Tensor], index: Tensor, poses: Tensor,
+                            diameter: Tensor, frame: Geometry) -> RimLandmarks:
+        """The fine rim network's landmarks across each pose's own rim (``rim_points``
+        normals). poses: ``(K, 5)`` deg / mm; diameter: ``(K,)`` mm; frame: fields ``(K,)``."""
+        points, normals = rim_frame(ellipse_of_pose(poses, diameter, frame),
+                                    self.config.rim_points)
+        return self._fine_landmarks_across(images, index, points, normals)
 
     def refiner_fit(self, points: Tensor, weights: Tensor, frames: Tensor) -> Tensor:
         """The ellipses ``(K, 5)`` a refiner pass's landmarks ``(K, n, 2)`` and weights
@@ -1073,6 +1116,22 @@ def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:
     major = frames[:, 2:3] * config.crop_fill / 2
     minor = frames[:, 3:4] * config.crop_fill * config.crop_min_ratio / 2
     return torch.cat([frames[:, :2], major, minor.clamp_max(major), frames[:, 4:]], -1).double()
+
+
+def _inside(points: Tensor, images: list[Tensor], index: Tensor) -> Tensor:
+    """``(K, n)``: which of ``points`` ``(K, n, 2)`` px lie inside their images ``index``."""
+    size = torch.tensor([images[int(i)].shape[-1:-3:-1] for i in index], dtype=points.dtype)
+    return (points >= 0).all(-1) & (points <= size[:, None] - 1).all(-1)
+
+
+def _consistent(values: Tensor, keep: Tensor) -> Tensor:
+    """``keep`` ``(K, n)`` less the ``values`` ``(K, n)`` px more than three robust standard
+    deviations (at least 1 px) from the median of each row's kept ones: a landmark on
+    another edge than the rest."""
+    values = values.masked_fill(~keep, math.nan)
+    middle = values.nanmedian(-1, keepdim=True).values
+    spread = 1.4826 * (values - middle).abs().nanmedian(-1, keepdim=True).values
+    return keep & ((values - middle).abs() <= (3 * spread).clamp_min(1.0))
 
 
 def _same_landmarks(pick: _Pick, other: _Pick) -> bool:

@@ -161,10 +161,12 @@ def shipped_on_drr():
     return load_model(), sample
 
 
-def test_shipped_model_finds_the_dome_outline_on_a_drr(shipped_on_drr):
-    """From a pose 25 mm off in h, with the rim's weight made negligible (a 100 px residual),
-    the outline the rim network finds on the DRR alone brings h back."""
+def test_shipped_model_finds_the_dome_outline_on_a_drr(shipped_on_drr, monkeypatch):
+    """From a pose 25 mm off in h, with the rim's weight made negligible (a 100 px residual,
+    the rim not re-sampled), the outline the rim network finds on the DRR alone brings h
+    back."""
     model, sample = shipped_on_drr
+    monkeypatch.setattr(model.config, "outline_rim_resample", False)
     truth = sample["pose"][:1].double()
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     diameter = sample["cup_diameter"][:1].double()
@@ -291,6 +293,7 @@ def test_verification_keeps_the_pose_the_network_believes(shipped_on_drr, monkey
     keeps it against a source of the wrong rim."""
     model, sample = shipped_on_drr
     monkeypatch.setattr(model.config, "verify_gate", 0.0)  # every cup is doubtful
+    monkeypatch.setattr(model.config, "verify_anteversions", ())  # the given sources only
     truth = sample["pose"][:1].double()
     wrong = truth + torch.tensor([[0.0, 20.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
     order = [wrong, truth] if wrong_first else [truth, wrong]
@@ -319,6 +322,9 @@ def test_verification_turning_the_rim_needs_the_rims_own_evidence(shipped_on_drr
     monkeypatch.setattr(model, "pose_doubt", doubt)
     monkeypatch.setattr(model.config, "verify_gate", 0.0)
     monkeypatch.setattr(model.config, "verify_turn_deg", turn_deg)
+    monkeypatch.setattr(model.config, "verify_anteversions", ())
+    # the candidate keeps its turned rim (re-sampled, the rim would draw it back)
+    monkeypatch.setattr(model.config, "outline_rim_resample", False)
     _, pick, landmarks = _verify(model, sample, truth, [turned])
     assert torch.equal(pick[0], landmarks[1][0]) == (turn_deg is None)
 
@@ -354,3 +360,44 @@ def test_ambiguous_pair_reports_the_pose_doubted_less_first(shipped_on_drr, monk
     assert torch.equal(poses[0], second if alt_doubted_less else first)
     assert torch.equal(alt_poses[0], first if alt_doubted_less else second)
     assert torch.equal(poses[1], first) and torch.equal(alt_poses[1], second)
+
+
+def test_outline_refinement_resamples_the_rim(shipped_on_drr, monkeypatch):
+    """Rim landmarks exactly on a rim turned 6 deg in anteversion and inclination: the outline
+    pins the centre, not the rim's orientation, so without re-sampling the turned rim stays;
+    re-sampling the rim at each pass's pose brings the orientation back within 1 deg."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    turned = truth + torch.tensor([6.0, 6.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    args = ([sample["image"]], torch.tensor([0]), turned,
+            rim_landmarks(turned, geometry, float(diameter), 128),
+            torch.ones(1, 128, dtype=torch.float64), torch.tensor([0.5], dtype=torch.float64),
+            geometry_rows(geometry, 1), diameter)
+    refined = {}
+    for resample in (False, True):
+        monkeypatch.setattr(model.config, "outline_rim_resample", resample)
+        with torch.no_grad():
+            refined[resample] = model.outline_refined(*args)[0]
+    assert (refined[False][:2] - truth[0, :2]).abs().max() > 4.0  # deg
+    assert (refined[True][:2] - truth[0, :2]).abs().max() < 1.0
+    assert ((refined[True][2:] - truth[0, 2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()
+
+
+@pytest.mark.parametrize("turns", [(), (4.0,)])
+def test_verification_turns_the_rim_to_find_it(shipped_on_drr, monkeypatch, turns):
+    """A cup solved from a rim 24 deg off in anteversion, with no other source: only a rim
+    turned to within a few degrees of the true anteversion (``verify_anteversions``, here the
+    true one plus 4 deg) gives the candidate whose re-sampled rim leads to the true pose."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    step = -24.0 if float(truth[0, 0]) > 26.0 else 24.0
+    wrong = truth + torch.tensor([[step, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    monkeypatch.setattr(model.config, "verify_gate", 0.0)
+    monkeypatch.setattr(model.config, "outline_rim_resample", True)
+    monkeypatch.setattr(model.config, "verify_anteversions",
+                        tuple(float(truth[0, 0]) + turn for turn in turns))
+    pose, _, _ = _verify(model, sample, wrong, [])
+    found = bool((pose[:2] - truth[0, :2]).abs().max() < 1.0)
+    assert found == bool(turns)
