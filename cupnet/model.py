@@ -325,6 +325,8 @@ def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
 # Pose change (deg, deg, mm, mm, mm) below which a cup's dome-outline refinement is done: a
 # twentieth of the issue's target accuracy.
 _OUTLINE_SETTLED = (0.05, 0.05, 0.05, 0.05, 0.4)
+# Poses of one image this near (deg, deg, mm, mm, mm) are one pose to the outline refinement.
+_OUTLINE_TWINS = (0.5, 0.5, 0.5, 0.5, 4.0)
 # One cup's landmarks (N, 2), weights (N,), the solution of its source's batch, and its row.
 _Pick = tuple[Tensor, Tensor, PoseSolution, int]
 # A landmark source of CupNet.detect: cups (K,) -> landmarks (K, N, 2), weights (K, N).
@@ -957,6 +959,7 @@ class CupNet(nn.Module):
         rim_weights = weights / residual.clamp_min(0.3)[:, None] ** 2
         pose = pose_to_radians(poses)
         active = torch.ones(len(pose), dtype=torch.bool)
+        twin = torch.arange(len(pose))  # the row each row's refinement continues in
         for _ in range(cfg.outline_passes):
             rows = active.nonzero()[:, 0]
             if len(rows) == 0:
@@ -968,6 +971,11 @@ class CupNet(nn.Module):
             # A cup whose pass moved it by under a twentieth of the issue's target accuracy
             # is done: the passes after would move it less (about half the cups by pass 2).
             active[rows] = ~(step.abs() < step.new_tensor(_OUTLINE_SETTLED)).all(-1)
+            if cfg.outline_rim_resample:
+                # A pass then depends on the pose alone: rows of one image that have come
+                # together (the verification's candidates often do) are refined once.
+                _merge_twins(pose_to_degrees(pose), index, active, twin)
+        pose = pose[_representatives(twin)]
         refined = pose_to_degrees(canonical_pose(pose))
         usable = torch.isfinite(refined).all(-1) & (refined[:, 4] > 0) & (
             refined[:, 4] < geometry[:, 0])
@@ -1116,6 +1124,27 @@ def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:
     major = frames[:, 2:3] * config.crop_fill / 2
     minor = frames[:, 3:4] * config.crop_fill * config.crop_min_ratio / 2
     return torch.cat([frames[:, :2], major, minor.clamp_max(major), frames[:, 4:]], -1).double()
+
+
+def _merge_twins(poses: Tensor, index: Tensor, active: Tensor, twin: Tensor) -> None:
+    """Each active row of ``poses`` ``(K, 5)`` deg / mm within ``_OUTLINE_TWINS`` of another
+    row of its image ``index`` ``(K,)`` (an earlier one, or one already settled) that
+    continues in itself: made inactive, its ``twin`` that row (in place)."""
+    near = ((poses[:, None] - poses[None]).abs() < poses.new_tensor(_OUTLINE_TWINS)).all(-1)
+    near &= index[:, None] == index[None]
+    rows = torch.arange(len(poses))
+    for row in active.nonzero()[:, 0].tolist():
+        kept = near[row] & (twin == rows) & (rows != row) & ((rows < row) | ~active)
+        if kept.any():
+            twin[row] = int(kept.nonzero()[0, 0])
+            active[row] = False
+
+
+def _representatives(twin: Tensor) -> Tensor:
+    """``(K,)`` the row each row's chain of ``twin`` ``(K,)`` ends in."""
+    while not torch.equal(twin[twin], twin):
+        twin = twin[twin]
+    return twin
 
 
 def _inside(points: Tensor, images: list[Tensor], index: Tensor) -> Tensor:

@@ -401,3 +401,30 @@ def test_verification_turns_the_rim_to_find_it(shipped_on_drr, monkeypatch, turn
     pose, _, _ = _verify(model, sample, wrong, [])
     found = bool((pose[:2] - truth[0, :2]).abs().max() < 1.0)
     assert found == bool(turns)
+
+
+def test_outline_refinement_refines_poses_that_meet_once(shipped_on_drr, monkeypatch):
+    """With the rim re-sampled a pass depends on the pose alone: two rows of one image that
+    start together are refined as one after the first pass and end equal; the same pose in
+    another image (here: the image again, as a second one) is refined on its own."""
+    model, sample = shipped_on_drr
+    monkeypatch.setattr(model.config, "outline_rim_resample", True)
+    truth = sample["pose"][:1].double()
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    start = (truth + torch.tensor([3.0, 2.0, 0.5, 0.5, 10.0], dtype=torch.float64)).expand(3, 5)
+    rows = []
+    run_pass = model._outline_pass
+    monkeypatch.setattr(model, "_outline_pass",
+                        lambda *args: rows.append(args[1].tolist()) or run_pass(*args))
+    rim = rim_landmarks(start[:1], geometry, float(diameter), 128).expand(3, 128, 2)
+    with torch.no_grad():
+        pose = model.outline_refined([sample["image"], sample["image"]],
+                                     torch.tensor([0, 0, 1]), start, rim,
+                                     torch.ones(3, 128, dtype=torch.float64),
+                                     torch.full((3,), 0.5, dtype=torch.float64),
+                                     geometry_rows(geometry, 1).expand(3, 4),
+                                     diameter.expand(3))
+    assert rows[0] == [0, 0, 1] and all(len(images) == 2 for images in rows[1:])
+    assert torch.equal(pose[0], pose[1]) and torch.allclose(pose[0], pose[2], atol=1e-9)
+    assert (pose[0, :2] - truth[0, :2]).abs().max() < 1.0
