@@ -82,6 +82,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path,
                         help="model weights (.safetensors or a weights-only torch file); "
                              "default: the shipped model")
+    parser.add_argument("--fast", action="store_true",
+                        help="skip the model's verification of doubtful cups (verify_gate): "
+                             "about 2.5x faster, less accurate (docs/training.md, item 12)")
     parser.add_argument("--landmarks", type=Path,
                         help="solve from manual landmarks in this file instead of the network")
     parser.add_argument("--overwrite", action="store_true", help="replace existing results")
@@ -171,11 +174,13 @@ def _sha256(path: Path) -> str:
 class NetworkDetector:
     """CupNet on a batch of images (weights loaded without running code from the file)."""
 
-    def __init__(self, checkpoint: Path | None, save_masks: bool) -> None:
+    def __init__(self, checkpoint: Path | None, save_masks: bool, fast: bool = False) -> None:
         from cupnet.fold import fold_batchnorm
         from cupnet.model import DEFAULT_CHECKPOINT, load_model
 
         self.model = fold_batchnorm(load_model(checkpoint))
+        if fast:
+            self.model.config.verify_gate = None
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),
@@ -541,7 +546,7 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     try:
         detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
-                    else NetworkDetector(args.checkpoint, args.save_masks))
+                    else NetworkDetector(args.checkpoint, args.save_masks, args.fast))
     except Exception as exc:  # any unreadable model or landmark file stops the run here
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {reason}",

@@ -398,3 +398,18 @@ def test_overlay_draws_the_dome_outline_where_given() -> None:
     assert dist.min(1).max() < 2.0  # every drawn pixel on the arc (chords sag < 0.2 px)
     assert dist.min(0).max() < 2.0  # the whole arc drawn, and not closed:
     assert not green[300, 300:500].any()
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_fast_skips_the_verification_and_records_it(tmp_path: Path, fast: bool) -> None:
+    """``--fast`` turns the model's verification off (``verify_gate`` None in the recorded
+    config); without it the checkpoint's gate stands."""
+    model = CupNet(CupNetConfig(detect_threshold=2.0, verify_gate=1.0))
+    weights = save_model(model, tmp_path / "gated.safetensors")
+    noise_png(tmp_path / "a.png")
+    out = tmp_path / "out"
+    args = ["predict", str(tmp_path / "a.png"), "--out", str(out), "--checkpoint", str(weights),
+            "--assume-defaults", "--quiet", *(["--fast"] if fast else [])]
+    assert main(args) == 0
+    recorded = json.loads((out / "results.json").read_text())["model"]["config"]
+    assert recorded["verify_gate"] == (None if fast else 1.0)
