@@ -841,8 +841,8 @@ class CupNet(nn.Module):
             on_turned = self._pose_rim_landmarks(
                 images, index[todo].repeat(turns), turned, diameter[index[todo]].repeat(turns),
                 Geometry.from_rows(rows[index[todo]].repeat(turns, 1)))
-            found += [RimLandmarks(*(field[j * len(todo):(j + 1) * len(todo)]
-                                     for field in on_turned)) for j in range(turns)]
+            found += [RimLandmarks(*fields) for fields in zip(
+                *(field.chunk(turns) for field in on_turned), strict=True)]
         row = torch.full((len(index),), -1, dtype=torch.long)  # each doubtful cup's row
         row[todo] = torch.arange(len(todo))
         sources = [*sources, *[lambda cups, rim=rim: (rim.landmarks[row[cups]],
