@@ -178,6 +178,18 @@ class CupNetConfig:
         ambiguous_by_doubt: of an ambiguous cup's two poses, report first the one
             :meth:`CupNet.pose_doubt` doubts less (otherwise the larger anteversion); needs
             ``outline_passes``.
+        search_gate: a cup still doubted this much or more after the verification is
+            searched over its rim's orientation (:meth:`CupNet.searched`; None: no cup;
+            needs ``verify_gate``): a grid of ``search_anteversions`` (deg) by inclinations
+            every ``search_inclination_step`` (deg) at its pose's centre, whose
+            ``search_keep`` least doubted rims give the candidates ...
+        search_rim_doubt: ... each taken only where the network doubts its rim no more than
+            this (None: any); a search candidate must also beat the cup's rim doubt by
+            ``verify_margin`` where it turns the rim's anteversion or inclination by more
+            than ``verify_turn_deg``. No landmark source proposed it, so the rim must
+            support it: a grid pose refined onto a femoral head's outline or the shell's
+            inner edge can explain the dome better than a right pose whose rim the image
+            hides (true poses' rim doubt: 99th percentile 1.7-2.1 on the evaluation sets).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -222,6 +234,11 @@ class CupNetConfig:
     verify_turn_deg: float | None = None
     verify_anteversions: tuple[float, ...] = ()
     ambiguous_by_doubt: bool = False
+    search_gate: float | None = None
+    search_anteversions: tuple[float, ...] = (3.0, 10.0, 20.0, 30.0, 40.0, 48.0)
+    search_inclination_step: float = 15.0
+    search_keep: int = 4
+    search_rim_doubt: float | None = None
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -230,7 +247,8 @@ class CupNetConfig:
         if unknown:
             raise ValueError(f"unknown CupNet config keys: {sorted(unknown)}")
         values = dict(values)
-        for key in ("decoder_channels", "verify_anteversions"):  # JSON has lists
+        # JSON has lists
+        for key in ("decoder_channels", "verify_anteversions", "search_anteversions"):
             if key in values:
                 values[key] = tuple(values[key])
         return cls(**values)
@@ -711,8 +729,12 @@ class CupNet(nn.Module):
                 self._order_ambiguous(image_list, index, picks, solved, poses, alt_poses, rows,
                                       diameter)
             if self.config.verify_gate is not None:
-                self.verified(image_list, index, picks, solved, poses, alt_poses, every_source,
-                              start, geometry, diameter, cup_index, batch)
+                doubts = self.verified(image_list, index, picks, solved, poses, alt_poses,
+                                       every_source, start, geometry, diameter, cup_index,
+                                       batch)
+                if self.config.search_gate is not None:
+                    self.searched(image_list, index, picks, solved, poses, alt_poses, doubts,
+                                  geometry, diameter, cup_index, batch)
             # The rim the refined pose projects to, not the landmarks' fit: the two differ
             # where the outline moved the pose (a thin rim's fit is short), and the overlay
             # should show the pose's rim.
@@ -793,17 +815,14 @@ class CupNet(nn.Module):
     def verified(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                  solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
                  sources: list[_Source], start: Tensor | None, geometry: Geometry,
-                 diameter: Tensor, cup_index: Tensor, batch: int) -> None:
+                 diameter: Tensor, cup_index: Tensor, batch: int) -> Tensor:
         """Doubtful cups solved again from every landmark source, in place.
 
         A solved cup whose outline-refined pose :meth:`pose_doubt` puts at ``verify_gate`` or
         more is solved from each of ``sources``, from the ``verify_thin_rims`` thin-rim
         hypotheses around ``start`` the fine rim stage trusts most and from the rims of its
-        pose turned to each of ``verify_anteversions``; each distinct pose
-        within ``max_theta_deg`` is refined with the outline (:meth:`outline_refined`), and
-        the one with the least doubt replaces the cup's pick, pose and second pose (that one
-        not refined) where it beats the first pose's doubt by more than ``verify_margin``
-        (and, where it turns the rim by more than ``verify_turn_deg``, the rim's doubt too).
+        pose turned to each of ``verify_anteversions``; the least doubted candidate replaces
+        the cup's pose where it is doubted less by the margin (:meth:`_keep_least_doubted`).
         The gross failures left after the outline are rims taken from the wrong contour (a
         femoral head's, a thin rim at the wrong angle); the source that finds the right one
         is not the same from cup to cup, and the right pose explains both the rim and the
@@ -814,18 +833,18 @@ class CupNet(nn.Module):
             solved: the cups with a pose; sources: as :meth:`detect`'s, cups -> landmarks.
             start: ``(K, 5)`` the refiner's ellipses (None: no thin-rim hypotheses).
             geometry, diameter: per image; cup_index: ``(K, 2)``; batch: images.
+        Returns:
+            ``(len(solved), 2)``: each solved cup's doubt (rim, outline) after.
         """
         cfg = self.config
         rows = geometry_rows(geometry, batch)
-        first = torch.stack([poses[k] for k in solved])
-        parts = self.pose_doubt(images, index[solved], first, rows[index[solved]],
+        current = torch.stack([poses[k] for k in solved])
+        parts = self.pose_doubt(images, index[solved], current, rows[index[solved]],
                                 diameter[index[solved]])
-        doubt = parts.sum(-1)
-        todo = torch.tensor([k for k, d in zip(solved, doubt.tolist(), strict=True)
+        todo = torch.tensor([k for k, d in zip(solved, parts.sum(-1).tolist(), strict=True)
                              if d >= cfg.verify_gate], dtype=torch.long)
         if len(todo) == 0:
-            return
-        slot = {k: j for j, k in enumerate(solved)}
+            return parts
         # More sources, each some landmarks per doubtful cup: the thin-rim hypotheses
         # (their first pass shared), then the rims of the first pose turned to each of
         # verify_anteversions (one network call for all).
@@ -834,34 +853,136 @@ class CupNet(nn.Module):
             found += self.ranked_thin_rim_landmarks(images, index[todo], start[todo],
                                                     cfg.verify_thin_rims)
         if cfg.verify_anteversions:
-            turns = len(cfg.verify_anteversions)
-            turned = first[[slot[k] for k in todo.tolist()]].repeat(turns, 1)
-            turned[:, 0] = torch.tensor(cfg.verify_anteversions).to(turned).repeat_interleave(
-                len(todo))
-            on_turned = self._pose_rim_landmarks(
-                images, index[todo].repeat(turns), turned, diameter[index[todo]].repeat(turns),
-                Geometry.from_rows(rows[index[todo]].repeat(turns, 1)))
-            found += [RimLandmarks(*fields) for fields in zip(
-                *(field.chunk(turns) for field in on_turned), strict=True)]
-        row = torch.full((len(index),), -1, dtype=torch.long)  # each doubtful cup's row
-        row[todo] = torch.arange(len(todo))
-        sources = [*sources, *[lambda cups, rim=rim: (rim.landmarks[row[cups]],
-                                                       rim.weights[row[cups]])
-                               for rim in found]]
-        candidates = [(k, pick) for source in sources
-                      for k, pick in self._solved_picks(source, todo, geometry, diameter,
-                                                        cup_index, batch)
-                      if pick[2].valid[pick[3]] and (cfg.max_theta_deg is None or float(
-                          pick[2].pose[pick[3], 0]) <= cfg.max_theta_deg)
-                      # the cup's own landmarks again (its source rerun) would give its pose
-                      and not _same_landmarks(pick, picks[k])]
-        candidates = _distinct(candidates)
-        if not candidates:
+            slot = {k: j for j, k in enumerate(solved)}
+            turned = current[[slot[k] for k in todo.tolist()]].repeat(
+                len(cfg.verify_anteversions), 1, 1)
+            turned[..., 0] = torch.tensor(cfg.verify_anteversions).to(turned)[:, None]
+            found += self._pose_rim_found(images, index[todo], turned, rows, diameter)
+        candidates = self._source_candidates(
+            [*sources, *_found_sources(found, todo, len(index))], todo, picks, geometry,
+            diameter, cup_index, batch)
+        self._keep_least_doubted(images, index, picks, solved, poses, alt_poses, parts,
+                                 candidates, geometry, diameter, batch)
+        return parts
+
+    def searched(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
+                 solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
+                 parts: Tensor, geometry: Geometry, diameter: Tensor, cup_index: Tensor,
+                 batch: int) -> None:
+        """Cups still doubtful after :meth:`verified` searched over the rim's orientation, in
+        place.
+
+        A solved cup whose doubt ``parts`` is ``search_gate`` or more gets a grid of poses
+        at its centre: anteversions ``search_anteversions`` by inclinations every
+        ``search_inclination_step`` deg. The ``search_keep`` of them :meth:`pose_doubt`
+        doubts least give the fine rim network's landmarks across their rims, each set a
+        candidate for :meth:`_keep_least_doubted`. What this finds: a nearly edge-on cup
+        whose dome and femoral head every source took for an open rim (the thin-rim
+        hypotheses sit at the disc's centre, not on its straight edge), an open cup taken
+        for a thin rim across its head; the sources' landmarks all came from the same wrong
+        contour, and the grid does not start from any of them.
+
+        Args:
+            index: ``(K,)`` image of each cup; picks, poses (deg / mm), alt_poses: per cup.
+            solved: the cups with a pose; parts: ``(len(solved), 2)`` their doubts (in place).
+            geometry, diameter: per image; cup_index: ``(K, 2)``; batch: images.
+        """
+        cfg = self.config
+        todo = torch.tensor([k for k, d in zip(solved, parts.sum(-1).tolist(), strict=True)
+                             if d >= cfg.search_gate], dtype=torch.long)
+        if len(todo) == 0:
             return
-        cups = torch.tensor([k for k, _ in candidates], dtype=torch.long)
-        refined = self._refined_picks(images, index[cups], [pick for _, pick in candidates],
-                                      [pick[2].pose[pick[3]] for _, pick in candidates],
-                                      rows, diameter)
+        rows = geometry_rows(geometry, batch)
+        orientations = torch.cartesian_prod(
+            torch.tensor(cfg.search_anteversions, dtype=torch.float64),
+            torch.arange(90.0, -90.0, -cfg.search_inclination_step, dtype=torch.float64))
+        grid = torch.stack([poses[k] for k in todo.tolist()])[:, None].repeat(
+            1, len(orientations), 1)  # (T, G, 5)
+        grid[..., :2] = orientations
+        cups = index[todo].repeat_interleave(len(orientations))
+        doubt = self.pose_doubt(images, cups, grid.flatten(0, 1), rows[cups],
+                                diameter[cups]).sum(-1).reshape(len(todo), -1)
+        best = doubt.topk(min(cfg.search_keep, len(orientations)), largest=False).indices
+        kept = grid.gather(1, best[..., None].expand(-1, -1, 5)).transpose(0, 1)
+        # Each kept grid pose's rim landmarks, solved; where they give no pose within
+        # range, the refinement starts from the grid pose itself.
+        candidates = []
+        for starts, rim in zip(kept, self._pose_rim_found(images, index[todo], kept, rows,
+                                                          diameter), strict=True):
+            solution = self.solve(rim.landmarks, rim.weights, geometry, diameter,
+                                  cup_index[todo], batch, refine=True)
+            in_range = solution.valid & (solution.pose[:, 0] <= (
+                math.inf if cfg.max_theta_deg is None else cfg.max_theta_deg))
+            candidates += [(k, (rim.landmarks[row], rim.weights[row], solution, row),
+                            torch.where(in_range[row], solution.pose[row], starts[row]))
+                           for row, k in enumerate(todo.tolist())]
+        before = (list(picks), list(poses), list(alt_poses), parts.clone())
+        replaced = self._keep_least_doubted(images, index, picks, solved, poses, alt_poses,
+                                            parts, candidates, geometry, diameter, batch,
+                                            turn_inclination=True,
+                                            rim_ceiling=cfg.search_rim_doubt)
+        if not replaced:
+            return
+        # A winner's landmarks, status and second pose are those of the rim it ends on (its
+        # start's landmarks may give no pose); where that rim gives none, it is not taken.
+        won = torch.tensor(replaced, dtype=torch.long)
+        ends = torch.stack([poses[k] for k in replaced])
+        rim = self._pose_rim_found(images, index[won], ends[None], rows, diameter)[0]
+        solution = self.solve(rim.landmarks, rim.weights, geometry, diameter, cup_index[won],
+                              batch, refine=True)
+        for row, k in enumerate(replaced):
+            if not solution.valid[row]:
+                picks[k], poses[k], alt_poses[k] = before[0][k], before[1][k], before[2][k]
+                parts[solved.index(k)] = before[3][solved.index(k)]
+                continue
+            picks[k] = (rim.landmarks[row], rim.weights[row], solution, row)
+            # the second pose is the rim's other one, whichever the solver put first
+            first, second = solution.pose[row], solution.alt_pose[row]
+            turn = [float((ends[row, :2] - pose[:2]).abs().sum()) for pose in (first, second)]
+            alt_poses[k] = first if turn[1] < turn[0] else second
+
+    def _pose_rim_found(self, images: list[Tensor], image: Tensor, poses: Tensor,
+                        rows: Tensor, diameter: Tensor) -> list[RimLandmarks]:
+        """The fine rim network's landmarks across the rims of ``poses`` ``(S, T, 5)`` deg /
+        mm, one set per ``S`` (one network call for all); ``image`` ``(T,)`` each column's
+        image, ``rows`` ``(B, 4)`` and ``diameter`` ``(B,)`` per image."""
+        sets = len(poses)
+        cups = image.repeat(sets)
+        found = self._pose_rim_landmarks(images, cups, poses.flatten(0, 1), diameter[cups],
+                                         Geometry.from_rows(rows[cups]))
+        return [RimLandmarks(*fields) for fields in zip(
+            *(field.chunk(sets) for field in found), strict=True)]
+
+    def _keep_least_doubted(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
+                            solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
+                            parts: Tensor, candidates: list[tuple[int, _Pick, Tensor]],
+                            geometry: Geometry, diameter: Tensor, batch: int,
+                            turn_inclination: bool = False,
+                            rim_ceiling: float | None = None) -> list[int]:
+        """Each candidate's start pose refined with the outline (:meth:`outline_refined`);
+        the one with the least doubt replaces its cup's pick, pose and second pose (that one
+        not refined) and its doubt ``parts`` (in place) where it beats the cup's doubt by
+        more than ``verify_margin`` (and, where it turns the rim's anteversion, or with
+        ``turn_inclination`` its inclination, by more than ``verify_turn_deg``, the rim's
+        doubt too) and, with a ``rim_ceiling``, its rim's doubt is at most that.
+
+        Args:
+            index: ``(K,)`` image of each cup; picks, poses (deg / mm), alt_poses: per cup.
+            solved: the cups with a pose; parts: ``(len(solved), 2)`` their doubts.
+            candidates: ``(cup, pick, start)``, the start ``(5,)`` deg / mm.
+            geometry, diameter: per image; batch: images.
+        Returns:
+            The cups replaced.
+        """
+        if not candidates:
+            return []
+        cfg = self.config
+        rows = geometry_rows(geometry, batch)
+        slot = {k: j for j, k in enumerate(solved)}
+        cups = torch.tensor([k for k, _, _ in candidates], dtype=torch.long)
+        own = torch.tensor([slot[k] for k in cups.tolist()], dtype=torch.long)
+        refined = self._refined_picks(images, index[cups], [pick for _, pick, _ in candidates],
+                                      [start for _, _, start in candidates], rows, diameter)
         usable = torch.isfinite(refined).all(-1)
         if cfg.max_theta_deg is not None:
             usable &= refined[:, 0] <= cfg.max_theta_deg
@@ -870,15 +991,39 @@ class CupNet(nn.Module):
         if cfg.verify_turn_deg is not None:
             # The dome's outline tells the centre, not the rim's orientation: a candidate
             # that turns the rim must explain the rim alone better by the margin.
-            own = torch.tensor([slot[k] for k in cups.tolist()], dtype=torch.long)
-            turned = (refined[:, 0] - first[own, 0]).abs() > cfg.verify_turn_deg
+            first = torch.stack([poses[k][:2] for k in cups.tolist()])
+            turn = (refined[:, :2] - first).abs()
+            turn[:, 1] = torch.minimum(turn[:, 1], 180.0 - turn[:, 1])  # inclination wraps
+            turned = (turn[:, :2 if turn_inclination else 1] > cfg.verify_turn_deg).any(-1)
             usable &= ~turned | (their[:, 0] < parts[own, 0] - cfg.verify_margin)
+        if rim_ceiling is not None:
+            usable &= their[:, 0] <= rim_ceiling
         doubts = their.sum(-1).masked_fill(~usable, math.inf)
-        best = dict(zip(solved, (doubt - cfg.verify_margin).tolist(), strict=True))
-        for (k, pick), pose, cost in zip(candidates, refined, doubts.tolist(), strict=True):
-            if cost < best[k]:
-                best[k] = cost
+        best = (parts.sum(-1) - cfg.verify_margin).tolist()
+        replaced = set()
+        for (k, pick, _), pose, cost, doubt in zip(candidates, refined, doubts.tolist(), their,
+                                                   strict=True):
+            if cost < best[slot[k]]:
+                best[slot[k]] = cost
                 picks[k], poses[k], alt_poses[k] = pick, pose, pick[2].alt_pose[pick[3]]
+                parts[slot[k]] = doubt
+                replaced.add(k)
+        return sorted(replaced)
+
+    def _source_candidates(self, sources: list[_Source], todo: Tensor, picks: list[_Pick],
+                           geometry: Geometry, diameter: Tensor, cup_index: Tensor,
+                           batch: int) -> list[tuple[int, _Pick, Tensor]]:
+        """``(cup, pick, pose)`` of each distinct pose within ``max_theta_deg`` that
+        ``sources`` solve for the cups ``todo`` ``(T,)``, less the cups' own landmarks."""
+        limit = self.config.max_theta_deg
+        candidates = [(k, pick) for source in sources
+                      for k, pick in self._solved_picks(source, todo, geometry, diameter,
+                                                        cup_index, batch)
+                      if pick[2].valid[pick[3]] and (limit is None or float(
+                          pick[2].pose[pick[3], 0]) <= limit)
+                      # the cup's own landmarks again (its source rerun) would give its pose
+                      and not _same_landmarks(pick, picks[k])]
+        return [(k, pick, pick[2].pose[pick[3]]) for k, pick in _distinct(candidates)]
 
     def _order_ambiguous(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                          solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
@@ -1161,6 +1306,15 @@ def _consistent(values: Tensor, keep: Tensor) -> Tensor:
     middle = values.nanmedian(-1, keepdim=True).values
     spread = 1.4826 * (values - middle).abs().nanmedian(-1, keepdim=True).values
     return keep & ((values - middle).abs() <= (3 * spread).clamp_min(1.0))
+
+
+def _found_sources(found: list[RimLandmarks], todo: Tensor, cups: int) -> list[_Source]:
+    """One landmark source per set of ``found`` (each ``(T, n)`` rows, one per cup of
+    ``todo`` ``(T,)`` among ``cups``)."""
+    row = torch.full((cups,), -1, dtype=torch.long)
+    row[todo] = torch.arange(len(todo))
+    return [lambda asked, rim=rim: (rim.landmarks[row[asked]], rim.weights[row[asked]])
+            for rim in found]
 
 
 def _same_landmarks(pick: _Pick, other: _Pick) -> bool:

@@ -267,8 +267,9 @@ def test_pose_doubt_is_least_at_the_true_pose(shipped_on_drr):
 
 
 def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
-    """:meth:`CupNet.verified` on one cup solved from exact rim landmarks of the pose
-    ``first`` ``(1, 5)``, the sources giving those of ``others``; its pose and pick after."""
+    """:meth:`CupNet.verified` (and :meth:`CupNet.searched` where the config has a
+    ``search_gate``) on one cup solved from exact rim landmarks of the pose ``first``
+    ``(1, 5)``, the sources giving those of ``others``; its pose and pick after."""
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     diameter = sample["cup_diameter"][:1].double()
     landmarks = [rim_landmarks(pose, geometry, float(diameter), 128) for pose in [first, *others]]
@@ -280,8 +281,11 @@ def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
         poses, alt_poses = [solution.pose[0]], [solution.alt_pose[0]]
         sources = [lambda todo, points=points: (points[todo], ones[todo])
                    for points in landmarks[1:]]
-        model.verified([sample["image"]], torch.tensor([0]), picks, [0], poses, alt_poses,
-                       sources, None, geometry, diameter, cup_index, 1)
+        doubts = model.verified([sample["image"]], torch.tensor([0]), picks, [0], poses,
+                                alt_poses, sources, None, geometry, diameter, cup_index, 1)
+        if model.config.search_gate is not None:  # as detect does
+            model.searched([sample["image"]], torch.tensor([0]), picks, [0], poses, alt_poses,
+                           doubts, geometry, diameter, cup_index, 1)
     return poses[0], picks[0], landmarks
 
 
@@ -294,6 +298,7 @@ def test_verification_keeps_the_pose_the_network_believes(shipped_on_drr, monkey
     model, sample = shipped_on_drr
     monkeypatch.setattr(model.config, "verify_gate", 0.0)  # every cup is doubtful
     monkeypatch.setattr(model.config, "verify_anteversions", ())  # the given sources only
+    monkeypatch.setattr(model.config, "search_gate", None)
     truth = sample["pose"][:1].double()
     wrong = truth + torch.tensor([[0.0, 20.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
     order = [wrong, truth] if wrong_first else [truth, wrong]
@@ -323,6 +328,7 @@ def test_verification_turning_the_rim_needs_the_rims_own_evidence(shipped_on_drr
     monkeypatch.setattr(model.config, "verify_gate", 0.0)
     monkeypatch.setattr(model.config, "verify_turn_deg", turn_deg)
     monkeypatch.setattr(model.config, "verify_anteversions", ())
+    monkeypatch.setattr(model.config, "search_gate", None)
     # the candidate keeps its turned rim (re-sampled, the rim would draw it back)
     monkeypatch.setattr(model.config, "outline_rim_resample", False)
     _, pick, landmarks = _verify(model, sample, truth, [turned])
@@ -396,11 +402,47 @@ def test_verification_turns_the_rim_to_find_it(shipped_on_drr, monkeypatch, turn
     wrong = truth + torch.tensor([[step, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
     monkeypatch.setattr(model.config, "verify_gate", 0.0)
     monkeypatch.setattr(model.config, "outline_rim_resample", True)
+    monkeypatch.setattr(model.config, "search_gate", None)
     monkeypatch.setattr(model.config, "verify_anteversions",
                         tuple(float(truth[0, 0]) + turn for turn in turns))
     pose, _, _ = _verify(model, sample, wrong, [])
     found = bool((pose[:2] - truth[0, :2]).abs().max() < 1.0)
     assert found == bool(turns)
+
+
+@pytest.mark.parametrize(("turned", "rim_ceiling"), [(True, None), (True, -10.0),
+                                                      (False, None)])
+def test_search_finds_a_rim_no_source_came_near(shipped_on_drr, monkeypatch, turned,
+                                                rim_ceiling):
+    """A cup solved from a rim turned 25 deg in anteversion and 40 deg in inclination, with
+    no other source and no turned rims, so the verification has no candidate: the search
+    over the rim's orientation at its centre finds the true pose, and its landmarks are the
+    network's on the found rim; with a rim ceiling no rim can meet, the rim stays turned;
+    a cup solved from the true rim keeps it."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    turn = torch.tensor([[-25.0 if float(truth[0, 0]) > 25.0 else 25.0,
+                          -40.0 if float(truth[0, 1]) > 0.0 else 40.0, 0.0, 0.0, 0.0]],
+                        dtype=torch.float64)
+    monkeypatch.setattr(model.config, "verify_gate", 0.0)
+    monkeypatch.setattr(model.config, "verify_anteversions", ())
+    monkeypatch.setattr(model.config, "search_gate", 0.0)  # every cup is searched
+    monkeypatch.setattr(model.config, "search_rim_doubt", rim_ceiling)
+    pose, pick, landmarks = _verify(model, sample, truth + turn if turned else truth, [])
+    found = bool((pose[:2] - truth[0, :2]).abs().max() < 1.0)  # deg
+    assert found == (rim_ceiling is None)
+    if found:
+        assert ((pose[2:] - truth[0, 2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()  # mm
+        geometry = Geometry(*(float(v) for v in sample["geometry"]))
+        rim = rim_landmarks(pose[None], geometry, float(sample["cup_diameter"][0]), 720)[0]
+        def off_rim(points: torch.Tensor) -> float:
+            return float(torch.cdist(points, rim).min(-1).values.median())
+
+        assert off_rim(pick[0]) < 1.5  # px (the rim over the dome is its inner edge)
+        if turned:  # and not the turned rim's
+            assert off_rim(landmarks[0][0]) > 5.0
+    else:
+        assert (pose[:2] - truth[0, :2]).abs().max() > 10.0
 
 
 def test_outline_refinement_refines_poses_that_meet_once(shipped_on_drr, monkeypatch):
