@@ -180,9 +180,10 @@ class CupNetConfig:
             ``outline_passes``.
         search_gate: a cup still doubted this much or more after the verification is
             searched over its rim's orientation (:meth:`CupNet.searched`; None: no cup;
-            needs ``verify_gate``): a grid of ``search_anteversions`` (deg) by inclinations
-            every ``search_inclination_step`` (deg) at its pose's centre, whose
-            ``search_keep`` least doubted rims give the candidates ...
+            needs ``verify_gate`` and ``outline_rim_resample``): a grid of
+            ``search_anteversions`` (deg) by inclinations every ``search_inclination_step``
+            (deg) at its pose's centre, whose ``search_keep`` least doubted rims give the
+            candidates ...
         search_rim_doubt: ... each taken only where the network doubts its rim no more than
             this (None: any); a search candidate must also beat the cup's rim doubt by
             ``verify_margin`` where it turns the rim's anteversion or inclination by more
@@ -875,12 +876,15 @@ class CupNet(nn.Module):
         A solved cup whose doubt ``parts`` is ``search_gate`` or more gets a grid of poses
         at its centre: anteversions ``search_anteversions`` by inclinations every
         ``search_inclination_step`` deg. The ``search_keep`` of them :meth:`pose_doubt`
-        doubts least give the fine rim network's landmarks across their rims, each set a
-        candidate for :meth:`_keep_least_doubted`. What this finds: a nearly edge-on cup
-        whose dome and femoral head every source took for an open rim (the thin-rim
-        hypotheses sit at the disc's centre, not on its straight edge), an open cup taken
-        for a thin rim across its head; the sources' landmarks all came from the same wrong
-        contour, and the grid does not start from any of them.
+        doubts least give the fine rim network's landmarks across their rims; each set,
+        solved (or, where it gives no pose within ``max_theta_deg``, its grid pose), is a
+        start for :meth:`_keep_least_doubted`, with its rules for turned rims on both angles
+        and the rim ceiling ``search_rim_doubt``. A winner's landmarks, status and second
+        pose are then solved from the network's landmarks across the rim it ends on. What
+        this finds: a nearly edge-on cup whose dome and femoral head every source took for
+        an open rim, an open cup taken for a thin rim across its head; the sources'
+        landmarks all came from the same wrong contour, and the grid starts from none of
+        them.
 
         Args:
             index: ``(K,)`` image of each cup; picks, poses (deg / mm), alt_poses: per cup.
