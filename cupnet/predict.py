@@ -83,8 +83,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="model weights (.safetensors or a weights-only torch file); "
                              "default: the shipped model")
     parser.add_argument("--fast", action="store_true",
-                        help="skip the model's verification of doubtful cups (verify_gate): "
-                             "about 2.5x faster, less accurate (docs/training.md, item 12)")
+                        help="skip the model's verification and search of doubtful cups "
+                             "(verify_gate): about 3x faster, less accurate "
+                             "(docs/training.md, items 12 and 16)")
     parser.add_argument("--landmarks", type=Path,
                         help="solve from manual landmarks in this file instead of the network")
     parser.add_argument("--overwrite", action="store_true", help="replace existing results")
