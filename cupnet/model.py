@@ -726,13 +726,14 @@ class CupNet(nn.Module):
                                        diameter)
             # Ordered before the verification, which then doubts an ambiguous cup by its
             # better pose and keeps both where that one is believed.
+            ordered: dict[int, Tensor] = {}
             if self.config.ambiguous_by_doubt:
-                self._order_ambiguous(image_list, index, picks, solved, poses, alt_poses, rows,
-                                      diameter)
+                ordered = self._order_ambiguous(image_list, index, picks, solved, poses,
+                                                alt_poses, rows, diameter)
             if self.config.verify_gate is not None:
                 doubts = self.verified(image_list, index, picks, solved, poses, alt_poses,
                                        every_source, start, geometry, diameter, cup_index,
-                                       batch)
+                                       batch, known=ordered)
                 if self.config.search_gate is not None:
                     self.searched(image_list, index, picks, solved, poses, alt_poses, doubts,
                                   geometry, diameter, cup_index, batch)
@@ -816,14 +817,15 @@ class CupNet(nn.Module):
     def verified(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                  solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
                  sources: list[_Source], start: Tensor | None, geometry: Geometry,
-                 diameter: Tensor, cup_index: Tensor, batch: int) -> Tensor:
+                 diameter: Tensor, cup_index: Tensor, batch: int,
+                 known: dict[int, Tensor] | None = None) -> Tensor:
         """Doubtful cups solved again from every landmark source, in place.
 
         A solved cup whose outline-refined pose :meth:`pose_doubt` puts at ``verify_gate`` or
         more is solved from each of ``sources``, from the ``verify_thin_rims`` thin-rim
         hypotheses around ``start`` the fine rim stage trusts most and from the rims of its
         pose turned to each of ``verify_anteversions``; the least doubted candidate replaces
-        the cup's pose where it is doubted less by the margin (:meth:`_keep_least_doubted`).
+        the cup's pose where it is doubted less by the margin (:meth:`_least_doubted`).
         The gross failures left after the outline are rims taken from the wrong contour (a
         femoral head's, a thin rim at the wrong angle); the source that finds the right one
         is not the same from cup to cup, and the right pose explains both the rim and the
@@ -834,16 +836,24 @@ class CupNet(nn.Module):
             solved: the cups with a pose; sources: as :meth:`detect`'s, cups -> landmarks.
             start: ``(K, 5)`` the refiner's ellipses (None: no thin-rim hypotheses).
             geometry, diameter: per image; cup_index: ``(K, 2)``; batch: images.
+            known: ``cup -> (2,)`` doubts of cups' present poses already computed.
         Returns:
             ``(len(solved), 2)``: each solved cup's doubt (rim, outline) after.
         """
         cfg = self.config
+        known = known or {}
         rows = geometry_rows(geometry, batch)
         current = torch.stack([poses[k] for k in solved])
-        parts = self.pose_doubt(images, index[solved], current, rows[index[solved]],
-                                diameter[index[solved]])
-        todo = torch.tensor([k for k, d in zip(solved, parts.sum(-1).tolist(), strict=True)
-                             if d >= cfg.verify_gate], dtype=torch.long)
+        parts = current.new_empty(len(solved), 2)
+        fresh = [j for j, k in enumerate(solved) if k not in known]
+        if fresh:
+            cups = index[solved][fresh]
+            parts[fresh] = self.pose_doubt(images, cups, current[fresh], rows[cups],
+                                           diameter[cups])
+        for j, k in enumerate(solved):
+            if k in known:
+                parts[j] = known[k]
+        todo = _doubtful(solved, parts, cfg.verify_gate)
         if len(todo) == 0:
             return parts
         # More sources, each some landmarks per doubtful cup: the thin-rim hypotheses
@@ -862,8 +872,11 @@ class CupNet(nn.Module):
         candidates = self._source_candidates(
             [*sources, *_found_sources(found, todo, len(index))], todo, picks, geometry,
             diameter, cup_index, batch)
-        self._keep_least_doubted(images, index, picks, solved, poses, alt_poses, parts,
-                                 candidates, geometry, diameter, batch)
+        winners = self._least_doubted(images, index, solved, poses, parts, candidates,
+                                      geometry, diameter, batch)
+        for k, (pick, pose, doubt) in winners.items():
+            picks[k], poses[k], alt_poses[k] = pick, pose, pick[2].alt_pose[pick[3]]
+            parts[solved.index(k)] = doubt
         return parts
 
     def searched(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
@@ -878,7 +891,7 @@ class CupNet(nn.Module):
         ``search_inclination_step`` deg. The ``search_keep`` of them :meth:`pose_doubt`
         doubts least give the fine rim network's landmarks across their rims; each set,
         solved (or, where it gives no pose within ``max_theta_deg``, its grid pose), is a
-        start for :meth:`_keep_least_doubted`, with its rules for turned rims on both angles
+        start for :meth:`_least_doubted`, with its rules for turned rims on both angles
         and the rim ceiling ``search_rim_doubt``. A winner's landmarks, status and second
         pose are then solved from the network's landmarks across the rim it ends on. What
         this finds: a nearly edge-on cup whose dome and femoral head every source took for
@@ -892,8 +905,7 @@ class CupNet(nn.Module):
             geometry, diameter: per image; cup_index: ``(K, 2)``; batch: images.
         """
         cfg = self.config
-        todo = torch.tensor([k for k, d in zip(solved, parts.sum(-1).tolist(), strict=True)
-                             if d >= cfg.search_gate], dtype=torch.long)
+        todo = _doubtful(solved, parts, cfg.search_gate)
         if len(todo) == 0:
             return
         rows = geometry_rows(geometry, batch)
@@ -920,30 +932,27 @@ class CupNet(nn.Module):
             candidates += [(k, (rim.landmarks[row], rim.weights[row], solution, row),
                             torch.where(in_range[row], solution.pose[row], starts[row]))
                            for row, k in enumerate(todo.tolist())]
-        before = (list(picks), list(poses), list(alt_poses), parts.clone())
-        replaced = self._keep_least_doubted(images, index, picks, solved, poses, alt_poses,
-                                            parts, candidates, geometry, diameter, batch,
-                                            turn_inclination=True,
-                                            rim_ceiling=cfg.search_rim_doubt)
-        if not replaced:
+        winners = self._least_doubted(images, index, solved, poses, parts, candidates,
+                                      geometry, diameter, batch, turn_inclination=True,
+                                      rim_ceiling=cfg.search_rim_doubt)
+        if not winners:
             return
         # A winner's landmarks, status and second pose are those of the rim it ends on (its
         # start's landmarks may give no pose); where that rim gives none, it is not taken.
-        won = torch.tensor(replaced, dtype=torch.long)
-        ends = torch.stack([poses[k] for k in replaced])
+        won = list(winners)
+        ends = torch.stack([winners[k][1] for k in won])
         rim = self._pose_rim_found(images, index[won], ends[None], rows, diameter)[0]
         solution = self.solve(rim.landmarks, rim.weights, geometry, diameter, cup_index[won],
                               batch, refine=True)
-        for row, k in enumerate(replaced):
+        for row, k in enumerate(won):
             if not solution.valid[row]:
-                picks[k], poses[k], alt_poses[k] = before[0][k], before[1][k], before[2][k]
-                parts[solved.index(k)] = before[3][solved.index(k)]
                 continue
-            picks[k] = (rim.landmarks[row], rim.weights[row], solution, row)
             # the second pose is the rim's other one, whichever the solver put first
             first, second = solution.pose[row], solution.alt_pose[row]
             turn = [float((ends[row, :2] - pose[:2]).abs().sum()) for pose in (first, second)]
-            alt_poses[k] = first if turn[1] < turn[0] else second
+            picks[k] = (rim.landmarks[row], rim.weights[row], solution, row)
+            poses[k], alt_poses[k] = ends[row], first if turn[1] < turn[0] else second
+            parts[solved.index(k)] = winners[k][2]
 
     def _pose_rim_found(self, images: list[Tensor], image: Tensor, poses: Tensor,
                         rows: Tensor, diameter: Tensor) -> list[RimLandmarks]:
@@ -957,29 +966,28 @@ class CupNet(nn.Module):
         return [RimLandmarks(*fields) for fields in zip(
             *(field.chunk(sets) for field in found), strict=True)]
 
-    def _keep_least_doubted(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
-                            solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
-                            parts: Tensor, candidates: list[tuple[int, _Pick, Tensor]],
-                            geometry: Geometry, diameter: Tensor, batch: int,
-                            turn_inclination: bool = False,
-                            rim_ceiling: float | None = None) -> list[int]:
+    def _least_doubted(self, images: list[Tensor], index: Tensor, solved: list[int],
+                       poses: list[Tensor], parts: Tensor,
+                       candidates: list[tuple[int, _Pick, Tensor]], geometry: Geometry,
+                       diameter: Tensor, batch: int, turn_inclination: bool = False,
+                       rim_ceiling: float | None = None
+                       ) -> dict[int, tuple[_Pick, Tensor, Tensor]]:
         """Each candidate's start pose refined with the outline (:meth:`outline_refined`);
-        the one with the least doubt replaces its cup's pick, pose and second pose (that one
-        not refined) and its doubt ``parts`` (in place) where it beats the cup's doubt by
-        more than ``verify_margin`` (and, where it turns the rim's anteversion, or with
+        for each cup, the one with the least doubt where it beats the cup's doubt by more
+        than ``verify_margin`` (and, where it turns the rim's anteversion, or with
         ``turn_inclination`` its inclination, by more than ``verify_turn_deg``, the rim's
         doubt too) and, with a ``rim_ceiling``, its rim's doubt is at most that.
 
         Args:
-            index: ``(K,)`` image of each cup; picks, poses (deg / mm), alt_poses: per cup.
+            index: ``(K,)`` image of each cup; poses: per cup (deg / mm).
             solved: the cups with a pose; parts: ``(len(solved), 2)`` their doubts.
             candidates: ``(cup, pick, start)``, the start ``(5,)`` deg / mm.
             geometry, diameter: per image; batch: images.
         Returns:
-            The cups replaced.
+            ``cup -> (pick, refined pose (5,), doubt (2,))`` for each cup a candidate beats.
         """
         if not candidates:
-            return []
+            return {}
         cfg = self.config
         rows = geometry_rows(geometry, batch)
         slot = {k: j for j, k in enumerate(solved)}
@@ -1004,15 +1012,13 @@ class CupNet(nn.Module):
             usable &= their[:, 0] <= rim_ceiling
         doubts = their.sum(-1).masked_fill(~usable, math.inf)
         best = (parts.sum(-1) - cfg.verify_margin).tolist()
-        replaced = set()
+        winners = {}
         for (k, pick, _), pose, cost, doubt in zip(candidates, refined, doubts.tolist(), their,
                                                    strict=True):
             if cost < best[slot[k]]:
                 best[slot[k]] = cost
-                picks[k], poses[k], alt_poses[k] = pick, pose, pick[2].alt_pose[pick[3]]
-                parts[slot[k]] = doubt
-                replaced.add(k)
-        return sorted(replaced)
+                winners[k] = (pick, pose, doubt)
+        return winners
 
     def _source_candidates(self, sources: list[_Source], todo: Tensor, picks: list[_Pick],
                            geometry: Geometry, diameter: Tensor, cup_index: Tensor,
@@ -1031,7 +1037,7 @@ class CupNet(nn.Module):
 
     def _order_ambiguous(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                          solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
-                         rows: Tensor, diameter: Tensor) -> None:
+                         rows: Tensor, diameter: Tensor) -> dict[int, Tensor]:
         """Each ambiguous cup's two poses, the one :meth:`pose_doubt` doubts less first (in
         place in ``poses`` and ``alt_poses``). Both give the cup's rim; they differ in the
         sphere's centre, so in where the dome's outline lies and in the rim's fine shape.
@@ -1039,17 +1045,23 @@ class CupNet(nn.Module):
         Args:
             index: ``(K,)`` image of each cup; rows: ``(B, 4)`` each image's geometry;
             diameter: ``(B,)`` mm.
+        Returns:
+            ``cup -> (2,)`` the doubt (rim, outline) of each ordered cup's first pose.
         """
         pairs = [k for k in solved if picks[k][2].ambiguous[picks[k][3]]
                  and bool(torch.isfinite(alt_poses[k]).all())]
         if not pairs:
-            return
+            return {}
         cups = index[pairs].repeat_interleave(2)
         both = torch.stack([pose for k in pairs for pose in (poses[k], alt_poses[k])])
-        doubt = self.pose_doubt(images, cups, both, rows[cups], diameter[cups]).sum(-1)
-        for k, (first, second) in zip(pairs, doubt.reshape(-1, 2).tolist(), strict=True):
-            if second < first:
+        doubt = self.pose_doubt(images, cups, both, rows[cups], diameter[cups]).reshape(-1, 2, 2)
+        firsts = {}
+        for k, (first, second) in zip(pairs, doubt, strict=True):
+            if second.sum() < first.sum():
                 poses[k], alt_poses[k] = alt_poses[k], poses[k]
+                first = second
+            firsts[k] = first
+        return firsts
 
     def pose_doubt(self, images: list[Tensor], index: Tensor, poses: Tensor, geometry: Tensor,
                    diameter: Tensor) -> Tensor:
@@ -1310,6 +1322,13 @@ def _consistent(values: Tensor, keep: Tensor) -> Tensor:
     middle = values.nanmedian(-1, keepdim=True).values
     spread = 1.4826 * (values - middle).abs().nanmedian(-1, keepdim=True).values
     return keep & ((values - middle).abs() <= (3 * spread).clamp_min(1.0))
+
+
+def _doubtful(solved: list[int], parts: Tensor, gate: float) -> Tensor:
+    """``(T,)`` the cups of ``solved`` whose doubt ``parts`` ``(len(solved), 2)`` sums to
+    ``gate`` or more."""
+    return torch.tensor([k for k, doubt in zip(solved, parts.sum(-1).tolist(), strict=True)
+                         if doubt >= gate], dtype=torch.long)
 
 
 def _found_sources(found: list[RimLandmarks], todo: Tensor, cups: int) -> list[_Source]:
