@@ -21,6 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.report import machine, markdown_table, write_section  # noqa: E402
 from cupnet.detection import CupDetection  # noqa: E402
+from cupnet.evaluate import GROSS_DEG  # noqa: E402
 from cupnet.fold import fold_batchnorm  # noqa: E402
 from cupnet.geometry import Geometry  # noqa: E402
 from cupnet.model import DEFAULT_CHECKPOINT, CupNet, load_model  # noqa: E402
@@ -96,7 +97,7 @@ def failure_gallery(cases: list[tuple[dict, int, CupDetection | None, np.ndarray
 def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict[str, float]:
     """Pose MAE of matched cups and the fraction of true cups detected with a pose; appends
     ``(sample, cup index, detection, errors)`` of each true cup to ``cases`` when given."""
-    errors, found, total, false_pos = [], 0, 0, 0
+    errors, check, found, total, false_pos = [], [], 0, 0, 0
     for s in data:
         dets = detect_sample(model, s)
         cups, fp = cup_errors(dets, s["pose"].double().numpy(), s["ellipse"].numpy(),
@@ -104,6 +105,7 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
         if cases is not None:
             cases += [(s, c, det, err) for c, det, err in cups]
         errors += [err for _, _, err in cups if err is not None]
+        check += [det.check for _, det, err in cups if err is not None]
         found += sum(err is not None for _, _, err in cups)
         total += len(cups)
         false_pos += fp
@@ -113,6 +115,14 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
                          ("p90", np.percentile(errors, 90, 0))):
         out.update({f"{stat}_{n}": float(v) for n, v in zip(NAMES, values, strict=True)})
     out.update(detected=found / max(total, 1), cups=total, false_positives=false_pos)
+    # The cups the model flags to check by eye, and what is left once they are set apart.
+    check = np.array(check or [False] * len(errors), dtype=bool)
+    gross = errors[:, :2].max(1) > GROSS_DEG
+    rest = errors[~check] if (~check).any() else np.full((1, 5), np.nan)
+    out.update(flagged=int(check.sum()), gross=int(gross.sum()),
+               gross_flagged=int((gross & check).sum()),
+               **{f"unflagged_mae_{n}": float(v) for n, v in zip(NAMES, rest.mean(0),
+                                                                 strict=True)})
     return out
 
 
@@ -180,7 +190,13 @@ def main() -> None:
                 ["shipped model", *NAMES],
                 [[stat, *[res[f"{key}_{n}"] for n in NAMES]]
                  for stat, key in (("mean", "mae"), ("median", "median"),
-                                   ("90th percentile", "p90"))])
+                                   ("90th percentile", "p90"), ("MAE of the cups not flagged "
+                                                                "`check`", "unflagged_mae"))])
+            spread += (f"\n\nThe shipped model flags {res['flagged']} of the "
+                       f"{round(res['detected'] * res['cups'])} detected cups `check` (its "
+                       f"doubt >= `check_doubt` {net.config.check_doubt}), {res['gross_flagged']} "
+                       f"of the {res['gross']} gross failures (anteversion or inclination "
+                       f"off by more than {GROSS_DEG:g} deg) among them.")
         table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
                       res["false_positives"], false_detections(net, no_cup_set)])
         print(name, res)

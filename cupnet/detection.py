@@ -31,6 +31,12 @@ class CupDetection:
         outline: ``(M, 2)`` original-image pixels along the dome's half of the outline of
             ``pose``'s sphere where the model refined the pose with it (for checking by eye
             that it follows the dome), else None.
+        doubt: how little the model's rim network believes ``pose``: the larger of the mean
+            negative log-likelihoods of the edges it finds across the pose's rim and dome
+            outline (:meth:`cupnet.model.CupNet.pose_doubt`; lower is better, true poses
+            mostly below 1), or None where not measured (no rim stage, landmarks given).
+        check: ``doubt`` is at or above the model's ``check_doubt``: look at this cup's
+            overlay before trusting it (most gross failures are flagged; see README).
     """
 
     pose: np.ndarray
@@ -44,3 +50,5 @@ class CupDetection:
     status: str = "ok"
     score: float = 1.0
     outline: np.ndarray | None = None
+    doubt: float | None = None
+    check: bool = False

@@ -110,6 +110,7 @@ class Matched:
         errors: images whose prediction is an error row.
         ambiguous: matched cups the solver flagged ambiguous.
         unpredicted: truth images without any prediction row (left out).
+        check: ``(M,)`` matched cups the model flagged to check by eye (``check`` = 1).
     """
 
     images: list[str]
@@ -124,6 +125,7 @@ class Matched:
     errors: int
     ambiguous: int
     unpredicted: int
+    check: np.ndarray
 
 
 def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]],
@@ -174,6 +176,7 @@ def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]]
         errors=sum(r["status"].startswith("error") for r in evaluated),
         unpredicted=len({r["image"] for r in truth_rows} - set(first_rows)),
         ambiguous=sum(p["status"] == "ambiguous" for p, _ in pairs),
+        check=np.array([p.get("check") == "1" for p, _ in pairs], dtype=bool),
     )
 
 
@@ -237,6 +240,7 @@ def compute_metrics(matched: Matched) -> dict:
     angle_error = np.maximum(np.abs(errors["anteversion_deg"]), np.abs(errors["inclination_deg"]))
     gross = int(np.sum(~(angle_error <= GROSS_DEG)))  # NaN counts as a failure
     n = len(matched.images)
+    rest = ~matched.check
     return {
         "images": matched.n_images,
         "true_cups": matched.n_true,
@@ -253,6 +257,10 @@ def compute_metrics(matched: Matched) -> dict:
         "perspective": {name: _stats(values) for name, values in errors.items()}
         | {"hausdorff_px": _stats(hausdorff)},
         "orthographic": {name: _stats(values) for name, values in ortho_errors.items()},
+        # What a user who checks the flagged cups by eye is left with.
+        "check": {"flagged": int(matched.check.sum()),
+                  "gross_flagged": int(np.sum(~(angle_error[matched.check] <= GROSS_DEG))),
+                  "unflagged": {name: _stats(values[rest]) for name, values in errors.items()}},
     }
 
 
@@ -296,6 +304,14 @@ def metrics_table(metrics: dict) -> str:
         f"{metrics['gross_failures']} ({'-' if gross is None else f'{100 * gross:.1f} %'}) | "
         f"{metrics['error_images']} | {_fmt(metrics['seconds_per_image'])} |",
     ]
+    check = metrics["check"]
+    if check["flagged"]:
+        rest = check["unflagged"]
+        lines.append(
+            f"\n{check['flagged']} matched cup(s) flagged `check` by the model, "
+            f"{check['gross_flagged']} of them gross failures; MAE of the others: "
+            + ", ".join(f"{label} {_fmt(rest[name]['mae'])}" for name, label in LABELS.items()
+                        if name in rest) + ".")
     if metrics["truth_images_not_predicted"]:
         lines.append(f"\n{metrics['truth_images_not_predicted']} truth image(s) without a "
                      "prediction row were left out.")

@@ -191,6 +191,11 @@ class CupNetConfig:
             support it: a grid pose refined onto a femoral head's outline or the shell's
             inner edge can explain the dome better than a right pose whose rim the image
             hides (true poses' rim doubt: 99th percentile 1.7-2.1 on the evaluation sets).
+        check_doubt: a detected cup whose reported pose the network doubts this much or
+            more (the larger of :meth:`CupNet.pose_doubt`'s rim and outline parts) is
+            flagged ``check`` (None: none is): the edges the network finds across its rim or
+            dome outline lie off them, as they do for most gross failures (needs
+            ``outline_passes``).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -240,6 +245,7 @@ class CupNetConfig:
     search_inclination_step: float = 15.0
     search_keep: int = 4
     search_rim_doubt: float | None = None
+    check_doubt: float | None = None
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -719,6 +725,7 @@ class CupNet(nn.Module):
         alt_poses = [solution.alt_pose[row] for _, _, solution, row in picks]
         ellipses = [solution.ellipse[row] for _, _, solution, row in picks]
         outlines: list[Tensor | None] = [None] * len(picks)
+        doubts: dict[int, float] = {}
         solved = [k for k, (_, _, solution, row) in enumerate(picks) if solution.valid[row]]
         if self.config.outline_passes and self.rim is not None and solved:
             rows = geometry_rows(geometry, batch)
@@ -731,12 +738,16 @@ class CupNet(nn.Module):
                 ordered = self._order_ambiguous(image_list, index, picks, solved, poses,
                                                 alt_poses, rows, diameter)
             if self.config.verify_gate is not None:
-                doubts = self.verified(image_list, index, picks, solved, poses, alt_poses,
-                                       every_source, start, geometry, diameter, cup_index,
-                                       batch, known=ordered)
+                parts = self.verified(image_list, index, picks, solved, poses, alt_poses,
+                                      every_source, start, geometry, diameter, cup_index,
+                                      batch, known=ordered)
                 if self.config.search_gate is not None:
-                    self.searched(image_list, index, picks, solved, poses, alt_poses, doubts,
+                    self.searched(image_list, index, picks, solved, poses, alt_poses, parts,
                                   geometry, diameter, cup_index, batch)
+            else:
+                parts = self._solved_doubts(image_list, index, solved, poses, rows, diameter,
+                                            ordered)
+            doubts = dict(zip(solved, parts.amax(-1).tolist(), strict=True))
             # The rim the refined pose projects to, not the landmarks' fit: the two differ
             # where the outline moved the pose (a thin rim's fit is short), and the overlay
             # should show the pose's rim.
@@ -755,6 +766,7 @@ class CupNet(nn.Module):
                 mask = warp_affine(torch.sigmoid(crop_logits[k:k + 1]), crop_to_image[k:k + 1],
                                    (height, width), align_corners=True)[0, 0].numpy()
             ambiguous = bool(solution.ambiguous[row])
+            doubt = doubts.get(k)
             results[i].append(CupDetection(
                 pose=poses[k].numpy(),
                 alt_pose=alt_poses[k].numpy() if ambiguous else None,
@@ -767,6 +779,9 @@ class CupNet(nn.Module):
                 status=solution.status[row],
                 score=float(scores[i, c]),
                 outline=None if outlines[k] is None else outlines[k].numpy(),
+                doubt=doubt,
+                check=(doubt is not None and self.config.check_doubt is not None
+                       and doubt >= self.config.check_doubt),
             ))
         return results
 
@@ -841,18 +856,9 @@ class CupNet(nn.Module):
             ``(len(solved), 2)``: each solved cup's doubt (rim, outline) after.
         """
         cfg = self.config
-        known = known or {}
         rows = geometry_rows(geometry, batch)
+        parts = self._solved_doubts(images, index, solved, poses, rows, diameter, known)
         current = torch.stack([poses[k] for k in solved])
-        parts = current.new_empty(len(solved), 2)
-        fresh = [j for j, k in enumerate(solved) if k not in known]
-        if fresh:
-            cups = index[solved][fresh]
-            parts[fresh] = self.pose_doubt(images, cups, current[fresh], rows[cups],
-                                           diameter[cups])
-        for j, k in enumerate(solved):
-            if k in known:
-                parts[j] = known[k]
         todo = _doubtful(solved, parts, cfg.verify_gate)
         if len(todo) == 0:
             return parts
@@ -877,6 +883,25 @@ class CupNet(nn.Module):
         for k, (pick, pose, doubt) in winners.items():
             picks[k], poses[k], alt_poses[k] = pick, pose, pick[2].alt_pose[pick[3]]
             parts[solved.index(k)] = doubt
+        return parts
+
+    def _solved_doubts(self, images: list[Tensor], index: Tensor, solved: list[int],
+                       poses: list[Tensor], rows: Tensor, diameter: Tensor,
+                       known: dict[int, Tensor] | None = None) -> Tensor:
+        """``(len(solved), 2)`` :meth:`pose_doubt` of the ``solved`` cups' poses, those of
+        ``known`` (``cup -> (2,)``) taken as they are; rows ``(B, 4)``, diameter ``(B,)``
+        per image."""
+        known = known or {}
+        current = torch.stack([poses[k] for k in solved])
+        parts = current.new_empty(len(solved), 2)
+        fresh = [j for j, k in enumerate(solved) if k not in known]
+        if fresh:
+            cups = index[solved][fresh]
+            parts[fresh] = self.pose_doubt(images, cups, current[fresh], rows[cups],
+                                           diameter[cups])
+        for j, k in enumerate(solved):
+            if k in known:
+                parts[j] = known[k]
         return parts
 
     def searched(self, images: list[Tensor], index: Tensor, picks: list[_Pick],

@@ -22,6 +22,7 @@ import numpy as np
 # BGR colours by status.
 STATUS_COLOURS = {"ok": (80, 220, 80), "ambiguous": (0, 215, 255)}
 ERROR_COLOUR = (60, 60, 255)
+CHECK_COLOUR = (255, 0, 255)  # a pose the model doubts: look before trusting it
 TEXT_COLOUR = (255, 255, 255)
 _SHIFT = 4  # fractional bits of OpenCV's sub-pixel drawing
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -36,9 +37,10 @@ class CupDrawing:
         landmarks: ``(N, 2)`` (u, v) or None.
         weights: ``(N,)`` in [0, 1] (landmark shading) or None.
         lines: text lines describing the cup.
-        status: ``ok``, ``ambiguous`` or ``error: ...`` (sets the colour).
+        status: ``ok``, ``ambiguous`` or ``error: ...`` (sets the colour) ...
         outline: ``(M, 2)`` (u, v) along the dome's outline (an open curve, drawn thin), or
             None.
+        check: ... unless the model doubts the pose (drawn in ``CHECK_COLOUR``).
     """
 
     ellipse: np.ndarray | None
@@ -47,6 +49,7 @@ class CupDrawing:
     lines: list[str]
     status: str = "ok"
     outline: np.ndarray | None = None
+    check: bool = False
 
 
 def display_image(image: np.ndarray) -> np.ndarray:
@@ -62,9 +65,13 @@ def display_image(image: np.ndarray) -> np.ndarray:
 
 
 def pose_lines(index: int, status: str, pose: Sequence[float], residual_px: float,
-               alt_pose: Sequence[float] | None = None) -> list[str]:
-    """Text lines of one cup: its status, pose (deg, mm), residual and the second pose."""
+               alt_pose: Sequence[float] | None = None, doubt: float | None = None,
+               check: bool = False) -> list[str]:
+    """Text lines of one cup: its status (and the model's doubt), pose (deg, mm), residual
+    and the second pose."""
     lines = [f"cup {index}: {status}"]
+    if doubt is not None and math.isfinite(doubt):
+        lines[0] += f", doubt {doubt:.2f}" + (" - CHECK BY EYE" if check else "")
     if all(math.isfinite(v) for v in pose):
         theta, phi, k_mm, l_mm, h_mm = pose
         lines.append(f"  anteversion {theta:.1f} deg, inclination {phi:.1f} deg")
@@ -106,7 +113,7 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
     # Pixel centres sit at integers in both images: u' = (u + 0.5) * scale - 0.5.
     to_view = lambda p: (np.asarray(p, np.float64) + 0.5) * scale - 0.5  # noqa: E731
     for index, cup in enumerate(cups):  # numbered from 0, as the cup column of results.csv
-        colour = STATUS_COLOURS.get(cup.status, ERROR_COLOUR)
+        colour = CHECK_COLOUR if cup.check else STATUS_COLOURS.get(cup.status, ERROR_COLOUR)
         # Landmarks first and small, so the fitted ellipse drawn over them stays visible.
         if cup.landmarks is not None:
             weights = np.ones(len(cup.landmarks)) if cup.weights is None else cup.weights

@@ -319,17 +319,18 @@ def _json(value: object) -> object:
 def summarise(records: Iterable[dict]) -> dict:
     """Counts over image records: images, cups found, statuses, failures by reason."""
     statuses: Counter[str] = Counter()
-    images = cups = 0
+    images = cups = check = 0
     seconds = 0.0
     for record in records:
         images += 1
         for row in record["rows"]:
             statuses[row["status"]] += 1
             cups += row["status"] in ("ok", "ambiguous")
+            check += str(row.get("check")) == "1"  # rows read back on --resume are strings
         seconds += float(record["rows"][0].get("seconds") or 0.0)
     errors = {k: v for k, v in statuses.items() if k.startswith("error")}
     return {"images": images, "cups": cups, "ok": statuses["ok"],
-            "ambiguous": statuses["ambiguous"], "no_cup": statuses["no_cup"],
+            "ambiguous": statuses["ambiguous"], "check": check, "no_cup": statuses["no_cup"],
             "errors": sum(errors.values()), "error_reasons": errors,
             "seconds_per_image": seconds / images if images else None}
 
@@ -480,8 +481,9 @@ class Predictor:
         out = self.outputs.out
         if not self.args.no_overlays:
             drawings = [CupDrawing(c.ellipse, c.landmarks, c.weights,
-                                   pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose),
-                                   c.status, c.outline)
+                                   pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose,
+                                              c.doubt, c.check),
+                                   c.status, c.outline, c.check)
                         for j, c in enumerate(cups)]
             title = f"{frame.name}: " + (f"{len(cups)} cup(s)" if cups else "no_cup")
             record["overlay"] = f"overlays/{output_name(frame.name, '.png')}"
@@ -514,6 +516,9 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     ]
     lines += [f"  {n} x {reason}" for reason, n in sorted(summary["error_reasons"].items(),
                                                           key=lambda kv: -kv[1])[:5]]
+    if summary["check"]:
+        lines.append(f"  {summary['check']} cup(s) the model doubts: check=1 in results.csv, "
+                     "drawn in magenta on the overlays; look before trusting them")
     lines.append(f"results: {out / 'results.csv'} and results.json"
                  + (f"; overlays: {out / 'overlays'}" if overlays else "")
                  + f" ({elapsed:.1f} s this run)")

@@ -95,6 +95,23 @@ def test_inclination_error_wraps_and_gross_failures(tmp_path: Path) -> None:
     assert metrics["gross_failures"] == 1 and metrics["gross_failure_rate"] == 1.0
 
 
+def test_cups_flagged_to_check_are_counted_and_set_apart(tmp_path: Path) -> None:
+    """Of the three matched cups, the one flagged ``check`` (given a gross anteversion
+    error here) is counted, with its gross failure; the MAE of the others is OFFSET's."""
+    truth = write_csv(tmp_path / "truth.csv", truth_rows())
+    rows = predicted_rows()
+    for row in rows:
+        row["check"] = 0 if row["status"] == "ok" else ""
+    flagged = next(r for r in rows if r.get("k_mm") == 60.0 + OFFSET[2])  # a.png's second
+    flagged["check"], flagged["anteversion_deg"] = 1, 35.0 + 30.0
+    metrics = evaluate_results(write_csv(tmp_path / "pred.csv", rows), truth)
+    assert metrics["check"]["flagged"] == 1 and metrics["check"]["gross_flagged"] == 1
+    assert metrics["gross_failures"] == 1
+    assert metrics["perspective"]["anteversion_deg"]["mae"] == pytest.approx((2 + 2 + 30) / 3)
+    for i, name in enumerate(POSE):
+        assert metrics["check"]["unflagged"][name]["mae"] == pytest.approx(abs(OFFSET[i]))
+
+
 def test_orthographic_baseline_hand_case(tmp_path: Path) -> None:
     # b / a = 1/2 -> asin = 30 deg; true anteversion 25 -> orthographic error 5 deg.
     truth = write_csv(tmp_path / "t.csv", [{"image": "x.png", **dict(zip(

@@ -266,6 +266,33 @@ def test_pose_doubt_is_least_at_the_true_pose(shipped_on_drr):
     assert (doubt[1:] > doubt[0] + model.config.verify_margin).all()
 
 
+@pytest.mark.parametrize("turned", [False, True])
+def test_detect_reports_its_doubt_and_flags_a_doubted_pose(shipped_on_drr, monkeypatch,
+                                                          turned):
+    """Each detected cup carries the network's doubt of the pose it reports (the larger of
+    :meth:`CupNet.pose_doubt`'s parts, recomputed here on that pose); the true pose is not
+    flagged, a pose 20 deg off in inclination (the outline refinement made to return it, no
+    verification to undo it) is, at the shipped ``check_doubt``."""
+    model, sample = shipped_on_drr
+    assert model.config.check_doubt is not None
+    if turned:
+        monkeypatch.setattr(model.config, "verify_gate", None)
+        refine = model.outline_refined
+        turn = torch.tensor([0.0, 20.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+        monkeypatch.setattr(model, "outline_refined", lambda *args: refine(*args) + turn)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
+                         return_masks=False)[0]
+    assert len(found) == 1
+    pose = torch.from_numpy(found[0].pose)[None]
+    truth = sample["pose"][0].double()
+    assert abs(float(pose[0, 1] - truth[1])) == pytest.approx(20.0 if turned else 0.0, abs=1.0)
+    recomputed = float(_doubt(model, sample, pose).amax())
+    assert found[0].doubt == pytest.approx(recomputed, abs=1e-4)
+    assert found[0].check == turned
+    assert (found[0].doubt >= model.config.check_doubt) == turned
+
+
 def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
     """:meth:`CupNet.verified` (and :meth:`CupNet.searched` where the config has a
     ``search_gate``) on one cup solved from exact rim landmarks of the pose ``first``

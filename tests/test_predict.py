@@ -267,6 +267,7 @@ def test_landmarks_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
         assert row["status"] == "ok"
         got = [float(row[c]) for c in POSE_COLUMNS]
         np.testing.assert_allclose(got, truth, atol=1e-3)
+        assert row["doubt"] == row["check"] == ""  # no network measured it
     overlay = cv2.imread(str(out / "overlays" / "pelvis.png.png"))
     assert overlay.shape == (768, 768, 3)
     document = json.loads((out / "results.json").read_text())
@@ -338,12 +339,15 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
                  "--cup-diameter", str(float(sample["cup_diameter"][0])), "--quiet"]) == 0
     by_image = rows_by_image(read_csv(out / "results.csv"))
     assert [r["status"] for r in by_image["blank.png"]] == ["no_cup"]
+    assert by_image["blank.png"][0]["doubt"] == by_image["blank.png"][0]["check"] == ""
     rows = by_image["bilateral.png"]
     assert [r["cup"] for r in rows] == ["0", "1"]
-    # Left to right: each row's ellipse centre near the true cup on its side.
+    # Left to right: each row's ellipse centre near the true cup on its side, and each pose
+    # one the network believes (not flagged for checking).
     true_u = sorted(sample["ellipse"][:, 0].tolist())
     for row, u in zip(rows, true_u, strict=True):
         assert abs(float(row["ellipse_cx_px"]) - u) < 10
+        assert float(row["doubt"]) < 1.8 and row["check"] == "0"
 
 
 def test_several_inputs_as_a_shell_expands_them(tmp_path: Path, blind_checkpoint: Path) -> None:
@@ -398,6 +402,25 @@ def test_overlay_draws_the_dome_outline_where_given() -> None:
     assert dist.min(1).max() < 2.0  # every drawn pixel on the arc (chords sag < 0.2 px)
     assert dist.min(0).max() < 2.0  # the whole arc drawn, and not closed:
     assert not green[300, 300:500].any()
+
+
+@pytest.mark.parametrize("check", [False, True])
+def test_overlay_marks_a_cup_to_check(check: bool) -> None:
+    """A cup the model doubts is drawn in the check colour, its text says so; otherwise the
+    status colour and the doubt alone."""
+    from cupnet.overlay import CHECK_COLOUR, STATUS_COLOURS, CupDrawing, draw_overlay, pose_lines
+
+    lines = pose_lines(0, "ok", [20.0, 30.0, 1.0, 2.0, 300.0], 0.4, None, 2.5 if check else 0.3,
+                       check)
+    assert lines[0] == ("cup 0: ok, doubt 2.50 - CHECK BY EYE" if check
+                        else "cup 0: ok, doubt 0.30")
+    ellipse = np.array([400.0, 300.0, 120.0, 60.0, 30.0])
+    canvas = draw_overlay(np.zeros((600, 800)), [CupDrawing(ellipse, None, None, [], "ok",
+                                                            None, check)], "")
+    colour = CHECK_COLOUR if check else STATUS_COLOURS["ok"]
+    assert (canvas == colour).all(-1).sum() > 100  # the ellipse's pixels
+    other = STATUS_COLOURS["ok"] if check else CHECK_COLOUR
+    assert not (canvas == other).all(-1).any()
 
 
 @pytest.mark.parametrize("fast", [False, True])

@@ -18,8 +18,11 @@ POSE_COLUMNS = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
 ELLIPSE_COLUMNS = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_px",
                    "ellipse_angle_deg")
 ALT_COLUMNS = tuple("alt_" + c for c in POSE_COLUMNS)
+# CONVENTIONS' columns, then the model's doubt of the pose and whether to check the cup by
+# eye (blank where not measured: landmarks given, a model without a rim stage).
+CHECK_COLUMNS = ("doubt", "check")
 RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px",
-                  "seconds", *ALT_COLUMNS)
+                  "seconds", *ALT_COLUMNS, *CHECK_COLUMNS)
 
 
 def _finite(values: Iterable[Any]) -> list[float | None]:
@@ -36,6 +39,9 @@ def cup_row(name: str, index: int, cup: Any, seconds: float) -> dict:
     row["seconds"] = seconds
     alt = cup.alt_pose if cup.alt_pose is not None else [None] * 5
     row.update(zip(ALT_COLUMNS, _finite(alt), strict=True))
+    if cup.doubt is not None:
+        row["doubt"] = _finite([cup.doubt])[0]
+        row["check"] = int(cup.check)
     return row
 
 
