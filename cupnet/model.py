@@ -178,12 +178,15 @@ class CupNetConfig:
         ambiguous_by_doubt: of an ambiguous cup's two poses, report first the one
             :meth:`CupNet.pose_doubt` doubts less (otherwise the larger anteversion); needs
             ``outline_passes``.
-        search_gate: a cup still doubted this much or more after the verification is
-            searched over its rim's orientation (:meth:`CupNet.searched`; None: no cup;
-            needs ``verify_gate`` and ``outline_rim_resample``): a grid of
-            ``search_anteversions`` (deg) by inclinations every ``search_inclination_step``
-            (deg) at its pose's centre, whose ``search_keep`` least doubted rims give the
-            candidates ...
+        search_gate: a cup still doubted this much or more after the verification (the sum
+            of the doubt's parts) is searched over its rim's orientation ...
+        search_part_gate: ... and so is a cup either of whose doubt's two parts (rim,
+            outline) reaches this (None: the sum alone counts; a rim the network finds
+            nowhere near the pose, with a dome outline that fits, sums to little)
+            (:meth:`CupNet.searched`; None: no cup; needs ``verify_gate`` and
+            ``outline_rim_resample``): a grid of ``search_anteversions`` (deg) by
+            inclinations every ``search_inclination_step`` (deg) at its pose's centre, whose
+            ``search_keep`` least doubted rims give the candidates ...
         search_rim_doubt: ... each taken only where the network doubts its rim no more than
             this (None: any); a search candidate must also beat the cup's rim doubt by
             ``verify_margin`` where it turns the rim's anteversion or inclination by more
@@ -244,6 +247,7 @@ class CupNetConfig:
     search_anteversions: tuple[float, ...] = (3.0, 10.0, 20.0, 30.0, 40.0, 48.0)
     search_inclination_step: float = 15.0
     search_keep: int = 4
+    search_part_gate: float | None = None
     search_rim_doubt: float | None = None
     check_doubt: float | None = None
 
@@ -911,18 +915,18 @@ class CupNet(nn.Module):
         """Cups still doubtful after :meth:`verified` searched over the rim's orientation, in
         place.
 
-        A solved cup whose doubt ``parts`` is ``search_gate`` or more gets a grid of poses
-        at its centre: anteversions ``search_anteversions`` by inclinations every
-        ``search_inclination_step`` deg. The ``search_keep`` of them :meth:`pose_doubt`
-        doubts least give the fine rim network's landmarks across their rims; each set,
-        solved (or, where it gives no pose within ``max_theta_deg``, its grid pose), is a
-        start for :meth:`_least_doubted`, with its rules for turned rims on both angles
-        and the rim ceiling ``search_rim_doubt``. A winner's landmarks, status and second
-        pose are then solved from the network's landmarks across the rim it ends on. What
-        this finds: a nearly edge-on cup whose dome and femoral head every source took for
-        an open rim, an open cup taken for a thin rim across its head; the sources'
-        landmarks all came from the same wrong contour, and the grid starts from none of
-        them.
+        A solved cup whose doubt ``parts`` sums to ``search_gate`` or more, or has a part at
+        ``search_part_gate`` or more, gets a grid of poses at its centre: anteversions
+        ``search_anteversions`` by inclinations every ``search_inclination_step`` deg. The
+        ``search_keep`` of them :meth:`pose_doubt` doubts least give the fine rim network's
+        landmarks across their rims; each set, solved (or, where it gives no pose within
+        ``max_theta_deg``, its grid pose), is a start for :meth:`_least_doubted`, with its
+        rules for turned rims on both angles and the rim ceiling ``search_rim_doubt``. A
+        winner's landmarks, status and second pose are then solved from the network's
+        landmarks across the rim it ends on. What this finds: a nearly edge-on cup whose
+        dome and femoral head every source took for an open rim, an open cup taken for a
+        thin rim across its head; the sources' landmarks all came from the same wrong
+        contour, and the grid starts from none of them.
 
         Args:
             index: ``(K,)`` image of each cup; picks, poses (deg / mm), alt_poses: per cup.
@@ -930,7 +934,7 @@ class CupNet(nn.Module):
             geometry, diameter: per image; cup_index: ``(K, 2)``; batch: images.
         """
         cfg = self.config
-        todo = _doubtful(solved, parts, cfg.search_gate)
+        todo = _doubtful(solved, parts, cfg.search_gate, cfg.search_part_gate)
         if len(todo) == 0:
             return
         rows = geometry_rows(geometry, batch)
@@ -1349,11 +1353,16 @@ def _consistent(values: Tensor, keep: Tensor) -> Tensor:
     return keep & ((values - middle).abs() <= (3 * spread).clamp_min(1.0))
 
 
-def _doubtful(solved: list[int], parts: Tensor, gate: float) -> Tensor:
+def _doubtful(solved: list[int], parts: Tensor, gate: float,
+              part_gate: float | None = None) -> Tensor:
     """``(T,)`` the cups of ``solved`` whose doubt ``parts`` ``(len(solved), 2)`` sums to
-    ``gate`` or more."""
-    return torch.tensor([k for k, doubt in zip(solved, parts.sum(-1).tolist(), strict=True)
-                         if doubt >= gate], dtype=torch.long)
+    ``gate`` or more, or with a part at ``part_gate`` or more."""
+    largest = parts.amax(-1) if part_gate is not None else parts.new_full((len(solved),),
+                                                                          -math.inf)
+    return torch.tensor([k for k, doubt, part in zip(solved, parts.sum(-1).tolist(),
+                                                     largest.tolist(), strict=True)
+                         if doubt >= gate or (part_gate is not None and part >= part_gate)],
+                        dtype=torch.long)
 
 
 def _found_sources(found: list[RimLandmarks], todo: Tensor, cups: int) -> list[_Source]:

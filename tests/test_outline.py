@@ -11,7 +11,7 @@ import torch
 from cup_cases import paper_poses, rim_landmarks
 
 from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
-from cupnet.model import geometry_rows, load_model
+from cupnet.model import _doubtful, geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.pose import PoseSolution, ellipse_of_pose, refine_pose, refine_pose_with_outline
 from data_synth import SynthConfig, synthesize
@@ -470,6 +470,34 @@ def test_search_finds_a_rim_no_source_came_near(shipped_on_drr, monkeypatch, tur
             assert off_rim(landmarks[0][0]) > 5.0
     else:
         assert (pose[:2] - truth[0, :2]).abs().max() > 10.0
+
+
+@pytest.mark.parametrize("part_gate", [None, 0.0])
+def test_search_gate_on_either_part_of_the_doubt(shipped_on_drr, monkeypatch, part_gate):
+    """With a sum gate no cup reaches, the turned cup of the test above is searched (and its
+    rim found) only where a part of its doubt reaches ``search_part_gate``."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    turn = torch.tensor([[-25.0 if float(truth[0, 0]) > 25.0 else 25.0,
+                          -40.0 if float(truth[0, 1]) > 0.0 else 40.0, 0.0, 0.0, 0.0]],
+                        dtype=torch.float64)
+    monkeypatch.setattr(model.config, "verify_gate", 0.0)
+    monkeypatch.setattr(model.config, "verify_anteversions", ())
+    monkeypatch.setattr(model.config, "search_gate", math.inf)
+    monkeypatch.setattr(model.config, "search_part_gate", part_gate)
+    monkeypatch.setattr(model.config, "search_rim_doubt", None)  # as in the test above
+    pose, _, _ = _verify(model, sample, truth + turn, [])
+    assert bool((pose[:2] - truth[0, :2]).abs().max() < 1.0) == (part_gate is not None)
+
+
+def test_doubtful_cups_by_sum_or_by_part():
+    """Hand cases: doubts (rim, outline) summing to the gate, or with a part at the part
+    gate, are doubtful; a part gate of None leaves the sum alone."""
+    parts = torch.tensor([[1.0, 0.2], [2.0, -1.0], [0.5, 1.0], [0.7, 0.7]], dtype=torch.float64)
+    solved = [3, 5, 7, 9]
+    assert _doubtful(solved, parts, 1.5).tolist() == [7]
+    assert _doubtful(solved, parts, 1.5, 1.8).tolist() == [5, 7]
+    assert _doubtful(solved, parts, 10.0, 0.7).tolist() == [3, 5, 7, 9]
 
 
 def test_outline_refinement_refines_poses_that_meet_once(shipped_on_drr, monkeypatch):
