@@ -1357,12 +1357,10 @@ def _doubtful(solved: list[int], parts: Tensor, gate: float,
               part_gate: float | None = None) -> Tensor:
     """``(T,)`` the cups of ``solved`` whose doubt ``parts`` ``(len(solved), 2)`` sums to
     ``gate`` or more, or with a part at ``part_gate`` or more."""
-    largest = parts.amax(-1) if part_gate is not None else parts.new_full((len(solved),),
-                                                                          -math.inf)
-    return torch.tensor([k for k, doubt, part in zip(solved, parts.sum(-1).tolist(),
-                                                     largest.tolist(), strict=True)
-                         if doubt >= gate or (part_gate is not None and part >= part_gate)],
-                        dtype=torch.long)
+    part_gate = math.inf if part_gate is None else part_gate
+    return torch.tensor([k for k, total, part in zip(solved, parts.sum(-1).tolist(),
+                                                     parts.amax(-1).tolist(), strict=True)
+                         if total >= gate or part >= part_gate], dtype=torch.long)
 
 
 def _found_sources(found: list[RimLandmarks], todo: Tensor, cups: int) -> list[_Source]:
