@@ -437,6 +437,22 @@ def test_verification_turns_the_rim_to_find_it(shipped_on_drr, monkeypatch, turn
     assert found == bool(turns)
 
 
+def _searched_turned_cup(model, sample, monkeypatch, turned: bool, **search):
+    """:func:`_verify` of a cup solved from its rim turned 25 deg in anteversion and 40 deg in
+    inclination (or from the true rim), with no other source and no turned rims, so the
+    verification has no candidate, under the search settings ``search``: the truth
+    ``(1, 5)`` and :func:`_verify`'s pose, pick and landmarks."""
+    truth = sample["pose"][:1].double()
+    turn = torch.tensor([[-25.0 if float(truth[0, 0]) > 25.0 else 25.0,
+                          -40.0 if float(truth[0, 1]) > 0.0 else 40.0, 0.0, 0.0, 0.0]],
+                        dtype=torch.float64)
+    monkeypatch.setattr(model.config, "verify_gate", 0.0)
+    monkeypatch.setattr(model.config, "verify_anteversions", ())
+    for key, value in search.items():
+        monkeypatch.setattr(model.config, key, value)
+    return truth, *_verify(model, sample, truth + turn if turned else truth, [])
+
+
 @pytest.mark.parametrize(("turned", "rim_ceiling"), [(True, None), (True, -10.0),
                                                       (False, None)])
 def test_search_finds_a_rim_no_source_came_near(shipped_on_drr, monkeypatch, turned,
@@ -447,15 +463,9 @@ def test_search_finds_a_rim_no_source_came_near(shipped_on_drr, monkeypatch, tur
     network's on the found rim; with a rim ceiling no rim can meet, the rim stays turned;
     a cup solved from the true rim keeps it."""
     model, sample = shipped_on_drr
-    truth = sample["pose"][:1].double()
-    turn = torch.tensor([[-25.0 if float(truth[0, 0]) > 25.0 else 25.0,
-                          -40.0 if float(truth[0, 1]) > 0.0 else 40.0, 0.0, 0.0, 0.0]],
-                        dtype=torch.float64)
-    monkeypatch.setattr(model.config, "verify_gate", 0.0)
-    monkeypatch.setattr(model.config, "verify_anteversions", ())
-    monkeypatch.setattr(model.config, "search_gate", 0.0)  # every cup is searched
-    monkeypatch.setattr(model.config, "search_rim_doubt", rim_ceiling)
-    pose, pick, landmarks = _verify(model, sample, truth + turn if turned else truth, [])
+    truth, pose, pick, landmarks = _searched_turned_cup(
+        model, sample, monkeypatch, turned,
+        search_gate=0.0, search_rim_doubt=rim_ceiling)  # every cup is searched
     found = bool((pose[:2] - truth[0, :2]).abs().max() < 1.0)  # deg
     assert found == (rim_ceiling is None)
     if found:
@@ -477,16 +487,9 @@ def test_search_gate_on_either_part_of_the_doubt(shipped_on_drr, monkeypatch, pa
     """With a sum gate no cup reaches, the turned cup of the test above is searched (and its
     rim found) only where a part of its doubt reaches ``search_part_gate``."""
     model, sample = shipped_on_drr
-    truth = sample["pose"][:1].double()
-    turn = torch.tensor([[-25.0 if float(truth[0, 0]) > 25.0 else 25.0,
-                          -40.0 if float(truth[0, 1]) > 0.0 else 40.0, 0.0, 0.0, 0.0]],
-                        dtype=torch.float64)
-    monkeypatch.setattr(model.config, "verify_gate", 0.0)
-    monkeypatch.setattr(model.config, "verify_anteversions", ())
-    monkeypatch.setattr(model.config, "search_gate", math.inf)
-    monkeypatch.setattr(model.config, "search_part_gate", part_gate)
-    monkeypatch.setattr(model.config, "search_rim_doubt", None)  # as in the test above
-    pose, _, _ = _verify(model, sample, truth + turn, [])
+    truth, pose, _, _ = _searched_turned_cup(model, sample, monkeypatch, True,
+                                             search_gate=math.inf, search_part_gate=part_gate,
+                                             search_rim_doubt=None)
     assert bool((pose[:2] - truth[0, :2]).abs().max() < 1.0) == (part_gate is not None)
 
 
