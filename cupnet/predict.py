@@ -86,6 +86,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="skip the model's verification and search of doubtful cups "
                              "(verify_gate): about 3x faster, less accurate "
                              "(docs/training.md, items 12 and 16)")
+    parser.add_argument("--check-doubt", type=float, metavar="DOUBT",
+                        help="flag a cup check=1 where the model's doubt of its pose reaches "
+                             "this (default: the model's check_doubt, 1.8 for the shipped "
+                             "one; lower flags more cups, more of them right)")
     parser.add_argument("--landmarks", type=Path,
                         help="solve from manual landmarks in this file instead of the network")
     parser.add_argument("--overwrite", action="store_true", help="replace existing results")
@@ -175,13 +179,16 @@ def _sha256(path: Path) -> str:
 class NetworkDetector:
     """CupNet on a batch of images (weights loaded without running code from the file)."""
 
-    def __init__(self, checkpoint: Path | None, save_masks: bool, fast: bool = False) -> None:
+    def __init__(self, checkpoint: Path | None, save_masks: bool, fast: bool = False,
+                 check_doubt: float | None = None) -> None:
         from cupnet.fold import fold_batchnorm
         from cupnet.model import DEFAULT_CHECKPOINT, load_model
 
         self.model = fold_batchnorm(load_model(checkpoint))
         if fast:
             self.model.config.verify_gate = None
+        if check_doubt is not None:
+            self.model.config.check_doubt = check_doubt
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),
@@ -552,7 +559,8 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     try:
         detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
-                    else NetworkDetector(args.checkpoint, args.save_masks, args.fast))
+                    else NetworkDetector(args.checkpoint, args.save_masks, args.fast,
+                                         args.check_doubt))
     except Exception as exc:  # any unreadable model or landmark file stops the run here
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {reason}",

@@ -423,16 +423,21 @@ def test_overlay_marks_a_cup_to_check(check: bool) -> None:
     assert not (canvas == other).all(-1).any()
 
 
-@pytest.mark.parametrize("fast", [False, True])
-def test_fast_skips_the_verification_and_records_it(tmp_path: Path, fast: bool) -> None:
+@pytest.mark.parametrize(("flags", "verify_gate", "check_doubt"),
+                         [([], 1.0, 1.8), (["--fast"], None, 1.8),
+                          (["--check-doubt", "0.5"], 1.0, 0.5)])
+def test_fast_and_check_doubt_set_the_model_and_are_recorded(tmp_path: Path, flags: list[str],
+                                                             verify_gate: float | None,
+                                                             check_doubt: float) -> None:
     """``--fast`` turns the model's verification off (``verify_gate`` None in the recorded
-    config); without it the checkpoint's gate stands."""
-    model = CupNet(CupNetConfig(detect_threshold=2.0, verify_gate=1.0))
+    config), ``--check-doubt`` sets the flag's threshold; otherwise the checkpoint's stand."""
+    model = CupNet(CupNetConfig(detect_threshold=2.0, verify_gate=1.0, check_doubt=1.8))
     weights = save_model(model, tmp_path / "gated.safetensors")
     noise_png(tmp_path / "a.png")
     out = tmp_path / "out"
     args = ["predict", str(tmp_path / "a.png"), "--out", str(out), "--checkpoint", str(weights),
-            "--assume-defaults", "--quiet", *(["--fast"] if fast else [])]
+            "--assume-defaults", "--quiet", *flags]
     assert main(args) == 0
     recorded = json.loads((out / "results.json").read_text())["model"]["config"]
-    assert recorded["verify_gate"] == (None if fast else 1.0)
+    assert recorded["verify_gate"] == verify_gate
+    assert recorded["check_doubt"] == check_doubt
