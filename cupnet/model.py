@@ -179,14 +179,15 @@ class CupNetConfig:
             :meth:`CupNet.pose_doubt` doubts less (otherwise the larger anteversion); needs
             ``outline_passes``.
         search_gate: a cup still doubted this much or more after the verification (the sum
-            of the doubt's parts) is searched over its rim's orientation ...
+            of the doubt's parts) is searched over its rim's orientation
+            (:meth:`CupNet.searched`; None: no cup; needs ``verify_gate`` and
+            ``outline_rim_resample``) ...
         search_part_gate: ... and so is a cup either of whose doubt's two parts (rim,
             outline) reaches this (None: the sum alone counts; a rim the network finds
-            nowhere near the pose, with a dome outline that fits, sums to little)
-            (:meth:`CupNet.searched`; None: no cup; needs ``verify_gate`` and
-            ``outline_rim_resample``): a grid of ``search_anteversions`` (deg) by
-            inclinations every ``search_inclination_step`` (deg) at its pose's centre, whose
-            ``search_keep`` least doubted rims give the candidates ...
+            nowhere near the pose, with a dome outline that fits, sums to little). The
+            search: a grid of ``search_anteversions`` (deg) by inclinations every
+            ``search_inclination_step`` (deg) at its pose's centre, whose ``search_keep``
+            least doubted rims give the candidates ...
         search_rim_doubt: ... each taken only where the network doubts its rim no more than
             this (None: any); a search candidate must also beat the cup's rim doubt by
             ``verify_margin`` where it turns the rim's anteversion or inclination by more
@@ -741,16 +742,14 @@ class CupNet(nn.Module):
             if self.config.ambiguous_by_doubt:
                 ordered = self._order_ambiguous(image_list, index, picks, solved, poses,
                                                 alt_poses, rows, diameter)
+            parts = self._solved_doubts(image_list, index, solved, poses, rows, diameter,
+                                        ordered)
             if self.config.verify_gate is not None:
-                parts = self.verified(image_list, index, picks, solved, poses, alt_poses,
-                                      every_source, start, geometry, diameter, cup_index,
-                                      batch, known=ordered)
+                self.verified(image_list, index, picks, solved, poses, alt_poses, parts,
+                              every_source, start, geometry, diameter, cup_index, batch)
                 if self.config.search_gate is not None:
                     self.searched(image_list, index, picks, solved, poses, alt_poses, parts,
                                   geometry, diameter, cup_index, batch)
-            else:
-                parts = self._solved_doubts(image_list, index, solved, poses, rows, diameter,
-                                            ordered)
             doubts = dict(zip(solved, parts.amax(-1).tolist(), strict=True))
             # The rim the refined pose projects to, not the landmarks' fit: the two differ
             # where the outline moved the pose (a thin rim's fit is short), and the overlay
@@ -835,12 +834,11 @@ class CupNet(nn.Module):
 
     def verified(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                  solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
-                 sources: list[_Source], start: Tensor | None, geometry: Geometry,
-                 diameter: Tensor, cup_index: Tensor, batch: int,
-                 known: dict[int, Tensor] | None = None) -> Tensor:
+                 parts: Tensor, sources: list[_Source], start: Tensor | None,
+                 geometry: Geometry, diameter: Tensor, cup_index: Tensor, batch: int) -> None:
         """Doubtful cups solved again from every landmark source, in place.
 
-        A solved cup whose outline-refined pose :meth:`pose_doubt` puts at ``verify_gate`` or
+        A solved cup whose outline-refined pose's doubt ``parts`` sums to ``verify_gate`` or
         more is solved from each of ``sources``, from the ``verify_thin_rims`` thin-rim
         hypotheses around ``start`` the fine rim stage trusts most and from the rims of its
         pose turned to each of ``verify_anteversions``; the least doubted candidate replaces
@@ -852,20 +850,17 @@ class CupNet(nn.Module):
 
         Args:
             index: ``(K,)`` image of each cup; picks, poses (deg / mm), alt_poses: per cup.
-            solved: the cups with a pose; sources: as :meth:`detect`'s, cups -> landmarks.
+            solved: the cups with a pose; parts: ``(len(solved), 2)`` their doubts (rim,
+            outline; :meth:`pose_doubt`), in place.
+            sources: as :meth:`detect`'s, cups -> landmarks.
             start: ``(K, 5)`` the refiner's ellipses (None: no thin-rim hypotheses).
             geometry, diameter: per image; cup_index: ``(K, 2)``; batch: images.
-            known: ``cup -> (2,)`` doubts of cups' present poses already computed.
-        Returns:
-            ``(len(solved), 2)``: each solved cup's doubt (rim, outline) after.
         """
         cfg = self.config
         rows = geometry_rows(geometry, batch)
-        parts = self._solved_doubts(images, index, solved, poses, rows, diameter, known)
-        current = torch.stack([poses[k] for k in solved])
         todo = _doubtful(solved, parts, cfg.verify_gate)
         if len(todo) == 0:
-            return parts
+            return
         # More sources, each some landmarks per doubtful cup: the thin-rim hypotheses
         # (their first pass shared), then the rims of the first pose turned to each of
         # verify_anteversions (one network call for all).
@@ -874,8 +869,7 @@ class CupNet(nn.Module):
             found += self.ranked_thin_rim_landmarks(images, index[todo], start[todo],
                                                     cfg.verify_thin_rims)
         if cfg.verify_anteversions:
-            slot = {k: j for j, k in enumerate(solved)}
-            turned = current[[slot[k] for k in todo.tolist()]].repeat(
+            turned = torch.stack([poses[k] for k in todo.tolist()]).repeat(
                 len(cfg.verify_anteversions), 1, 1)
             turned[..., 0] = torch.tensor(cfg.verify_anteversions).to(turned)[:, None]
             found += self._pose_rim_found(images, index[todo], turned, rows, diameter)
@@ -887,7 +881,6 @@ class CupNet(nn.Module):
         for k, (pick, pose, doubt) in winners.items():
             picks[k], poses[k], alt_poses[k] = pick, pose, pick[2].alt_pose[pick[3]]
             parts[solved.index(k)] = doubt
-        return parts
 
     def _solved_doubts(self, images: list[Tensor], index: Tensor, solved: list[int],
                        poses: list[Tensor], rows: Tensor, diameter: Tensor,

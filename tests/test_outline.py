@@ -308,11 +308,14 @@ def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
         poses, alt_poses = [solution.pose[0]], [solution.alt_pose[0]]
         sources = [lambda todo, points=points: (points[todo], ones[todo])
                    for points in landmarks[1:]]
-        doubts = model.verified([sample["image"]], torch.tensor([0]), picks, [0], poses,
-                                alt_poses, sources, None, geometry, diameter, cup_index, 1)
-        if model.config.search_gate is not None:  # as detect does
-            model.searched([sample["image"]], torch.tensor([0]), picks, [0], poses, alt_poses,
-                           doubts, geometry, diameter, cup_index, 1)
+        images, index = [sample["image"]], torch.tensor([0])
+        parts = model._solved_doubts(images, index, [0], poses, geometry_rows(geometry, 1),
+                                     diameter)  # as detect does
+        model.verified(images, index, picks, [0], poses, alt_poses, parts, sources, None,
+                       geometry, diameter, cup_index, 1)
+        if model.config.search_gate is not None:
+            model.searched(images, index, picks, [0], poses, alt_poses, parts, geometry,
+                           diameter, cup_index, 1)
     return poses[0], picks[0], landmarks
 
 
