@@ -64,6 +64,7 @@ from cupnet.rim import (
     rim_frame,
     sample_strips,
     scaled_offsets,
+    settled_offsets,
     strip_landmarks,
     strip_offsets,
     thin_rim_starts,
@@ -188,6 +189,11 @@ class CupNetConfig:
             search: a grid of ``search_anteversions`` (deg) by inclinations every
             ``search_inclination_step`` (deg) at its pose's centre, whose ``search_keep``
             least doubted rims give the candidates ...
+        search_keep_settled: ... and so do the this many grid poses doubted least (beyond
+            those) once their rim's offsets are settled (the ellipse step their own
+            landmarks would fit taken out, :func:`cupnet.rim.settled_offsets`): a thin rim's
+            doubt is sharp, about 1 deg wide in inclination, so a grid pose a few pixels off
+            the true rim is doubted as if no rim lay there ...
         search_rim_doubt: ... each taken only where the network doubts its rim no more than
             this (None: any); a search candidate must also beat the cup's rim doubt by
             ``verify_margin`` where it turns the rim's anteversion or inclination by more
@@ -249,6 +255,7 @@ class CupNetConfig:
     search_inclination_step: float = 15.0
     search_keep: int = 4
     search_part_gate: float | None = None
+    search_keep_settled: int = 0
     search_rim_doubt: float | None = None
     check_doubt: float | None = None
 
@@ -911,9 +918,11 @@ class CupNet(nn.Module):
         A solved cup whose doubt ``parts`` sums to ``search_gate`` or more, or has a part at
         ``search_part_gate`` or more, gets a grid of poses at its centre: anteversions
         ``search_anteversions`` by inclinations every ``search_inclination_step`` deg. The
-        ``search_keep`` of them :meth:`pose_doubt` doubts least give the fine rim network's
-        landmarks across their rims; each set, solved (or, where it gives no pose within
-        ``max_theta_deg``, its grid pose), is a start for :meth:`_least_doubted`, with its
+        ``search_keep`` of them :meth:`pose_doubt` doubts least, and the
+        ``search_keep_settled`` others it doubts least with the rim's offsets settled (from
+        the same strips), give the fine rim network's landmarks across their rims; each
+        set, solved (or, where it gives no pose within ``max_theta_deg``, its grid pose),
+        is a start for :meth:`_least_doubted`, with its
         rules for turned rims on both angles and the rim ceiling ``search_rim_doubt``. A
         winner's landmarks, status and second pose are then solved from the network's
         landmarks across the rim it ends on. What this finds: a nearly edge-on cup whose
@@ -938,9 +947,16 @@ class CupNet(nn.Module):
             1, len(orientations), 1)  # (T, G, 5)
         grid[..., :2] = orientations
         cups = index[todo].repeat_interleave(len(orientations))
-        doubt = self.pose_doubt(images, cups, grid.flatten(0, 1), rows[cups],
-                                diameter[cups]).sum(-1).reshape(len(todo), -1)
+        on_rim, rims, dome = self._pose_edges(images, cups, grid.flatten(0, 1), rows[cups],
+                                              diameter[cups])
+        doubt = (_laplace_nll(on_rim.offset, on_rim.sigma).mean(-1) + dome).reshape(len(todo), -1)
         best = doubt.topk(min(cfg.search_keep, len(orientations)), largest=False).indices
+        settled = min(cfg.search_keep_settled, len(orientations) - best.shape[1])
+        if settled > 0:
+            offset = settled_offsets(on_rim.offset, on_rim.sigma, rims, on_rim.normals)
+            doubt = (_laplace_nll(offset, on_rim.sigma).mean(-1) + dome).reshape(len(todo), -1)
+            best = torch.cat([best, doubt.scatter(1, best, math.inf).topk(
+                settled, largest=False).indices], 1)
         kept = grid.gather(1, best[..., None].expand(-1, -1, 5)).transpose(0, 1)
         # Each kept grid pose's rim landmarks, solved; where they give no pose within
         # range, the refinement starts from the grid pose itself.
@@ -1086,7 +1102,7 @@ class CupNet(nn.Module):
         return firsts
 
     def pose_doubt(self, images: list[Tensor], index: Tensor, poses: Tensor, geometry: Tensor,
-                   diameter: Tensor) -> Tensor:
+                   diameter: Tensor, settled: bool = False) -> Tensor:
         """How little the fine rim network believes each pose: the mean Laplace negative
         log-likelihood ``|s| / sigma + log sigma`` (``s`` the column's landmark offset, px)
         that the image's edge lies where the pose puts it, over strips across the pose's rim
@@ -1096,20 +1112,33 @@ class CupNet(nn.Module):
         Args:
             images: the batch's images; index ``(K,)`` image of each pose.
             poses: ``(K, 5)`` deg / mm; geometry: ``(K, 4)`` rows; diameter: ``(K,)`` mm.
+            settled: the rim's offsets less the ellipse step that best explains them
+                (:func:`cupnet.rim.settled_offsets`): whether a rim lies near the pose's,
+                not exactly on it.
         Returns:
             ``(K, 2)``: the rim's and the outline's; lower: the network finds the edge where
             the pose puts it.
         """
+        on_rim, rims, dome = self._pose_edges(images, index, poses, geometry, diameter)
+        offset = on_rim.offset
+        if settled:
+            offset = settled_offsets(offset, on_rim.sigma, rims, on_rim.normals)
+        return torch.stack([_laplace_nll(offset, on_rim.sigma).mean(-1), dome], -1)
+
+    def _pose_edges(self, images: list[Tensor], index: Tensor, poses: Tensor,
+                    geometry: Tensor, diameter: Tensor) -> tuple[RimLandmarks, Tensor, Tensor]:
+        """What :meth:`pose_doubt` measures: the fine rim network's landmarks across each
+        pose's rim, the rim ellipses ``(K, 5)`` px and the outline's part ``(K,)``; arguments
+        as :meth:`pose_doubt`'s."""
         frame = Geometry.from_rows(geometry)
-        on_rim = self._pose_rim_landmarks(images, index, poses, diameter, frame)
+        rims = ellipse_of_pose(poses, diameter, frame)
+        on_rim = self._fine_landmarks_across(images, index,
+                                             *rim_frame(rims, self.config.rim_points))
         on_dome, keep = self._outline_landmarks(images, index, pose_to_radians(poses),
                                                 diameter.to(poses) / 2, frame)
-
-        def nll(found: RimLandmarks) -> Tensor:
-            return found.offset.abs() / found.sigma + found.sigma.log()
-
-        dome = (nll(on_dome) * keep).sum(-1) / keep.sum(-1).clamp_min(1)
-        return torch.stack([nll(on_rim).mean(-1), dome], -1)
+        dome = ((_laplace_nll(on_dome.offset, on_dome.sigma) * keep).sum(-1)
+                / keep.sum(-1).clamp_min(1))
+        return on_rim, rims, dome
 
     def outline_refined(self, images: list[Tensor], index: Tensor, poses: Tensor,
                         points: Tensor, weights: Tensor, residual: Tensor, geometry: Tensor,
@@ -1344,6 +1373,12 @@ def _consistent(values: Tensor, keep: Tensor) -> Tensor:
     middle = values.nanmedian(-1, keepdim=True).values
     spread = 1.4826 * (values - middle).abs().nanmedian(-1, keepdim=True).values
     return keep & ((values - middle).abs() <= (3 * spread).clamp_min(1.0))
+
+
+def _laplace_nll(offset: Tensor, sigma: Tensor) -> Tensor:
+    """Negative log-likelihood (less a constant) of Laplace errors of scale ``sigma`` px at
+    ``offset`` px, elementwise."""
+    return offset.abs() / sigma + sigma.log()
 
 
 def _doubtful(solved: list[int], parts: Tensor, gate: float,

@@ -82,6 +82,61 @@ def normal_crossings(points: Tensor, normals: Tensor, ellipse: Tensor) -> Tensor
     return torch.where(disc >= 0, -half / quad + root, -half / quad)
 
 
+def ellipse_step_basis(ellipse: Tensor, normals: Tensor) -> Tensor:
+    """How far each strip column's edge moves along its normal per unit change of each
+    ellipse parameter, to first order.
+
+    Args:
+        ellipse: ``(K, 5)`` (cx, cy, a, b, alpha_deg), image pixels; normals: ``(K, n, 2)``
+            its :func:`rim_frame` normals (column ``j`` at ``t = 2 pi j / n``).
+    Returns:
+        ``(K, n, 5)`` pixels per (px, px, px, px, deg).
+    """
+    n = normals.shape[1]
+    t = torch.arange(n, dtype=ellipse.dtype, device=ellipse.device) * (2 * math.pi / n)
+    _, _, a, b, alpha = (x[:, None] for x in ellipse.unbind(-1))
+    ang = torch.deg2rad(alpha)
+    cos_a, sin_a = torch.cos(ang), torch.sin(ang)
+    nu, nv = normals.unbind(-1)
+    along_major = nu * cos_a + nv * sin_a  # the normal in the ellipse's own axes
+    along_minor = -nu * sin_a + nv * cos_a
+    cos_t, sin_t = torch.cos(t), torch.sin(t)
+    # d point / d alpha is the point's offset from the centre turned by 90 deg.
+    turn = (a * cos_t * along_minor - b * sin_t * along_major) * (math.pi / 180)
+    return torch.stack([nu, nv, cos_t * along_major, sin_t * along_minor, turn], -1)
+
+
+def settled_offsets(offset: Tensor, sigma: Tensor, ellipse: Tensor, normals: Tensor,
+                    iterations: int = 2) -> Tensor:
+    """Strip landmarks' offsets ``(K, n)`` px less the ellipse step that best explains them.
+
+    A pose a few pixels off its rim (a coarse grid's) has large offsets that one fit of its
+    landmarks would take out; what is left says whether an ellipse lies there at all. The
+    step is the linearised weighted least-squares fit of the five ellipse parameters
+    (:func:`ellipse_step_basis`), reweighted ``iterations`` times for Laplace errors
+    (``1 / (sigma (|r| + sigma))``) so that a few columns on another edge do not pull it.
+
+    Args:
+        offset, sigma: ``(K, n)`` px, :class:`RimLandmarks`' fields; ellipse: ``(K, 5)`` the
+            strips' ellipse; normals: ``(K, n, 2)`` its :func:`rim_frame` normals.
+    Returns:
+        ``(K, n)`` px.
+    """
+    basis = ellipse_step_basis(ellipse.to(offset), normals.to(offset))
+    weights = sigma.pow(-2)
+    residual = offset
+    for _ in range(iterations):
+        normal = torch.einsum("kni,kn,knj->kij", basis, weights, basis)
+        # A thin ellipse's centre and semi-major axis are seen only at its tips: a ridge of a
+        # millionth of the matrix's scale keeps the system solvable without biasing the rest.
+        ridge = 1e-6 * normal.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None]
+        step = torch.linalg.solve(normal + ridge * torch.eye(5).to(normal),
+                                  torch.einsum("kni,kn,kn->ki", basis, weights, offset))
+        residual = offset - torch.einsum("kni,ki->kn", basis, step)
+        weights = 1 / (sigma * (residual.abs() + sigma))
+    return residual
+
+
 def strip_offsets(samples: int, step: float, dtype: torch.dtype = torch.float64,
                   device: torch.device | None = None) -> Tensor:
     """``(S,)`` offsets (image pixels, outward positive) of a strip's rows, centred on 0."""
