@@ -61,6 +61,7 @@ from cupnet.pose import (
 from cupnet.rim import (
     RimLandmarks,
     RimNet,
+    laplace_nll,
     rim_frame,
     sample_strips,
     scaled_offsets,
@@ -189,8 +190,8 @@ class CupNetConfig:
             search: a grid of ``search_anteversions`` (deg) by inclinations every
             ``search_inclination_step`` (deg) at its pose's centre, whose ``search_keep``
             least doubted rims give the candidates ...
-        search_keep_settled: ... and so do the this many grid poses doubted least (beyond
-            those) once their rim's offsets are settled (the ellipse step their own
+        search_keep_settled: ... and so do this many other grid poses (0: none), those
+            doubted least once their rim's offsets are settled (the ellipse step their own
             landmarks would fit taken out, :func:`cupnet.rim.settled_offsets`): a thin rim's
             doubt is sharp, about 1 deg wide in inclination, so a grid pose a few pixels off
             the true rim is doubted as if no rim lay there ...
@@ -922,8 +923,8 @@ class CupNet(nn.Module):
         ``search_keep_settled`` others it doubts least with the rim's offsets settled (from
         the same strips), give the fine rim network's landmarks across their rims; each
         set, solved (or, where it gives no pose within ``max_theta_deg``, its grid pose),
-        is a start for :meth:`_least_doubted`, with its
-        rules for turned rims on both angles and the rim ceiling ``search_rim_doubt``. A
+        is a start for :meth:`_least_doubted`, with its rules for turned rims on both angles
+        and the rim ceiling ``search_rim_doubt``. A
         winner's landmarks, status and second pose are then solved from the network's
         landmarks across the rim it ends on. What this finds: a nearly edge-on cup whose
         dome and femoral head every source took for an open rim, an open cup taken for a
@@ -949,14 +950,15 @@ class CupNet(nn.Module):
         cups = index[todo].repeat_interleave(len(orientations))
         on_rim, rims, dome = self._pose_edges(images, cups, grid.flatten(0, 1), rows[cups],
                                               diameter[cups])
-        doubt = (_laplace_nll(on_rim.offset, on_rim.sigma).mean(-1) + dome).reshape(len(todo), -1)
-        best = doubt.topk(min(cfg.search_keep, len(orientations)), largest=False).indices
-        settled = min(cfg.search_keep_settled, len(orientations) - best.shape[1])
-        if settled > 0:
-            offset = settled_offsets(on_rim.offset, on_rim.sigma, rims, on_rim.normals)
-            doubt = (_laplace_nll(offset, on_rim.sigma).mean(-1) + dome).reshape(len(todo), -1)
-            best = torch.cat([best, doubt.scatter(1, best, math.inf).topk(
-                settled, largest=False).indices], 1)
+
+        def ranked(settled: bool) -> Tensor:  # (T, G) the grid's doubts, as pose_doubt's sums
+            return (_rim_doubt(on_rim, rims, settled) + dome).reshape(len(todo), -1)
+
+        best = ranked(False).topk(min(cfg.search_keep, len(orientations)), largest=False).indices
+        extra = min(cfg.search_keep_settled, len(orientations) - best.shape[1])
+        if extra > 0:  # the best once settled, beyond those
+            best = torch.cat([best, ranked(True).scatter(1, best, math.inf).topk(
+                extra, largest=False).indices], 1)
         kept = grid.gather(1, best[..., None].expand(-1, -1, 5)).transpose(0, 1)
         # Each kept grid pose's rim landmarks, solved; where they give no pose within
         # range, the refinement starts from the grid pose itself.
@@ -1112,33 +1114,28 @@ class CupNet(nn.Module):
         Args:
             images: the batch's images; index ``(K,)`` image of each pose.
             poses: ``(K, 5)`` deg / mm; geometry: ``(K, 4)`` rows; diameter: ``(K,)`` mm.
-            settled: the rim's offsets less the ellipse step that best explains them
+            settled: measure the rim's offsets less the ellipse step that best explains them
                 (:func:`cupnet.rim.settled_offsets`): whether a rim lies near the pose's,
-                not exactly on it.
+                not exactly where it puts it.
         Returns:
             ``(K, 2)``: the rim's and the outline's; lower: the network finds the edge where
-            the pose puts it.
+            the pose puts it (near it, for the rim, where ``settled``).
         """
         on_rim, rims, dome = self._pose_edges(images, index, poses, geometry, diameter)
-        offset = on_rim.offset
-        if settled:
-            offset = settled_offsets(offset, on_rim.sigma, rims, on_rim.normals)
-        return torch.stack([_laplace_nll(offset, on_rim.sigma).mean(-1), dome], -1)
+        return torch.stack([_rim_doubt(on_rim, rims, settled), dome], -1)
 
     def _pose_edges(self, images: list[Tensor], index: Tensor, poses: Tensor,
                     geometry: Tensor, diameter: Tensor) -> tuple[RimLandmarks, Tensor, Tensor]:
-        """What :meth:`pose_doubt` measures: the fine rim network's landmarks across each
-        pose's rim, the rim ellipses ``(K, 5)`` px and the outline's part ``(K,)``; arguments
-        as :meth:`pose_doubt`'s."""
+        """What :meth:`pose_doubt` measures, arguments as its: the fine rim network's
+        landmarks across each pose's rim (``(K, rim_points)`` columns), the rim ellipses
+        ``(K, 5)`` (cx, cy, a, b px, alpha deg) and the outline's part ``(K,)``."""
         frame = Geometry.from_rows(geometry)
-        rims = ellipse_of_pose(poses, diameter, frame)
-        on_rim = self._fine_landmarks_across(images, index,
-                                             *rim_frame(rims, self.config.rim_points))
+        on_rim = self._pose_rim_landmarks(images, index, poses, diameter, frame)
         on_dome, keep = self._outline_landmarks(images, index, pose_to_radians(poses),
                                                 diameter.to(poses) / 2, frame)
-        dome = ((_laplace_nll(on_dome.offset, on_dome.sigma) * keep).sum(-1)
+        dome = ((laplace_nll(on_dome.offset, on_dome.sigma) * keep).sum(-1)
                 / keep.sum(-1).clamp_min(1))
-        return on_rim, rims, dome
+        return on_rim, ellipse_of_pose(poses, diameter, frame), dome
 
     def outline_refined(self, images: list[Tensor], index: Tensor, poses: Tensor,
                         points: Tensor, weights: Tensor, residual: Tensor, geometry: Tensor,
@@ -1375,10 +1372,13 @@ def _consistent(values: Tensor, keep: Tensor) -> Tensor:
     return keep & ((values - middle).abs() <= (3 * spread).clamp_min(1.0))
 
 
-def _laplace_nll(offset: Tensor, sigma: Tensor) -> Tensor:
-    """Negative log-likelihood (less a constant) of Laplace errors of scale ``sigma`` px at
-    ``offset`` px, elementwise."""
-    return offset.abs() / sigma + sigma.log()
+def _rim_doubt(on_rim: RimLandmarks, rims: Tensor, settled: bool) -> Tensor:
+    """``(K,)`` the rim's part of :meth:`CupNet.pose_doubt` from the landmarks across the
+    rims ``(K, 5)`` (cx, cy, a, b px, alpha deg), their offsets ``settled`` or as they lie."""
+    offset = on_rim.offset
+    if settled:
+        offset = settled_offsets(offset, on_rim.sigma, rims, on_rim.normals)
+    return laplace_nll(offset, on_rim.sigma).mean(-1)
 
 
 def _doubtful(solved: list[int], parts: Tensor, gate: float,

@@ -87,8 +87,9 @@ def ellipse_step_basis(ellipse: Tensor, normals: Tensor) -> Tensor:
     ellipse parameter, to first order.
 
     Args:
-        ellipse: ``(K, 5)`` (cx, cy, a, b, alpha_deg), image pixels; normals: ``(K, n, 2)``
-            its :func:`rim_frame` normals (column ``j`` at ``t = 2 pi j / n``).
+        ellipse: ``(K, 5)`` (cx, cy, a, b px, alpha deg); normals: ``(K, n, 2)`` its
+            :func:`rim_frame` normals (column ``j`` at ``t = 2 pi j / n``; other normals,
+            a sphere outline's say, give a wrong basis).
     Returns:
         ``(K, n, 5)`` pixels per (px, px, px, px, deg).
     """
@@ -113,28 +114,39 @@ def settled_offsets(offset: Tensor, sigma: Tensor, ellipse: Tensor, normals: Ten
     A pose a few pixels off its rim (a coarse grid's) has large offsets that one fit of its
     landmarks would take out; what is left says whether an ellipse lies there at all. The
     step is the linearised weighted least-squares fit of the five ellipse parameters
-    (:func:`ellipse_step_basis`), reweighted ``iterations`` times for Laplace errors
-    (``1 / (sigma (|r| + sigma))``) so that a few columns on another edge do not pull it.
+    (:func:`ellipse_step_basis`): ``iterations`` fits, the first weighted ``1 / sigma^2``,
+    each later one reweighted for Laplace errors (``1 / (sigma (|r| + sigma))``, ``r`` the
+    last fit's residual) so that a few columns on another edge pull it less.
 
     Args:
-        offset, sigma: ``(K, n)`` px, :class:`RimLandmarks`' fields; ellipse: ``(K, 5)`` the
-            strips' ellipse; normals: ``(K, n, 2)`` its :func:`rim_frame` normals.
+        offset, sigma: ``(K, n)`` px, :class:`RimLandmarks`' fields; ellipse: ``(K, 5)``
+            (cx, cy, a, b px, alpha deg) the strips' ellipse; normals: ``(K, n, 2)`` its
+            :func:`rim_frame` normals.
+        iterations: at least 1.
     Returns:
         ``(K, n)`` px.
     """
+    if iterations < 1:
+        raise ValueError(f"settled_offsets needs at least one fit, got iterations={iterations}")
     basis = ellipse_step_basis(ellipse.to(offset), normals.to(offset))
-    weights = sigma.pow(-2)
-    residual = offset
+    # A circle's orientation moves no edge (its alpha column is zero): a ridge of a millionth
+    # of the matrix's scale keeps the system solvable there without biasing the rest.
+    eye = torch.eye(5, dtype=offset.dtype, device=offset.device)
+    residual = torch.zeros_like(offset)
     for _ in range(iterations):
+        weights = 1 / (sigma * (residual.abs() + sigma))  # 1 / sigma^2 at first
         normal = torch.einsum("kni,kn,knj->kij", basis, weights, basis)
-        # A thin ellipse's centre and semi-major axis are seen only at its tips: a ridge of a
-        # millionth of the matrix's scale keeps the system solvable without biasing the rest.
         ridge = 1e-6 * normal.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None]
-        step = torch.linalg.solve(normal + ridge * torch.eye(5).to(normal),
+        step = torch.linalg.solve(normal + ridge * eye,
                                   torch.einsum("kni,kn,kn->ki", basis, weights, offset))
         residual = offset - torch.einsum("kni,ki->kn", basis, step)
-        weights = 1 / (sigma * (residual.abs() + sigma))
     return residual
+
+
+def laplace_nll(offset: Tensor, sigma: Tensor) -> Tensor:
+    """Negative log-likelihood, less a constant, of Laplace errors of scale ``sigma`` px at
+    ``offset`` px, elementwise: the rim network's training loss and its doubt of a pose."""
+    return offset.abs() / sigma + sigma.log()
 
 
 def strip_offsets(samples: int, step: float, dtype: torch.dtype = torch.float64,

@@ -102,6 +102,10 @@ def test_settled_offsets_take_out_an_ellipse_step_but_not_another_edge():
     plain, reweighted = pulled(1), pulled(2)
     assert (reweighted < 0.6 * plain).all()
     assert (reweighted < 0.3).all()
+    empty = offset[:0]
+    assert settled_offsets(empty, sigma[:0], ELLIPSES[:0], normals[:0]).shape == (0, 128)
+    with pytest.raises(ValueError, match="at least one fit"):
+        settled_offsets(offset, sigma, ELLIPSES, normals, iterations=0)
 
 
 def test_scaled_offsets_reach_a_fraction_of_each_cups_major_axis():

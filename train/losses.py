@@ -8,7 +8,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from cupnet.ellipse import sampson_distance
-from cupnet.rim import RimLandmarks, normal_crossings
+from cupnet.rim import RimLandmarks, laplace_nll, normal_crossings
 
 # The pose's components, in the order of every (..., 5) pose tensor.
 POSE_NAMES = ("theta", "phi", "k", "l", "h")
@@ -61,7 +61,7 @@ def rim_loss(rim: RimLandmarks, truth: Tensor) -> Tensor:
     if rim.offset.shape[0] == 0:
         return rim.offset.sum() * 0.0
     target = normal_crossings(rim.points, rim.normals, truth).clamp(-rim.reach, rim.reach)
-    return ((rim.offset - target).abs() / rim.sigma + rim.sigma.log()).mean()
+    return laplace_nll(rim.offset - target, rim.sigma).mean()
 
 
 def wrap_angle(delta: Tensor, period: float = 180.0) -> Tensor:
