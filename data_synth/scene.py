@@ -56,6 +56,21 @@ def uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
     return float(rng.uniform(bounds[0], bounds[1]))
 
 
+def reflect_into(values: np.ndarray | float, bounds: tuple[float, float]) -> np.ndarray:
+    """``values`` folded into ``[lo, hi]`` by reflection at its ends (a triangle wave).
+
+    A value drawn near a range's end plus noise that leaves it comes back by as much as it
+    went beyond; clipping would pile such draws onto the end itself (a bilateral second
+    cup at exactly 0 deg of anteversion, edge-on, or at the nearest h allowed).
+    """
+    lo, hi = bounds
+    span = hi - lo
+    if span <= 0:
+        return np.full_like(np.asarray(values, dtype=float), lo)
+    folded = np.mod(np.asarray(values, dtype=float) - lo, 2 * span)
+    return lo + span - np.abs(folded - span)
+
+
 def sample_geometry(config: SynthConfig, rng: np.random.Generator) -> Geometry:
     """SDD, pixel spacing and a principal point near the image centre."""
     width, height = config.image_size
@@ -110,11 +125,11 @@ def sample_poses(config: SynthConfig, rng: np.random.Generator, geometry: Geomet
         side = 1.0 if phi > 0 else -1.0  # the other hip lies on the image's right of a right hip
         jitter = rng.normal(0, [6.0, 6.0, 0, 6.0, 20.0])
         second = first.copy()
-        second[:, 0] = np.clip(theta + jitter[0], *config.theta_deg)
-        second[:, 1] = np.clip(-phi + jitter[1], *config.phi_deg)
+        second[:, 0] = reflect_into(theta + jitter[0], config.theta_deg)
+        second[:, 1] = reflect_into(-phi + jitter[1], config.phi_deg)
         second[:, 2] = k + side * uniform(rng, config.bilateral_separation_mm)
         second[:, 3] = l_ + jitter[3]
-        second[:, 4] = np.clip(h + jitter[4], *config.h_mm)
+        second[:, 4] = reflect_into(h + jitter[4], config.h_mm)
         candidates.append(second)
         diameters.append(diameters[0])  # one diameter per image, as meta.csv holds
     poses = torch.as_tensor(np.stack(candidates, 1))  # (T, n, 5)

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from torch.utils.data import DataLoader
 
 from cupnet.ellipse import params_to_conic, sampson_distance
 from data_synth import MAX_CUPS, SynthConfig, SynthDataset, synthesize
+from data_synth.scene import reflect_into, sample_geometry, sample_poses
 
 SMALL = {"image_size": (64, 48)}
 
@@ -106,9 +108,34 @@ def test_bilateral_cups_sit_on_opposite_hips():
         assert sample["mask"].sum() > 0
 
 
-def test_seed_errors_and_generator_input():
-    import numpy as np
+def test_reflect_into_folds_at_both_ends():
+    """Hand cases: inside unchanged, beyond an end back by as much, twice the span around."""
+    values = np.array([25.0, 0.0, 50.0, -3.0, 53.0, 104.0, -0.5])
+    assert np.allclose(reflect_into(values, (0.0, 50.0)), [25.0, 0.0, 50.0, 3.0, 47.0, 4.0, 0.5])
+    assert np.allclose(reflect_into(7.0, (2.0, 2.0)), 2.0)
 
+
+def test_bilateral_second_cups_pile_on_no_range_end():
+    """Second cups near the ends of narrow anteversion and h ranges (the first cup's plus
+    noise) stay in range and none sits on an end, as a clipped draw would."""
+    config = SynthConfig(image_size=(128, 128), p_bilateral=1.0, p_no_cup=0.0,
+                         detector_width_mm=(420.0, 420.0), theta_deg=(0.0, 4.0),
+                         h_mm=(100.0, 110.0))
+    rng = np.random.default_rng(3)
+    seconds = []
+    for _ in range(40):
+        geometry = sample_geometry(config, rng)
+        poses, _ = sample_poses(config, rng, geometry, field_radius=1e6, bilateral=True)
+        if len(poses) == 2:
+            seconds.append(poses[1].numpy())
+    seconds = np.array(seconds)
+    assert len(seconds) >= 20
+    theta, h = seconds[:, 0], seconds[:, 4]
+    assert ((theta >= 0.0) & (theta <= 4.0) & (h >= 100.0) & (h <= 110.0)).all()
+    assert not np.isin(theta, [0.0, 4.0]).any() and not np.isin(h, [100.0, 110.0]).any()
+
+
+def test_seed_errors_and_generator_input():
     config = SynthConfig(**SMALL)
     with pytest.raises(ValueError, match="seed"):
         synthesize(config, -1, 0)
