@@ -924,12 +924,12 @@ class CupNet(nn.Module):
         the same strips), give the fine rim network's landmarks across their rims; each
         set, solved (or, where it gives no pose within ``max_theta_deg``, its grid pose),
         is a start for :meth:`_least_doubted`, with its rules for turned rims on both angles
-        and the rim ceiling ``search_rim_doubt``. A
-        winner's landmarks, status and second pose are then solved from the network's
-        landmarks across the rim it ends on. What this finds: a nearly edge-on cup whose
-        dome and femoral head every source took for an open rim, an open cup taken for a
-        thin rim across its head; the sources' landmarks all came from the same wrong
-        contour, and the grid starts from none of them.
+        and the rim ceiling ``search_rim_doubt``. A winner's landmarks, status and second
+        pose are then solved from the network's landmarks across the rim it ends on. What
+        this finds: a nearly edge-on cup whose dome and femoral head every source took for
+        an open rim, an open cup taken for a thin rim across its head; the sources'
+        landmarks all came from the same wrong contour, and the grid starts from none of
+        them.
 
         Args:
             index: ``(K,)`` image of each cup; picks, poses (deg / mm), alt_poses: per cup.
@@ -1130,12 +1130,13 @@ class CupNet(nn.Module):
         landmarks across each pose's rim (``(K, rim_points)`` columns), the rim ellipses
         ``(K, 5)`` (cx, cy, a, b px, alpha deg) and the outline's part ``(K,)``."""
         frame = Geometry.from_rows(geometry)
-        on_rim = self._pose_rim_landmarks(images, index, poses, diameter, frame)
+        rims = ellipse_of_pose(poses, diameter, frame)
+        on_rim = self._rim_landmarks_across(images, index, rims)
         on_dome, keep = self._outline_landmarks(images, index, pose_to_radians(poses),
                                                 diameter.to(poses) / 2, frame)
         dome = ((laplace_nll(on_dome.offset, on_dome.sigma) * keep).sum(-1)
                 / keep.sum(-1).clamp_min(1))
-        return on_rim, ellipse_of_pose(poses, diameter, frame), dome
+        return on_rim, rims, dome
 
     def outline_refined(self, images: list[Tensor], index: Tensor, poses: Tensor,
                         points: Tensor, weights: Tensor, residual: Tensor, geometry: Tensor,
@@ -1248,9 +1249,14 @@ class CupNet(nn.Module):
                             diameter: Tensor, frame: Geometry) -> RimLandmarks:
         """The fine rim network's landmarks across each pose's own rim (``rim_points``
         normals). poses: ``(K, 5)`` deg / mm; diameter: ``(K,)`` mm; frame: fields ``(K,)``."""
-        points, normals = rim_frame(ellipse_of_pose(poses, diameter, frame),
-                                    self.config.rim_points)
-        return self._fine_landmarks_across(images, index, points, normals)
+        return self._rim_landmarks_across(images, index, ellipse_of_pose(poses, diameter, frame))
+
+    def _rim_landmarks_across(self, images: list[Tensor], index: Tensor, rims: Tensor
+                              ) -> RimLandmarks:
+        """The fine rim network's landmarks across ellipses ``rims`` ``(K, 5)`` (cx, cy, a, b
+        px, alpha deg; ``rim_points`` normals each) in the images ``index`` ``(K,)``."""
+        return self._fine_landmarks_across(images, index,
+                                           *rim_frame(rims, self.config.rim_points))
 
     def refiner_fit(self, points: Tensor, weights: Tensor, frames: Tensor) -> Tensor:
         """The ellipses ``(K, 5)`` a refiner pass's landmarks ``(K, n, 2)`` and weights
