@@ -497,6 +497,13 @@ class CupNet(nn.Module):
         """How far (image pixels) the rim stage looks either side of its ellipse, per pass."""
         return (self.config.rim_samples - 1) / 2 * self.config.rim_step
 
+    def in_theta_range(self, poses: Tensor) -> Tensor:
+        """``(...)`` whether each pose ``(..., 5)`` deg / mm has an anteversion within
+        ``max_theta_deg`` (any finite one without a limit): a more open pose counts as a
+        failure of its landmark source."""
+        limit = self.config.max_theta_deg
+        return poses[..., 0] <= (math.inf if limit is None else limit)
+
     def rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor,
                       passes: int | None = None, coarse: bool = False) -> RimLandmarks:
         """Rim stage: strip passes from ``start`` ellipses (gradients reach the last pass's
@@ -525,13 +532,7 @@ class CupNet(nn.Module):
             offsets = (scaled_offsets(cfg.rim_samples, ellipse, cfg.coarse_rim_reach)
                        if coarse else strip_offsets(cfg.rim_samples, cfg.rim_step,
                                                     device=start.device))
-            strips = sample_strips(images, index, points, normals, offsets)
-            if strips.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
-                empty = points.new_zeros(0, cfg.rim_points)
-                return RimLandmarks(points, empty, empty, empty, points, normals,
-                                    points.new_zeros(0, 1))
-            logits, log_sigma = net(strips.to(self.dtype))
-            rim = strip_landmarks(logits, log_sigma, points, normals, offsets)
+            rim = self._strip_landmarks(net, images, index, points, normals, offsets)
             if remaining:
                 ellipse = usable_fit(rim.landmarks.detach(), rim.weights.detach(), ellipse)
         return rim
@@ -717,7 +718,6 @@ class CupNet(nn.Module):
                             refiner, *grown]
         chosen: list[_Pick | None] = [None] * len(cup_index)
         fallback: list[_Pick | None] = [None] * len(cup_index)
-        limit = self.config.max_theta_deg
         for source in sources:
             todo = torch.tensor([k for k, pick in enumerate(chosen) if pick is None],
                                 dtype=torch.long)
@@ -728,7 +728,7 @@ class CupNet(nn.Module):
                 solution, row = pick[2], pick[3]
                 valid = bool(solution.valid[row])
                 kept_valid = fallback[k] is not None and bool(fallback[k][2].valid[fallback[k][3]])
-                if valid and (limit is None or float(solution.pose[row, 0]) <= limit):
+                if valid and bool(self.in_theta_range(solution.pose[row])):
                     chosen[k] = pick
                 elif not kept_valid and (valid or source is refiner):
                     fallback[k] = pick
@@ -967,8 +967,7 @@ class CupNet(nn.Module):
                                                           diameter), strict=True):
             solution = self.solve(rim.landmarks, rim.weights, geometry, diameter,
                                   cup_index[todo], batch, refine=True)
-            in_range = solution.valid & (solution.pose[:, 0] <= (
-                math.inf if cfg.max_theta_deg is None else cfg.max_theta_deg))
+            in_range = solution.valid & self.in_theta_range(solution.pose)
             candidates += [(k, (rim.landmarks[row], rim.weights[row], solution, row),
                             torch.where(in_range[row], solution.pose[row], starts[row]))
                            for row, k in enumerate(todo.tolist())]
@@ -1035,9 +1034,7 @@ class CupNet(nn.Module):
         own = torch.tensor([slot[k] for k in cups.tolist()], dtype=torch.long)
         refined = self._refined_picks(images, index[cups], [pick for _, pick, _ in candidates],
                                       [start for _, _, start in candidates], rows, diameter)
-        usable = torch.isfinite(refined).all(-1)
-        if cfg.max_theta_deg is not None:
-            usable &= refined[:, 0] <= cfg.max_theta_deg
+        usable = torch.isfinite(refined).all(-1) & self.in_theta_range(refined)
         their = self.pose_doubt(images, index[cups], refined.nan_to_num(), rows[index[cups]],
                                 diameter[index[cups]])
         if cfg.verify_turn_deg is not None:
@@ -1065,12 +1062,11 @@ class CupNet(nn.Module):
                            batch: int) -> list[tuple[int, _Pick, Tensor]]:
         """``(cup, pick, pose)`` of each distinct pose within ``max_theta_deg`` that
         ``sources`` solve for the cups ``todo`` ``(T,)``, less the cups' own landmarks."""
-        limit = self.config.max_theta_deg
         candidates = [(k, pick) for source in sources
                       for k, pick in self._solved_picks(source, todo, geometry, diameter,
                                                         cup_index, batch)
-                      if pick[2].valid[pick[3]] and (limit is None or float(
-                          pick[2].pose[pick[3], 0]) <= limit)
+                      if pick[2].valid[pick[3]] and bool(self.in_theta_range(
+                          pick[2].pose[pick[3]]))
                       # the cup's own landmarks again (its source rerun) would give its pose
                       and not _same_landmarks(pick, picks[k])]
         return [(k, pick, pick[2].pose[pick[3]]) for k, pick in _distinct(candidates)]
@@ -1131,7 +1127,7 @@ class CupNet(nn.Module):
         ``(K, 5)`` (cx, cy, a, b px, alpha deg) and the outline's part ``(K,)``."""
         frame = Geometry.from_rows(geometry)
         rims = ellipse_of_pose(poses, diameter, frame)
-        on_rim = self._rim_landmarks_across(images, index, rims)
+        on_rim = self.rim_landmarks(images, index, rims, passes=1)
         on_dome, keep = self._outline_landmarks(images, index, pose_to_radians(poses),
                                                 diameter.to(poses) / 2, frame)
         dome = ((laplace_nll(on_dome.offset, on_dome.sigma) * keep).sum(-1)
@@ -1189,8 +1185,8 @@ class CupNet(nn.Module):
         refined = pose_to_degrees(canonical_pose(pose))
         usable = torch.isfinite(refined).all(-1) & (refined[:, 4] > 0) & (
             refined[:, 4] < geometry[:, 0])
-        if cfg.max_theta_deg is not None:  # nor one the anteversion limit would have refused
-            usable &= (refined[:, 0] <= cfg.max_theta_deg) | (poses[:, 0] > cfg.max_theta_deg)
+        # nor one the anteversion limit would have refused
+        usable &= self.in_theta_range(refined) | ~self.in_theta_range(poses)
         return torch.where(usable[:, None], refined, poses)
 
     def _outline_landmarks(self, images: list[Tensor], index: Tensor, pose: Tensor,
@@ -1206,7 +1202,8 @@ class CupNet(nn.Module):
         cfg = self.config
         outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
                                                 dome_only=True)
-        found = self._fine_landmarks_across(images, index, outline, normals)
+        found = self._strip_landmarks(self.rim, images, index, outline, normals,
+                                      strip_offsets(cfg.rim_samples, cfg.rim_step))
         keep = (side > cfg.outline_min_side) & _inside(found.landmarks, images, index)
         # The strip is an open arc: the rim network's columns near its ends see the other
         # end through its circular padding.
@@ -1237,26 +1234,24 @@ class CupNet(nn.Module):
             pose, points, torch.where(inner, cfg.outline_inner_rim_weight * rim_weights,
                                       rim_weights), landmarks, outline_weights, frame, radius)
 
-    def _fine_landmarks_across(self, images: list[Tensor], index: Tensor, points: Tensor,
-                               normals: Tensor) -> RimLandmarks:
-        """The fine rim network's landmarks on strips across ``points`` ``(K, n, 2)`` px along
-        ``normals`` ``(K, n, 2)``, in the images ``index`` ``(K,)``."""
-        offsets = strip_offsets(self.config.rim_samples, self.config.rim_step)
+    def _strip_landmarks(self, net: RimNet, images: list[Tensor] | Tensor, index: Tensor,
+                         points: Tensor, normals: Tensor, offsets: Tensor) -> RimLandmarks:
+        """``net``'s landmarks on strips across ``points`` ``(K, n, 2)`` px along ``normals``
+        ``(K, n, 2)`` at ``offsets`` ``(S,)`` or ``(K, S)`` px, in the images ``index``
+        ``(K,)``."""
         strips = sample_strips(images, index, points, normals, offsets)
-        return strip_landmarks(*self.rim(strips.to(self.dtype)), points, normals, offsets)
+        if strips.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
+            empty = points.new_zeros(0, points.shape[1])
+            return RimLandmarks(points, empty, empty, empty, points, normals,
+                                points.new_zeros(0, 1))
+        return strip_landmarks(*net(strips.to(self.dtype)), points, normals, offsets)
 
     def _pose_rim_landmarks(self, images: list[Tensor], index: Tensor, poses: Tensor,
                             diameter: Tensor, frame: Geometry) -> RimLandmarks:
         """The fine rim network's landmarks across each pose's own rim (``rim_points``
         normals). poses: ``(K, 5)`` deg / mm; diameter: ``(K,)`` mm; frame: fields ``(K,)``."""
-        return self._rim_landmarks_across(images, index, ellipse_of_pose(poses, diameter, frame))
-
-    def _rim_landmarks_across(self, images: list[Tensor], index: Tensor, rims: Tensor
-                              ) -> RimLandmarks:
-        """The fine rim network's landmarks across ellipses ``rims`` ``(K, 5)`` (cx, cy, a, b
-        px, alpha deg; ``rim_points`` normals each) in the images ``index`` ``(K,)``."""
-        return self._fine_landmarks_across(images, index,
-                                           *rim_frame(rims, self.config.rim_points))
+        return self.rim_landmarks(images, index, ellipse_of_pose(poses, diameter, frame),
+                                  passes=1)
 
     def refiner_fit(self, points: Tensor, weights: Tensor, frames: Tensor) -> Tensor:
         """The ellipses ``(K, 5)`` a refiner pass's landmarks ``(K, n, 2)`` and weights
