@@ -24,7 +24,13 @@ from cupnet.detection import CupDetection  # noqa: E402
 from cupnet.evaluate import GROSS_DEG  # noqa: E402
 from cupnet.fold import fold_batchnorm  # noqa: E402
 from cupnet.geometry import Geometry  # noqa: E402
-from cupnet.model import DEFAULT_CHECKPOINT, CupNet, load_model  # noqa: E402
+from cupnet.model import (  # noqa: E402
+    DEFAULT_CHECKPOINT,
+    SPEED_PRESETS,
+    CupNet,
+    apply_speed_preset,
+    load_model,
+)
 from train.data import synth_config  # noqa: E402
 from train.losses import POSE_NAMES as NAMES  # noqa: E402
 from train.losses import POSE_SCALE as TARGETS  # noqa: E402  (the issue's target MAEs)
@@ -139,6 +145,9 @@ def false_detections(model: CupNet, data: list[dict]) -> tuple[int, int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
+    parser.add_argument("--presets", nargs="*", default=list(SPEED_PRESETS),
+                        choices=list(SPEED_PRESETS),
+                        help="the shipped model's speed presets to time and score beside it")
     parser.add_argument("--ablation", nargs="*", default=[],
                         help="more checkpoints to compare on the same set, as NAME=PATH")
     parser.add_argument("--eval-config", default="configs/synth_eval.yaml")
@@ -155,22 +164,35 @@ def main() -> None:
                         help="torch intra-op threads to time with (accuracy uses the first)")
     args = parser.parse_args()
 
-    model = fold_batchnorm(load_model(args.checkpoint))  # as cupnet predict runs it
+    def loaded(path: str, preset: str | None = None) -> CupNet:  # as cupnet predict runs it
+        net = fold_batchnorm(load_model(path))
+        apply_speed_preset(net.config, preset)
+        return net
+
+    model = loaded(args.checkpoint)
+    models = {"shipped (end to end)": model}
+    models.update({f"shipped, --{preset}": loaded(args.checkpoint, preset)
+                   for preset in args.presets})
+    for item in args.ablation:
+        name, path = item.split("=", 1)
+        models[name] = loaded(path)
     speed_set = samples(args.speed_config, args.seed + 1, 20)
     rows = []
-    for threads in args.threads:
-        torch.set_num_threads(threads)
-        timing = latency(model, speed_set)
-        rows.append([f"segmentation + pose, 512x512, batch 1, {threads} thread(s)",
-                     f"{1000 * timing['mean_s']:.1f}", f"{1000 * timing['median_s']:.1f}",
-                     f"{1 / timing['mean_s']:.1f}"])
+    for name, net in models.items():
+        for threads in args.threads if net is model else args.threads[:1]:
+            torch.set_num_threads(threads)
+            timing = latency(net, speed_set)
+            rows.append([f"{name}: segmentation + pose, 512x512, batch 1, {threads} thread(s)",
+                         f"{1000 * timing['mean_s']:.1f}", f"{1000 * timing['median_s']:.1f}",
+                         f"{1 / timing['mean_s']:.1f}"])
     torch.set_num_threads(args.threads[0])
-    speed = markdown_table(["pipeline", "mean ms / image", "median ms / image", "images / s"],
-                           rows)
+    speed = markdown_table(["model, pipeline", "mean ms / image", "median ms / image",
+                            "images / s"], rows)
     print(speed)
     write_section("model", "## CupNet speed\n\n"
                   f"`python benchmarks/model.py` on {machine()}; checkpoint "
-                  f"`{Path(args.checkpoint).name}`; 20 synthetic 512x512 images, "
+                  f"`{Path(args.checkpoint).name}`, as it is and with its speed presets "
+                  "(`cupnet predict --fast`, `--fastest`); 20 synthetic 512x512 images, "
                   "`CupNet.detect` end to end (locator, 2 refiner passes, rim stages, pose "
                   "with ML refinement; BatchNorm folded, as `cupnet predict` runs it), "
                   "machine load at the start: "
@@ -178,10 +200,6 @@ def main() -> None:
                   "the H100 throughput is not measured.\n\n" + speed)
 
     eval_set = samples(args.eval_config, args.seed, args.images, args.sizes)
-    models = {"shipped (end to end)": model}
-    for item in args.ablation:
-        name, path = item.split("=", 1)
-        models[name] = fold_batchnorm(load_model(path))
     no_cup_set = samples(args.no_cup_config, args.seed + 7, args.no_cup_images, args.sizes)
     header = ["model", *[f"MAE {n}" for n in NAMES], "detected", "false positives",
               f"cups found in {len(no_cup_set)} no-cup images"]

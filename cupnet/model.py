@@ -1473,6 +1473,32 @@ def save_model(model: CupNet, checkpoint: str | Path) -> Path:
     return checkpoint
 
 
+# Faster operating points of a trained model: inference settings only, the weights unchanged
+# (figures in docs/benchmarks.md, "CupNet accuracy" and "CupNet speed").
+SPEED_PRESETS: dict[str, dict[str, object]] = {
+    # no verification, so no search either, of doubtful cups (items 12 and 16 of
+    # docs/training.md)
+    "fast": {"verify_gate": None},
+    # ... nor the dome's outline, the thin-rim hypotheses or the doubt's order of ambiguous
+    # pairs: segmentation, the rim stages and the solver alone
+    "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
+                "ambiguous_by_doubt": False},
+}
+
+
+def apply_speed_preset(config: CupNetConfig, preset: str | None) -> CupNetConfig:
+    """``config`` with the inference settings of the :data:`SPEED_PRESETS` entry ``preset``
+    (None: unchanged), in place; an unknown name is a ValueError naming the presets."""
+    if preset is None:
+        return config
+    if preset not in SPEED_PRESETS:
+        raise ValueError(f"unknown speed preset {preset!r}; choose from "
+                         f"{', '.join(SPEED_PRESETS)}")
+    for key, value in SPEED_PRESETS[preset].items():
+        setattr(config, key, value)
+    return config
+
+
 def load_model(checkpoint: str | Path | None = None) -> CupNet:
     """A CupNet in eval mode from a checkpoint; None loads the shipped default.
 

@@ -82,10 +82,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path,
                         help="model weights (.safetensors or a weights-only torch file); "
                              "default: the shipped model")
-    parser.add_argument("--fast", action="store_true",
-                        help="skip the model's verification and search of doubtful cups "
-                             "(verify_gate): about 3x faster, less accurate "
-                             "(docs/training.md, items 12 and 16)")
+    speed = parser.add_mutually_exclusive_group()
+    speed.add_argument("--fast", dest="preset", action="store_const", const="fast",
+                       help="skip the model's verification and search of doubtful cups "
+                            "(verify_gate): about 3x faster, less accurate "
+                            "(docs/training.md, items 12 and 16)")
+    speed.add_argument("--fastest", dest="preset", action="store_const", const="fastest",
+                       help="also skip the dome-outline refinement, the thin-rim hypotheses "
+                            "and the doubt's order of ambiguous pairs: segmentation, rim "
+                            "stages and solver alone, about 7x faster than the default, "
+                            "several times less accurate (docs/benchmarks.md)")
     parser.add_argument("--check-doubt", type=float, metavar="DOUBT",
                         help="flag a cup check=1 where the model's doubt of its pose reaches "
                              "this (default: the model's check_doubt, 1.8 for the shipped "
@@ -179,20 +185,19 @@ def _sha256(path: Path) -> str:
 class NetworkDetector:
     """CupNet on a batch of images (weights loaded without running code from the file)."""
 
-    def __init__(self, checkpoint: Path | None, save_masks: bool, fast: bool = False,
+    def __init__(self, checkpoint: Path | None, save_masks: bool, preset: str | None = None,
                  check_doubt: float | None = None) -> None:
         from cupnet.fold import fold_batchnorm
-        from cupnet.model import DEFAULT_CHECKPOINT, load_model
+        from cupnet.model import DEFAULT_CHECKPOINT, apply_speed_preset, load_model
 
         self.model = fold_batchnorm(load_model(checkpoint))
-        if fast:
-            self.model.config.verify_gate = None
+        apply_speed_preset(self.model.config, preset)
         if check_doubt is not None:
             self.model.config.check_doubt = check_doubt
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),
-                     "config": dict(vars(self.model.config))}
+                     "speed_preset": preset, "config": dict(vars(self.model.config))}
 
     def file_values(self, name: str) -> dict[str, float]:
         return {}
@@ -559,7 +564,7 @@ def _run(args: argparse.Namespace) -> int:
         return 2
     try:
         detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
-                    else NetworkDetector(args.checkpoint, args.save_masks, args.fast,
+                    else NetworkDetector(args.checkpoint, args.save_masks, args.preset,
                                          args.check_doubt))
     except Exception as exc:  # any unreadable model or landmark file stops the run here
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__

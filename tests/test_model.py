@@ -23,7 +23,14 @@ from cupnet.ellipse import fit_ellipse
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage, ray_landmarks, soft_moments
-from cupnet.model import CupNet, CupNetConfig, load_model, save_model
+from cupnet.model import (
+    SPEED_PRESETS,
+    CupNet,
+    CupNetConfig,
+    apply_speed_preset,
+    load_model,
+    save_model,
+)
 from cupnet.pose import ellipse_of_pose
 from data_synth import SynthConfig, synthesize
 
@@ -309,3 +316,22 @@ def test_folded_batchnorm_gives_the_same_outputs(shipped):
         assert np.allclose(ours[0].ellipse, theirs[0].ellipse, atol=1e-3)
         assert np.allclose(ours[0].pose, theirs[0].pose, atol=1e-3)
         assert np.allclose(ours[0].pose[:2], sample["pose"][0, :2].numpy(), atol=0.5)
+
+
+@pytest.mark.parametrize("preset", sorted(SPEED_PRESETS))
+def test_speed_presets_change_inference_settings_only(preset: str) -> None:
+    """A preset sets existing config fields, none of which changes the network (the same
+    state-dict keys and shapes load), and None leaves the config alone."""
+    base = CupNetConfig(rim_passes=2, coarse_rim_passes=2, thin_rim_gate=0.3, verify_gate=1.0)
+    changed = apply_speed_preset(CupNetConfig(**vars(base)), preset)
+    assert {k for k in vars(base) if vars(base)[k] != vars(changed)[k]} <= set(
+        SPEED_PRESETS[preset])
+    assert all(getattr(changed, key) == value for key, value in SPEED_PRESETS[preset].items())
+    shapes = {k: v.shape for k, v in CupNet(base).state_dict().items()}
+    assert {k: v.shape for k, v in CupNet(changed).state_dict().items()} == shapes
+    assert apply_speed_preset(CupNetConfig(**vars(base)), None) == base
+
+
+def test_unknown_speed_preset_is_named_with_the_choices() -> None:
+    with pytest.raises(ValueError, match="unknown speed preset 'warp'.*fast, fastest"):
+        apply_speed_preset(CupNetConfig(), "warp")

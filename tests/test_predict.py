@@ -423,21 +423,34 @@ def test_overlay_marks_a_cup_to_check(check: bool) -> None:
     assert not (canvas == other).all(-1).any()
 
 
-@pytest.mark.parametrize(("flags", "verify_gate", "check_doubt"),
-                         [([], 1.0, 1.8), (["--fast"], None, 1.8),
-                          (["--check-doubt", "0.5"], 1.0, 0.5)])
-def test_fast_and_check_doubt_set_the_model_and_are_recorded(tmp_path: Path, flags: list[str],
-                                                             verify_gate: float | None,
-                                                             check_doubt: float) -> None:
-    """``--fast`` turns the model's verification off (``verify_gate`` None in the recorded
-    config), ``--check-doubt`` sets the flag's threshold; otherwise the checkpoint's stand."""
-    model = CupNet(CupNetConfig(detect_threshold=2.0, verify_gate=1.0, check_doubt=1.8))
+@pytest.mark.parametrize(("flags", "preset", "changed"),
+                         [([], None, {}), (["--fast"], "fast", {"verify_gate": None}),
+                          (["--fastest"], "fastest",
+                           {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
+                            "ambiguous_by_doubt": False}),
+                          (["--check-doubt", "0.5"], None, {"check_doubt": 0.5})])
+def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
+        tmp_path: Path, flags: list[str], preset: str | None, changed: dict) -> None:
+    """``--fast`` turns the model's verification off, ``--fastest`` also its outline
+    refinement, thin-rim hypotheses and ordering of ambiguous pairs (the recorded config
+    shows it, and the preset's name is recorded); ``--check-doubt`` sets the flag's
+    threshold; every other setting is the checkpoint's."""
+    stored = {"detect_threshold": 2.0, "verify_gate": 1.0, "check_doubt": 1.8,
+              "outline_passes": 3, "thin_rim_gate": 0.3, "ambiguous_by_doubt": True}
+    model = CupNet(CupNetConfig(**stored))
     weights = save_model(model, tmp_path / "gated.safetensors")
     noise_png(tmp_path / "a.png")
     out = tmp_path / "out"
     args = ["predict", str(tmp_path / "a.png"), "--out", str(out), "--checkpoint", str(weights),
             "--assume-defaults", "--quiet", *flags]
     assert main(args) == 0
-    recorded = json.loads((out / "results.json").read_text())["model"]["config"]
-    assert recorded["verify_gate"] == verify_gate
-    assert recorded["check_doubt"] == check_doubt
+    model_info = json.loads((out / "results.json").read_text())["model"]
+    assert model_info["speed_preset"] == preset
+    assert {key: model_info["config"][key] for key in stored} == stored | changed
+
+
+def test_fast_and_fastest_exclude_each_other(tmp_path: Path,
+                                             capsys: pytest.CaptureFixture) -> None:
+    with pytest.raises(SystemExit):
+        main(["predict", str(tmp_path), "--out", str(tmp_path / "out"), "--fast", "--fastest"])
+    assert "not allowed with argument" in capsys.readouterr().err
