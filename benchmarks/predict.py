@@ -5,7 +5,8 @@ Rerun: ``.venv/bin/python -m benchmarks.predict [--images 200] [--checkpoint PAT
 The folder is made from ``cupnet synth`` images (CT anatomy, one or two cups or none)
 rendered at 256 px and upsampled to 1024 px, with meta.csv scaled to match; a few distinct
 images are repeated to reach the count (decoding, network and pose cost do not depend on
-which image it is). Each configuration (overlays off, then on) runs ``cupnet predict`` in a
+which image it is). Each configuration (the default with overlays off, then on, then each
+speed preset, ``--fast`` and ``--fastest``, with overlays) runs ``cupnet predict`` in a
 fresh process, which first pays its one-off start (imports, model load, first-call set-up of
 PyTorch) on one image; the run itself is then timed end to end (reading, network, pose,
 writing CSV/JSON and overlays). Peak memory is the process's maximum resident set size. The
@@ -29,6 +30,7 @@ from pathlib import Path
 import cv2
 
 from benchmarks.report import machine, markdown_table, write_section
+from cupnet.model import SPEED_PRESETS
 
 SIZE = 1024
 SYNTH_SIZE = 256
@@ -85,11 +87,12 @@ def make_folder(root: Path, n_images: int, n_unique: int, seed: int) -> tuple[Pa
 
 
 def measure(images: Path, meta: Path, out: Path, overlays: bool,
-            checkpoint: str | None) -> dict:
-    """One fresh ``cupnet predict`` process: start-up, timed run, peak memory."""
+            checkpoint: str | None, preset: str | None = None) -> dict:
+    """One fresh ``cupnet predict`` process (with ``--PRESET`` where given): start-up, timed
+    run, peak memory."""
     common = ["--meta", str(meta), "--quiet"] + (["--checkpoint", checkpoint] if checkpoint
                                                  else [])
-    common += [] if overlays else ["--no-overlays"]
+    common += ([] if overlays else ["--no-overlays"]) + ([f"--{preset}"] if preset else [])
     first = sorted(images.iterdir())[0]
     warm = ["predict", str(first), "--out", str(out / "warm"), *common]
     run = ["predict", str(images), "--out", str(out / "run"), *common]
@@ -116,17 +119,22 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="cupnet-bench-") as tmp:
         root = Path(tmp)
         images, meta = make_folder(root, args.images, min(args.unique, args.images), args.seed)
+        # (speed preset, overlays): the default both ways, then each preset with overlays
+        runs = [(None, False), (None, True), *((preset, True) for preset in SPEED_PRESETS)]
         results = {}
-        for overlays in (False, True):
-            out = root / f"out_{'overlays' if overlays else 'plain'}"
-            results[overlays] = measure(images, meta, out, overlays, args.checkpoint)
+        for preset, overlays in runs:
+            out = root / f"out_{preset or 'default'}_{'overlays' if overlays else 'plain'}"
+            results[preset, overlays] = measure(images, meta, out, overlays, args.checkpoint,
+                                                preset)
     rows = []
-    for overlays, r in results.items():
+    for (preset, overlays), r in results.items():
         cpu_per_image = r["cpu_s"] / r["images"]
-        rows.append(["on" if overlays else "off", r["images"], r["cups"], r["errors"],
+        rows.append([f"--{preset}" if preset else "default", "on" if overlays else "off",
+                     r["images"], r["cups"], r["errors"],
                      r["run_s"], r["images"] / r["run_s"], cpu_per_image,
                      os.cpu_count() / cpu_per_image, r["peak_rss_mb"], r["startup_s"]])
-    table = markdown_table(["overlays", "images", "cups found", "error rows", "run (s)",
+    table = markdown_table(["speed preset", "overlays", "images", "cups found", "error rows",
+                            "run (s)",
                             "images / s", "CPU s / image", "images / s if cores were free",
                             "peak memory (MB)", "process start-up (s)"], rows)
     body = "\n".join([

@@ -1479,10 +1479,10 @@ SPEED_PRESETS: dict[str, dict[str, object]] = {
     # no verification, so no search either, of doubtful cups (items 12 and 16 of
     # docs/training.md)
     "fast": {"verify_gate": None},
-    # ... nor the dome's outline, the thin-rim hypotheses or the doubt's order of ambiguous
-    # pairs: segmentation, the rim stages and the solver alone
-    "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
-                "ambiguous_by_doubt": False},
+    # ... nor the dome's outline (so no doubt, no check flag and no ordering of ambiguous
+    # pairs, which all measure the pose against the outline) nor the thin-rim hypotheses:
+    # segmentation, the rim stages and the solver alone
+    "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None},
 }
 
 

@@ -88,9 +88,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "(verify_gate): about 3x faster, less accurate "
                             "(docs/training.md, items 12 and 16)")
     speed.add_argument("--fastest", dest="preset", action="store_const", const="fastest",
-                       help="also skip the dome-outline refinement, the thin-rim hypotheses "
-                            "and the doubt's order of ambiguous pairs: segmentation, rim "
-                            "stages and solver alone, about 7x faster than the default, "
+                       help="also skip the dome-outline refinement (so no doubt and no "
+                            "check flag either) and the thin-rim hypotheses: segmentation, "
+                            "rim stages and solver alone, about 7x faster than the default, "
                             "several times less accurate (docs/benchmarks.md)")
     parser.add_argument("--check-doubt", type=float, metavar="DOUBT",
                         help="flag a cup check=1 where the model's doubt of its pose reaches "
