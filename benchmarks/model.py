@@ -1,6 +1,7 @@
 """CupNet speed and accuracy: segmentation + pose per 512x512 image, and pose MAE on fresh DRRs.
 
-Run: ``python benchmarks/model.py [--checkpoint PATH] [--ablation NAME=PATH ...] [--images N]``.
+Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
+...] [--images N]``.
 Writes the ``model`` (speed) and ``model_accuracy`` (accuracy, ablation) sections of
 docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases).
 """
@@ -173,12 +174,13 @@ def main() -> None:
     models = {"shipped (end to end)": model}
     models.update({f"shipped, --{preset}": loaded(args.checkpoint, preset)
                    for preset in args.presets})
+    timed = dict(models)  # the shipped model and its presets; the ablations are scored only
     for item in args.ablation:
         name, path = item.split("=", 1)
         models[name] = loaded(path)
     speed_set = samples(args.speed_config, args.seed + 1, 20)
     rows = []
-    for name, net in models.items():
+    for name, net in timed.items():
         for threads in args.threads if net is model else args.threads[:1]:
             torch.set_num_threads(threads)
             timing = latency(net, speed_set)
@@ -192,7 +194,8 @@ def main() -> None:
     write_section("model", "## CupNet speed\n\n"
                   f"`python benchmarks/model.py` on {machine()}; checkpoint "
                   f"`{Path(args.checkpoint).name}`, as it is and with its speed presets "
-                  "(`cupnet predict --fast`, `--fastest`); 20 synthetic 512x512 images, "
+                  f"({', '.join(f'`--{p}`' for p in args.presets) or 'none'}, as `cupnet "
+                  "predict` takes them); 20 synthetic 512x512 images, "
                   "`CupNet.detect` end to end (locator, 2 refiner passes, rim stages, pose "
                   "with ML refinement; BatchNorm folded, as `cupnet predict` runs it), "
                   "machine load at the start: "

@@ -499,7 +499,7 @@ class CupNet(nn.Module):
 
     def in_theta_range(self, poses: Tensor) -> Tensor:
         """``(...)`` whether each pose ``(..., 5)`` deg / mm has an anteversion within
-        ``max_theta_deg`` (any finite one without a limit): a more open pose counts as a
+        ``max_theta_deg`` (any but NaN without a limit): a more open pose counts as a
         failure of its landmark source."""
         limit = self.config.max_theta_deg
         return poses[..., 0] <= (math.inf if limit is None else limit)
@@ -1185,8 +1185,8 @@ class CupNet(nn.Module):
         refined = pose_to_degrees(canonical_pose(pose))
         usable = torch.isfinite(refined).all(-1) & (refined[:, 4] > 0) & (
             refined[:, 4] < geometry[:, 0])
-        # nor one the anteversion limit would have refused
-        usable &= self.in_theta_range(refined) | ~self.in_theta_range(poses)
+        if cfg.max_theta_deg is not None:  # nor one the anteversion limit would have refused
+            usable &= self.in_theta_range(refined) | (poses[:, 0] > cfg.max_theta_deg)
         return torch.where(usable[:, None], refined, poses)
 
     def _outline_landmarks(self, images: list[Tensor], index: Tensor, pose: Tensor,
@@ -1203,7 +1203,8 @@ class CupNet(nn.Module):
         outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
                                                 dome_only=True)
         found = self._strip_landmarks(self.rim, images, index, outline, normals,
-                                      strip_offsets(cfg.rim_samples, cfg.rim_step))
+                                      strip_offsets(cfg.rim_samples, cfg.rim_step,
+                                                    device=outline.device))
         keep = (side > cfg.outline_min_side) & _inside(found.landmarks, images, index)
         # The strip is an open arc: the rim network's columns near its ends see the other
         # end through its circular padding.
@@ -1241,6 +1242,7 @@ class CupNet(nn.Module):
         ``(K,)``."""
         strips = sample_strips(images, index, points, normals, offsets)
         if strips.shape[0] == 0:  # no cup: no network call (BatchNorm needs a batch)
+            points, normals = points.double(), normals.double()  # as strip_landmarks's
             empty = points.new_zeros(0, points.shape[1])
             return RimLandmarks(points, empty, empty, empty, points, normals,
                                 points.new_zeros(0, 1))

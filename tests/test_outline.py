@@ -11,7 +11,7 @@ import torch
 from cup_cases import paper_poses, rim_landmarks
 
 from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
-from cupnet.model import _doubtful, geometry_rows, load_model
+from cupnet.model import SPEED_PRESETS, _doubtful, geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.pose import PoseSolution, ellipse_of_pose, refine_pose, refine_pose_with_outline
 from data_synth import SynthConfig, synthesize
@@ -307,6 +307,25 @@ def test_detect_reports_its_doubt_and_flags_a_doubted_pose(shipped_on_drr, monke
     assert found[0].doubt == pytest.approx(recomputed, abs=1e-4)
     assert found[0].check == turned
     assert (found[0].doubt >= model.config.check_doubt) == turned
+
+
+@pytest.mark.parametrize("preset", ["fast", "fastest"])
+def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_drr, monkeypatch,
+                                                                    preset):
+    """With each speed preset the shipped model still solves the DRR's cup (within 2 deg and
+    1 mm in the image plane); ``--fast`` still doubts its pose, ``--fastest``, which skips
+    the dome's outline that the doubt measures against, reports none and flags nothing."""
+    model, sample = shipped_on_drr
+    for key, value in SPEED_PRESETS[preset].items():
+        monkeypatch.setattr(model.config, key, value)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
+                         return_masks=False)[0]
+    assert len(found) == 1
+    error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
+    assert (error[:2] < 2.0).all() and (error[2:4] < 1.0).all()
+    assert (found[0].doubt is None) == (preset == "fastest")
+    assert not found[0].check
 
 
 def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
