@@ -85,12 +85,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     speed = parser.add_mutually_exclusive_group()
     speed.add_argument("--fast", dest="preset", action="store_const", const="fast",
                        help="skip the model's verification and search of doubtful cups "
-                            "(verify_gate): about 3x faster, less accurate "
+                            "(verify_gate): 3-7x faster, less accurate "
                             "(docs/training.md, items 12 and 16)")
     speed.add_argument("--fastest", dest="preset", action="store_const", const="fastest",
                        help="also skip the dome-outline refinement (so no doubt and no "
                             "check flag either) and the thin-rim hypotheses: segmentation, "
-                            "rim stages and solver alone, about 7x faster than the default, "
+                            "rim stages and solver alone, 7-18x faster than the default, "
                             "several times less accurate (docs/benchmarks.md)")
     parser.add_argument("--check-doubt", type=float, metavar="DOUBT",
                         help="flag a cup check=1 where the model's doubt of its pose reaches "
