@@ -62,6 +62,7 @@ from cupnet.rim import (
     RimLandmarks,
     RimNet,
     laplace_nll,
+    memoised_strips,
     rim_frame,
     sample_strips,
     scaled_offsets,
@@ -650,7 +651,8 @@ class CupNet(nn.Module):
         if was_training:
             self.eval()
         try:
-            return self._detect(images, geometry, cup_diameter, return_masks)
+            with memoised_strips():
+                return self._detect(images, geometry, cup_diameter, return_masks)
         finally:
             if was_training:
                 self.train()

@@ -16,7 +16,11 @@ profile and when it cannot be seen.
 
 from __future__ import annotations
 
+import hashlib
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from typing import NamedTuple
 
 import torch
@@ -24,6 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from cupnet.ellipse import ellipse_points, params_to_conic
+from cupnet.parallel import map_on_cores
 
 # Range of log(sigma / px): a landmark claims a precision of 0.05 px at best, and at worst
 # 55 px, more than any strip reaches (its weight then all but vanishes).
@@ -225,6 +230,29 @@ class _StripConv(nn.Module):
         return F.relu(self.norm(self.conv(x)))
 
 
+# The strips already run by each network within a memoised_strips() block: the same strip
+# (same values) gives the same output, so it is run once.
+_STRIP_MEMO: ContextVar[dict[tuple, tuple[Tensor, Tensor]] | None] = ContextVar(
+    "rim_strip_memo", default=None)
+
+
+@contextmanager
+def memoised_strips() -> Iterator[None]:
+    """Within the block, a :class:`RimNet` on a CPU without gradients runs each distinct
+    strip once and reuses its output when the same strip comes again.
+
+    :meth:`cupnet.model.CupNet.detect` re-evaluates about 12 % of its strips (a pose's doubt
+    taken again by a later stage, a thin-rim hypothesis ranked twice); the outputs are the
+    ones the network gives, so detection stays bit-identical. Per thread (a context
+    variable), so concurrent detect calls keep their own.
+    """
+    token = _STRIP_MEMO.set({})
+    try:
+        yield
+    finally:
+        _STRIP_MEMO.reset(token)
+
+
 class RimNet(nn.Module):
     """Strip ``(K, 1, S, n)`` -> offset logits ``(K, S, n)`` and ``log sigma`` ``(K, n)``.
 
@@ -249,14 +277,24 @@ class RimNet(nn.Module):
         return sum(layer.pad_n for layer in self.body)
 
     def forward(self, strips: Tensor) -> tuple[Tensor, Tensor]:
-        if not self.training and strips.device.type == "cpu" and strips.shape[0] > 1:
-            # One strip at a time on a CPU: its activations stay in cache, a batch's do not
-            # (12 strips of 64 x 128: 43 ms one by one, 89 ms as a batch, on 2 cores).
-            # Training keeps the batch (BatchNorm statistics).
-            logits, log_sigma = zip(*(self.forward_batch(strip) for strip in strips.split(1)),
-                                    strict=True)
-            return torch.cat(logits), torch.cat(log_sigma)
-        return self.forward_batch(strips)
+        if self.training or strips.device.type != "cpu" or strips.shape[0] == 0:
+            return self.forward_batch(strips)  # training keeps the batch (BatchNorm statistics)
+        # One strip at a time on a CPU: its activations stay in cache, a batch's do not
+        # (12 strips of 64 x 128: 43 ms one by one, 89 ms as a batch, on 2 cores); with
+        # several torch threads, one strip on each core (cupnet.parallel).
+        parts = strips.split(1)
+        memo = _STRIP_MEMO.get()
+        if memo is None or torch.is_grad_enabled():
+            outputs = map_on_cores(self.forward_batch, parts)
+        else:
+            keys = [(id(self), tuple(part.shape), hashlib.blake2b(
+                part.numpy().tobytes(), digest_size=16).digest()) for part in parts]
+            new = {key: part for key, part in zip(keys, parts, strict=True) if key not in memo}
+            memo.update(zip(new, map_on_cores(self.forward_batch, list(new.values())),
+                            strict=True))
+            outputs = [memo[key] for key in keys]
+        logits, log_sigma = zip(*outputs, strict=True)
+        return torch.cat(logits), torch.cat(log_sigma)
 
     def forward_batch(self, strips: Tensor) -> tuple[Tensor, Tensor]:
         """:meth:`forward` on the whole batch at once."""

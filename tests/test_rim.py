@@ -17,6 +17,7 @@ from cupnet.rim import (
     RimLandmarks,
     RimNet,
     ellipse_step_basis,
+    memoised_strips,
     normal_crossings,
     rim_frame,
     sample_strips,
@@ -186,6 +187,43 @@ def test_rim_net_runs_strips_one_by_one_only_in_eval_mode():
     together = net(strips)[0][:1]
     assert batches == [5]
     assert not torch.allclose(together, net(strips[:2])[0][:1], atol=1e-3)
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_memoised_strips_run_each_distinct_strip_once(threads):
+    torch.manual_seed(2)
+    net = RimNet(channels=8).eval()
+    strips = torch.randn(3, 1, 32, 24)
+    batches: list[int] = []
+    forward_batch = net.forward_batch
+    net.forward_batch = lambda x: batches.append(len(x)) or forward_batch(x)
+    plain = net(strips)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        with torch.inference_mode(), memoised_strips():
+            batches.clear()
+            first = net(strips)
+            # Strip 1 again, a new strip, strip 2 again (a copy: equal values, other storage).
+            again = net(torch.cat([strips[1:2], torch.randn(1, 1, 32, 24), strips[2:].clone()]))
+            assert batches == [1] * 4  # the three strips, then only the new one
+            other = RimNet(channels=8).eval()  # another network's outputs are its own
+            assert not torch.allclose(other(strips[:1])[0], first[0][:1])
+        with torch.inference_mode():  # outside the block: no memo
+            batches.clear()
+            net(strips)
+            assert batches == [1] * 3
+    finally:
+        torch.set_num_threads(previous)
+    for ours, theirs in zip(first, plain, strict=True):
+        assert torch.equal(ours, theirs)
+    assert torch.equal(again[0][0], first[0][1]) and torch.equal(again[0][2], first[0][2])
+    assert torch.equal(again[1][2], first[1][2])
+    # With gradients (a loss through the network) nothing is reused.
+    with memoised_strips():
+        batches.clear()
+        net(strips), net(strips)
+        assert batches == [1] * 6
+
 
 def test_rim_loss_is_the_laplace_likelihood_of_the_offset_error():
     circle = torch.tensor([[0.0, 0.0, 10.0, 10.0, 0.0]], dtype=torch.float64)
