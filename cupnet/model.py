@@ -51,6 +51,7 @@ from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import ray_landmarks, soft_moments
 from cupnet.outline import outline_distances, over_dome, sphere_outline
+from cupnet.polarity import METAL_DISPLAYS, metal_shows_bright
 from cupnet.pose import (
     PoseSolution,
     canonical_pose,
@@ -124,6 +125,12 @@ class CupNetConfig:
             the image raised to this power (None: it does not): a cup under thick anatomy, in
             the dark part of an image with bright regions, has too little contrast left
             after standardisation; a power below 1 stretches the dark range.
+        metal: how the images show metal: ``"dark"`` (the usual fluoroscopy display, and
+            most of the networks' training images: used as given), ``"bright"`` (a
+            radiograph-style display, metal white: every image is turned over, as the
+            networks find and place rims best with metal dark), or ``"auto"`` (turned over
+            after the locator where :func:`cupnet.polarity.metal_shows_bright` finds the
+            cups it found brighter than their surroundings; wrong on about 1 % of images).
         max_theta_deg: a pose with a larger anteversion (deg) counts as a failure of its
             landmarks: the cup goes on to :meth:`CupNet.detect`'s next landmark source and
             keeps that pose only where none gives one within range (None: any anteversion).
@@ -238,6 +245,7 @@ class CupNetConfig:
     thin_rim_gate: float | None = None
     thin_rim_margin: float = 0.0
     locator_retry_gamma: float | None = None
+    metal: str = "dark"
     max_theta_deg: float | None = None
     grown_rim_scale: float | None = None
     reframe_min_scale: float | None = None
@@ -260,6 +268,11 @@ class CupNetConfig:
     search_keep_settled: int = 0
     search_rim_doubt: float | None = None
     check_doubt: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.metal not in METAL_DISPLAYS:
+            raise ValueError(f"unknown metal display {self.metal!r}; choose from "
+                             f"{', '.join(METAL_DISPLAYS)}")
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
@@ -667,7 +680,12 @@ class CupNet(nn.Module):
         if diameter.shape != (batch,):
             raise ValueError(f"cup_diameter must be a scalar or ({batch},), got "
                              f"{tuple(diameter.shape)}")
+        if self.config.metal == "bright":
+            image_list = [1 - image for image in image_list]
         rough, scores = self.rough_ellipses(image_list)
+        if self.config.metal == "auto":  # the cups found, not found again: none lost
+            image_list = [1 - image if metal_shows_bright(image, found) else image
+                          for image, found in zip(image_list, rough, strict=True)]
         cup_index = torch.isfinite(rough).all(-1).nonzero()
         frames = self.frames(self.first_pass_ellipses(rough[cup_index[:, 0], cup_index[:, 1]]))
         results: list[list[CupDetection]] = [[] for _ in range(batch)]

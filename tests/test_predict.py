@@ -427,13 +427,14 @@ def test_overlay_marks_a_cup_to_check(check: bool) -> None:
                          [([], None, {}), (["--fast"], "fast", {"verify_gate": None}),
                           (["--fastest"], "fastest",
                            {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None}),
-                          (["--check-doubt", "0.5"], None, {"check_doubt": 0.5})])
+                          (["--check-doubt", "0.5"], None, {"check_doubt": 0.5}),
+                          (["--metal", "bright"], None, {"metal": "bright"})])
 def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
         tmp_path: Path, flags: list[str], preset: str | None, changed: dict) -> None:
     """``--fast`` turns the model's verification off, ``--fastest`` also its outline
     refinement and thin-rim hypotheses (the recorded config shows it, and the preset's name
-    is recorded); ``--check-doubt`` sets the flag's threshold; every other setting is the
-    checkpoint's."""
+    is recorded); ``--check-doubt`` sets the flag's threshold, ``--metal`` how the images
+    show metal; every other setting is the checkpoint's."""
     stored = {"detect_threshold": 2.0, "verify_gate": 1.0, "check_doubt": 1.8,
               "outline_passes": 3, "thin_rim_gate": 0.3, "ambiguous_by_doubt": True}
     model = CupNet(CupNetConfig(**stored))

@@ -1,0 +1,81 @@
+"""Which way an image shows metal: the cue on hand-made images, and detect's turned images."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cupnet.geometry import Geometry
+from cupnet.model import CupNetConfig, load_model
+from cupnet.polarity import metal_shows_bright
+from data_synth import SynthConfig, synthesize
+
+ELLIPSE = torch.tensor([[60.0, 50.0, 20.0, 12.0, 30.0]], dtype=torch.float64)
+
+
+def disc_image(inside: float, around: float) -> torch.Tensor:
+    """``(1, 100, 120)``: ``inside`` within the shell's outline (the ellipse's major axis as
+    its radius), ``around`` elsewhere, and black and white stripes far from the cup, so that
+    the image's 5-95 % range is 0-1."""
+    v, u = torch.meshgrid(torch.arange(100.0), torch.arange(120.0), indexing="ij")
+    image = torch.full((100, 120), around)
+    image[(u - 60) ** 2 + (v - 50) ** 2 <= 20**2] = inside
+    image[:50, 100:], image[50:, 100:] = 0.0, 1.0
+    return image[None]
+
+
+def test_a_dark_cup_is_metal_dark_and_a_bright_one_metal_bright():
+    assert metal_shows_bright(disc_image(0.1, 0.7), ELLIPSE) is False
+    assert metal_shows_bright(disc_image(0.9, 0.3), ELLIPSE) is True
+    # Brighter, but within the margin (0.15 of the 5-95 % range): kept as given.
+    assert metal_shows_bright(disc_image(0.6, 0.5), ELLIPSE) is False
+    assert metal_shows_bright(disc_image(0.7, 0.5), ELLIPSE) is True
+
+
+def test_no_cup_to_judge_by_gives_none():
+    image = disc_image(0.9, 0.3)
+    assert metal_shows_bright(image, torch.full((2, 5), math.nan)) is None
+    far = torch.tensor([[1000.0, 1000.0, 20.0, 12.0, 0.0]], dtype=torch.float64)
+    assert metal_shows_bright(image, far) is None
+    # A NaN row beside a cup: the cup decides.
+    both = torch.cat([ELLIPSE, torch.full((1, 5), math.nan, dtype=torch.float64)])
+    assert metal_shows_bright(image, both) is True
+
+
+def test_an_unknown_metal_display_is_named_with_the_choices():
+    with pytest.raises(ValueError, match="unknown metal display 'grey'.*dark, bright, auto"):
+        CupNetConfig(metal="grey")
+
+
+@pytest.fixture(scope="module")
+def drr_detections():
+    """The shipped model on a DRR (metal dark) and on the same DRR turned over (metal
+    bright), with each metal setting; poses ``(cups, 5)`` by (setting, image)."""
+    model = load_model()
+    sample = synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0, p_invert=0.0), 0, 0)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    images = {"dark": sample["image"], "bright": 1 - sample["image"]}
+    poses = {}
+    for metal in ("dark", "bright", "auto"):
+        model.config.metal = metal
+        for shown, image in images.items():
+            found = model.detect(image[None], geometry, float(sample["cup_diameter"][0]),
+                                 return_masks=False)[0]
+            poses[metal, shown] = np.array([cup.pose for cup in found])
+    return poses, sample["pose"][:1].double().numpy()
+
+
+def test_bright_and_auto_turn_a_metal_bright_image_into_the_dark_ones_poses(drr_detections):
+    """Turned over (1 - image, exact to a float32 rounding), the bright DRR gives the dark
+    DRR's poses; ``auto`` turns the bright one and leaves the dark one, so it gives them on
+    both; and the dark DRR's poses are the truth's."""
+    poses, truth = drr_detections
+    reference = poses["dark", "dark"]
+    assert reference.shape == (1, 5)
+    assert np.allclose(reference[:, :2], truth[:, :2], atol=1.0)
+    assert np.allclose(poses["bright", "bright"], reference, atol=1e-3)
+    assert np.allclose(poses["auto", "bright"], reference, atol=1e-3)
+    assert np.array_equal(poses["auto", "dark"], reference)  # not turned: the same run
