@@ -98,12 +98,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "this (default: the model's check_doubt, 1.8 for the shipped "
                              "one; lower flags more cups, more of them right)")
     parser.add_argument("--metal", choices=METAL_DISPLAYS,
-                        help="how the images show metal: dark (the usual fluoroscopy "
-                             "display; the default), bright (radiograph-style, metal white: "
-                             "each image is turned over for the networks, which learnt metal "
-                             "dark; lower pose errors on such images, docs/training.md), or "
-                             "auto (judged per image from the cups found; wrong on about 1 "
-                             "%% of images)")
+                        help="how the images show metal (default: the model's setting, "
+                             "auto for the shipped one: judged per image from the cups the "
+                             "locator finds, and turned over for the later networks where "
+                             "bright): dark (the usual fluoroscopy display, used as given) "
+                             "or bright (radiograph-style, metal white: every image turned "
+                             "over); docs/training.md, item 20")
     parser.add_argument("--landmarks", type=Path,
                         help="solve from manual landmarks in this file instead of the network")
     parser.add_argument("--overwrite", action="store_true", help="replace existing results")
