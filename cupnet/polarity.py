@@ -5,7 +5,7 @@ A cup's metal attenuates more than anything around it, so in the usual fluorosco
 than its surroundings; a radiograph-style display (metal white, as many DICOM exports and
 screenshots show it) has it brighter. The networks find bright-metal cups, but place their
 rims worse, so :meth:`cupnet.model.CupNet.detect` turns such images over after the locator
-(``auto_polarity``).
+(``CupNetConfig.metal``: ``"auto"`` in the shipped model; docs/training.md, item 20).
 """
 
 from __future__ import annotations
@@ -27,9 +27,9 @@ _SPOKES = 32
 METAL_DISPLAYS = ("dark", "bright", "auto")
 # How much brighter (in the image's 5-95 % intensity range) the inside must be to count:
 # near-ties are mostly a locator blob on something else, and keep the image as it is. On
-# four 60-image sets of one polarity each (seeds 777 and 4242), the inside-minus-around
-# difference ran from -2.0 to 0.5 with metal dark (two above 0.1) and from -0.3 to 1.8
-# with metal bright (eight below 0.15).
+# four 60-image sets of one display each (seeds 777 and 4242), the inside-minus-around
+# difference ran from -2.0 to 0.5 with metal dark (2 of 114 images above 0.1) and from
+# -0.3 to 1.8 with metal bright (about a dozen of 109 below 0.15, left as given).
 _MARGIN = 0.15
 
 
