@@ -37,6 +37,10 @@ class CupDetection:
             mostly below 1), or None where not measured (no rim stage, landmarks given).
         check: ``doubt`` is at or above the model's ``check_doubt``: look at this cup's
             overlay before trusting it (most gross failures are flagged; see README).
+        metal_bright: the model took the image to show metal bright and turned it over
+            before placing the rims (``CupNetConfig.metal`` ``"bright"``, or ``"auto"``
+            judging it so); False: used as given (metal dark); None where not judged
+            (landmarks given).
     """
 
     pose: np.ndarray
@@ -52,3 +56,4 @@ class CupDetection:
     outline: np.ndarray | None = None
     doubt: float | None = None
     check: bool = False
+    metal_bright: bool | None = None

@@ -683,9 +683,12 @@ class CupNet(nn.Module):
         if self.config.metal == "bright":
             image_list = [1 - image for image in image_list]
         rough, scores = self.rough_ellipses(image_list)
+        bright = [self.config.metal == "bright"] * batch  # each image's display, as judged
         if self.config.metal == "auto":  # the cups found, not found again: none lost
-            image_list = [1 - image if metal_shows_bright(image, found) else image
-                          for image, found in zip(image_list, rough, strict=True)]
+            bright = [bool(metal_shows_bright(image, found))
+                      for image, found in zip(image_list, rough, strict=True)]
+            image_list = [1 - image if turn else image
+                          for image, turn in zip(image_list, bright, strict=True)]
         cup_index = torch.isfinite(rough).all(-1).nonzero()
         frames = self.frames(self.first_pass_ellipses(rough[cup_index[:, 0], cup_index[:, 1]]))
         results: list[list[CupDetection]] = [[] for _ in range(batch)]
@@ -813,6 +816,7 @@ class CupNet(nn.Module):
                 doubt=doubt,
                 check=(doubt is not None and self.config.check_doubt is not None
                        and doubt >= self.config.check_doubt),
+                metal_bright=bright[i],
             ))
         return results
 

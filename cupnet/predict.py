@@ -341,7 +341,7 @@ def _json(value: object) -> object:
 def summarise(records: Iterable[dict]) -> dict:
     """Counts over image records: images, cups found, statuses, failures by reason."""
     statuses: Counter[str] = Counter()
-    images = cups = check = 0
+    images = cups = check = bright = 0
     seconds = 0.0
     for record in records:
         images += 1
@@ -349,10 +349,12 @@ def summarise(records: Iterable[dict]) -> dict:
             statuses[row["status"]] += 1
             cups += row["status"] in ("ok", "ambiguous")
             check += str(row.get("check")) == "1"  # rows read back on --resume are strings
+        bright += record["rows"][0].get("metal") == "bright"
         seconds += float(record["rows"][0].get("seconds") or 0.0)
     errors = {k: v for k, v in statuses.items() if k.startswith("error")}
     return {"images": images, "cups": cups, "ok": statuses["ok"],
             "ambiguous": statuses["ambiguous"], "check": check, "no_cup": statuses["no_cup"],
+            "metal_bright": bright,
             "errors": sum(errors.values()), "error_reasons": errors,
             "seconds_per_image": seconds / images if images else None}
 
@@ -508,6 +510,8 @@ class Predictor:
                                    c.status, c.outline, c.check)
                         for j, c in enumerate(cups)]
             title = f"{frame.name}: " + (f"{len(cups)} cup(s)" if cups else "no_cup")
+            if cups and cups[0].metal_bright:
+                title += ", metal shown bright (turned over)"
             record["overlay"] = f"overlays/{output_name(frame.name, '.png')}"
             write_png(out / record["overlay"], draw_overlay(frame.image, drawings, title))
         if self.args.save_masks:
@@ -541,6 +545,9 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     if summary["check"]:
         lines.append(f"  {summary['check']} cup(s) the model doubts: check=1 in results.csv, "
                      "drawn in magenta on the overlays; look before trusting them")
+    if summary["metal_bright"]:
+        lines.append(f"  {summary['metal_bright']} image(s) taken to show metal bright and "
+                     "turned over for the networks: metal=bright in results.csv")
     lines.append(f"results: {out / 'results.csv'} and results.json"
                  + (f"; overlays: {out / 'overlays'}" if overlays else "")
                  + f" ({elapsed:.1f} s this run)")

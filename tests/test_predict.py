@@ -319,8 +319,10 @@ def test_checkpoint_cannot_run_code(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "cannot load" in capsys.readouterr().err
 
 
-def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
-    """The shipped checkpoint on a synthetic bilateral image (two rows) and a blank one."""
+def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
+                                                      capsys: pytest.CaptureFixture) -> None:
+    """The shipped checkpoint on a synthetic bilateral image (two rows), the same image
+    turned over (metal bright: taken so, turned back, the same poses) and a blank one."""
     from data_synth.config import SynthConfig
     from data_synth.dataset import synthesize
 
@@ -329,8 +331,9 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
                   if bool(s["cup_valid"].all()))
     images = tmp_path / "images"
     images.mkdir()
-    cv2.imwrite(str(images / "bilateral.png"),
-                np.round(sample["image"][0].numpy() * 65535).astype(np.uint16))
+    pixels = np.round(sample["image"][0].numpy() * 65535).astype(np.uint16)
+    cv2.imwrite(str(images / "bilateral.png"), pixels)
+    cv2.imwrite(str(images / "bilateral_bright.png"), 65535 - pixels)
     cv2.imwrite(str(images / "blank.png"), np.zeros(config.image_size[::-1], np.uint16))
     sdd, spacing, u0, v0 = sample["geometry"].tolist()
     out = tmp_path / "out"
@@ -339,7 +342,8 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
                  "--cup-diameter", str(float(sample["cup_diameter"][0])), "--quiet"]) == 0
     by_image = rows_by_image(read_csv(out / "results.csv"))
     assert [r["status"] for r in by_image["blank.png"]] == ["no_cup"]
-    assert by_image["blank.png"][0]["doubt"] == by_image["blank.png"][0]["check"] == ""
+    blank = by_image["blank.png"][0]
+    assert blank["doubt"] == blank["check"] == blank["metal"] == ""
     rows = by_image["bilateral.png"]
     assert [r["cup"] for r in rows] == ["0", "1"]
     # Left to right: each row's ellipse centre near the true cup on its side, and each pose
@@ -347,7 +351,15 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
     true_u = sorted(sample["ellipse"][:, 0].tolist())
     for row, u in zip(rows, true_u, strict=True):
         assert abs(float(row["ellipse_cx_px"]) - u) < 10
-        assert float(row["doubt"]) < 1.8 and row["check"] == "0"
+        assert float(row["doubt"]) < 1.8 and row["check"] == "0" and row["metal"] == "dark"
+    turned = by_image["bilateral_bright.png"]
+    assert [r["metal"] for r in turned] == ["bright", "bright"]
+    # Not the same run as the dark image's: the locator saw the bright image, so the rims
+    # start from other rough ellipses (tests/test_polarity.py checks the turning exactly).
+    for row, dark in zip(turned, rows, strict=True):
+        difference = np.abs([float(row[c]) - float(dark[c]) for c in POSE_COLUMNS])
+        assert (difference < [1.5, 1.5, 1.0, 1.0, 5.0]).all()
+    assert "1 image(s) taken to show metal bright" in capsys.readouterr().out
 
 
 def test_several_inputs_as_a_shell_expands_them(tmp_path: Path, blind_checkpoint: Path) -> None:

@@ -19,10 +19,11 @@ ELLIPSE_COLUMNS = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_
                    "ellipse_angle_deg")
 ALT_COLUMNS = tuple("alt_" + c for c in POSE_COLUMNS)
 # CONVENTIONS' columns, then the model's doubt of the pose and whether to check the cup by
-# eye (blank where not measured: landmarks given, a model without a rim stage).
+# eye (blank where not measured: landmarks given, a model without a rim stage), and how the
+# model took the image to show metal (dark or bright; blank where not judged).
 CHECK_COLUMNS = ("doubt", "check")
 RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px",
-                  "seconds", *ALT_COLUMNS, *CHECK_COLUMNS)
+                  "seconds", *ALT_COLUMNS, *CHECK_COLUMNS, "metal")
 
 
 def _finite(values: Iterable[Any]) -> list[float | None]:
@@ -42,6 +43,8 @@ def cup_row(name: str, index: int, cup: Any, seconds: float) -> dict:
     if cup.doubt is not None:
         row["doubt"] = _finite([cup.doubt])[0]
         row["check"] = int(cup.check)
+    if cup.metal_bright is not None:
+        row["metal"] = "bright" if cup.metal_bright else "dark"
     return row
 
 
