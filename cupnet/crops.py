@@ -41,6 +41,36 @@ def letterbox_affine(height: int, width: int, size: int, dtype: torch.dtype = to
                       torch.tensor(off_v, dtype=dtype))
 
 
+def square_windows(height: int, width: int, size: int, overlap: float = 0.5,
+                   dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
+    """crop_to_image ``(n, 2, 3)`` of ``size x size`` views of the square windows of an
+    ``height x width`` image, and each view's place ``(n, 2)`` (columns, rows) on the grid
+    they share.
+
+    The locator learnt square images whose field of view fills them; a letterbox of an
+    oblong image shows its cups smaller (by the aspect ratio) than it learnt. Windows as wide
+    as the image's short side keep the scale: they slide along the long side, from one end
+    to the other, overlapping by at least ``overlap`` of their side, their offsets snapped
+    to whole view pixels, so that their views tile one grid. An image whose sides differ by
+    less than half a view pixel has one window, its letterbox (:func:`letterbox_affine`).
+    """
+    short, long = min(height, width), max(height, width)
+    step = short / size  # image pixels per view pixel
+    extra = round((long - short) / step)  # view pixels the long side adds
+    if extra == 0:
+        return (letterbox_affine(height, width, size, dtype)[None],
+                torch.zeros(1, 2, dtype=torch.long))
+    count = math.ceil(extra / (size * (1 - overlap))) + 1
+    places = torch.linspace(0, extra, count, dtype=torch.float64).round()
+    base = letterbox_affine(short, short, size, torch.float64)
+    affines = base.repeat(count, 1, 1)
+    axis = 0 if width >= height else 1  # the long side: u or v
+    affines[:, axis, 2] += places * step
+    grid = torch.zeros(count, 2, dtype=torch.long)
+    grid[:, axis] = places.long()
+    return affines.to(dtype), grid
+
+
 def ellipse_crop_affine(frame: Tensor, size: int) -> Tensor:
     """crop_to_image ``(..., 2, 3)`` of a crop framed on an ellipse.
 

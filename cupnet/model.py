@@ -44,6 +44,7 @@ from cupnet.crops import (
     frame_ellipse,
     letterbox_affine,
     resample_batch,
+    square_windows,
     to_image,
 )
 from cupnet.detection import CupDetection
@@ -416,6 +417,15 @@ class CupNet(nn.Module):
                                for im in images]).to(images[0])
         return resample_batch(images, affines, size), affines
 
+    def locator_logits(self, views: Tensor, gamma: float | Tensor | None = None) -> Tensor:
+        """The locator on views ``(K, 1, S, S)`` in [0, 1]: opening logits ``(K, 1, S, S)``.
+
+        ``gamma``: look at the views raised to this power, one or ``(K,)``.
+        """
+        if gamma is not None:
+            views = views.clamp(0, 1) ** torch.as_tensor(gamma).to(views).reshape(-1, 1, 1, 1)
+        return self.locator(_standardise(views))
+
     def locate(self, images: list[Tensor], gamma: float | Tensor | None = None
                ) -> tuple[Tensor, Tensor]:
         """Stage 1: letterboxed opening logits ``(B, 1, S, S)`` and affines ``(B, 2, 3)``.
@@ -423,30 +433,61 @@ class CupNet(nn.Module):
         ``gamma``: look at the images (in [0, 1]) raised to this power, one or ``(B,)``.
         """
         views, affines = self.letterbox(images)
-        if gamma is not None:
-            views = views.clamp(0, 1) ** torch.as_tensor(gamma).to(views).reshape(-1, 1, 1, 1)
-        return self.locator(_standardise(views)), affines
+        return self.locator_logits(views, gamma), affines
+
+    def locate_windows(self, images: list[Tensor], gamma: float | None = None
+                       ) -> tuple[list[Tensor], Tensor]:
+        """Stage 1 at inference: the locator on each image's square windows
+        (:func:`cupnet.crops.square_windows`; a square image's one window is its letterbox).
+
+        Returns:
+            per image, opening logits ``(1, h, w)`` on its windows' grid (where windows
+            overlap, the most confident); the grids' pixel-to-image affines ``(B, 2, 3)``.
+        """
+        size = self.config.locator_size
+        windows = [square_windows(im.shape[-2], im.shape[-1], size) for im in images]
+        affines = torch.cat([affine for affine, _ in windows]).to(images[0])
+        index = torch.cat([torch.full((len(place),), i) for i, (_, place) in enumerate(windows)])
+        logits = self.locator_logits(resample_batch(images, affines, size, index), gamma)
+        merged = []
+        for i, (_, place) in enumerate(windows):
+            views = logits[index == i]
+            if len(place) == 1:
+                merged.append(views[0])
+                continue
+            width, height = (place.amax(0) + size).tolist()
+            grid = views.new_full((1, height, width), -math.inf)
+            for view, (u, v) in zip(views, place.tolist(), strict=True):
+                grid[:, v:v + size, u:u + size] = torch.maximum(
+                    grid[:, v:v + size, u:u + size], view)
+            merged.append(grid)
+        return merged, torch.stack([affine[0] for affine, _ in windows]).to(images[0])
 
     def rough_ellipses(self, images: list[Tensor]) -> tuple[Tensor, Tensor]:
-        """Stage 1 at inference: :meth:`ellipses_from_locator` of :meth:`locate`, looked for
-        again with ``locator_retry_gamma`` in the images where no cup was found."""
-        rough, scores = self.ellipses_from_locator(*self.locate(images))
+        """Stage 1 at inference: :meth:`ellipses_from_locator` of :meth:`locate_windows`,
+        looked for again with ``locator_retry_gamma`` in the images where no cup was found."""
+        rough, scores = self.ellipses_from_locator(*self.locate_windows(images))
         gamma = self.config.locator_retry_gamma
         empty = (~torch.isfinite(rough).all(-1).any(-1)).nonzero()[:, 0]
         if gamma is not None and len(empty):
-            again = self.ellipses_from_locator(*self.locate([images[i] for i in empty], gamma))
+            again = self.ellipses_from_locator(
+                *self.locate_windows([images[i] for i in empty], gamma))
             rough[empty], scores[empty] = again
         return rough, scores
 
-    def ellipses_from_locator(self, logits: Tensor, letterbox: Tensor) -> tuple[Tensor, Tensor]:
+    def ellipses_from_locator(self, logits: Tensor | list[Tensor], letterbox: Tensor
+                              ) -> tuple[Tensor, Tensor]:
         """Rough cup ellipses from the locator's components (their second moments).
 
+        Args:
+            logits: ``(B, 1, S, S)``, or per image ``(1, h, w)`` (:meth:`locate_windows`).
+            letterbox: ``(B, 2, 3)`` their pixel-to-image affines.
         Returns:
             ellipses ``(B, C, 5)`` (cx, cy, a, b, alpha_deg) image pixels, NaN where no cup,
             largest components first; scores ``(B, C)`` (mean probability of the component).
         """
         cfg = self.config
-        prob = torch.sigmoid(logits.detach()).cpu().double().numpy()[:, 0]
+        prob = [torch.sigmoid(m.detach()).cpu().double().numpy()[0] for m in logits]
         ellipses = torch.full((len(prob), cfg.max_cups, 5), math.nan, dtype=torch.float64)
         scores = torch.zeros(len(prob), cfg.max_cups, dtype=torch.float64)
         for i, p in enumerate(prob):

@@ -16,6 +16,7 @@ from cupnet.crops import (
     frame_ellipse,
     letterbox_affine,
     resample,
+    square_windows,
     to_image,
     to_view,
 )
@@ -92,6 +93,54 @@ def test_letterbox_maps_back_exactly(height, width):
     view = resample(image, affine, 128)
     _, centre, _ = soft_moments(view[None])
     assert torch.allclose(to_image(centre, affine)[0], truth[0, 0, :2], atol=0.05 * affine[0, 0])
+
+
+@pytest.mark.parametrize(("height", "width", "count"),
+                         [(512, 512, 1), (300, 301, 1), (300, 303, 2), (512, 768, 2),
+                          (768, 512, 2), (600, 1300, 4)])
+def test_square_windows_keep_the_scale_cover_the_image_and_share_a_grid(height, width, count):
+    """Windows as wide as the short side, end to end along the long side, overlapping by at
+    least half; each view pixel maps to the image point of its grid place; a square image's
+    one window is its letterbox."""
+    size = 128
+    affines, places = square_windows(height, width, size, dtype=torch.float64)
+    short, long = min(height, width), max(height, width)
+    step = short / size
+    assert affines.shape == (count, 2, 3) and places.shape == (count, 2)
+    if count == 1:
+        assert torch.equal(affines[0], letterbox_affine(height, width, size, torch.float64))
+        return
+    assert torch.allclose(affines[:, :, :2], step * torch.eye(2, dtype=torch.float64))
+    # View pixel (j, i) of window w is grid pixel places[w] + (j, i): one image point.
+    origin = affines[0, :, 2]
+    assert torch.allclose(affines[:, :, 2], origin + step * places, atol=1e-9)
+    # The first and last windows reach the ends of the long side (within half a view pixel),
+    # and neighbours overlap by at least half a window.
+    axis = 0 if width >= height else 1
+    corners = torch.stack([to_image(torch.tensor([[0.0, 0.0], [size - 1.0, size - 1.0]],
+                                                 dtype=torch.float64), a) for a in affines])
+    assert abs(float(corners[0, 0, axis]) - (step - 1) / 2) < step / 2 + 1e-9
+    assert abs(float(corners[-1, 1, axis]) - (long - 1 - (step - 1) / 2)) < step / 2 + 1e-9
+    gaps = places[1:, axis] - places[:-1, axis]
+    assert (gaps <= size / 2).all() and (gaps > 0).all()
+
+
+def test_located_windows_merge_onto_one_grid_at_the_images_scale():
+    """A disc in a 300 x 600 image (two cups' worth of width): the locator stand-in on the
+    merged windows finds it where it is, at its size, as on a square image."""
+    model = CupNet(TINY)
+    model.locator = EdgeNet(gain=20.0)
+    for height, width, centre in [(300, 600, (450.0, 140.0)), (600, 300, (120.0, 420.0)),
+                                  (300, 300, (150.0, 160.0))]:
+        truth = torch.tensor([[[*centre, 40.0, 40.0, 0.0]]], dtype=torch.float64)
+        image = (0.8 * ellipse_coverage(truth, height, width)[0]).float()
+        logits, grids = model.locate_windows([image])
+        assert logits[0].shape[1:] == (round(128 * height / min(height, width)),
+                                       round(128 * width / min(height, width)))
+        rough, _ = model.ellipses_from_locator(logits, grids)
+        assert torch.isfinite(rough[0, 0]).all() and not torch.isfinite(rough[0, 1]).any()
+        assert torch.allclose(rough[0, 0, :2], truth[0, 0, :2], atol=2.0)
+        assert abs(float(rough[0, 0, 2]) - 40.0) < 4.0
 
 
 @pytest.mark.parametrize("params", [[63.7, 60.2, 48.3, 30.1, 27.0], [60.5, 66.3, 45.0, 44.0, 80.0],
@@ -234,22 +283,22 @@ def test_bad_image_is_rejected_with_a_clear_error():
 
 
 class DarkBlindNet(CupNet):
-    """A CupNet whose locator (a stand-in) sees nothing in an image darker than 0.5 unless
-    the image is shown raised to a power, as a trained locator misses a cup under thick
-    anatomy; it records each stage-1 call's (images, gamma)."""
+    """A CupNet whose locator (a stand-in) sees nothing in a view darker than 0.5 unless
+    the view is shown raised to a power, as a trained locator misses a cup under thick
+    anatomy; it records each stage-1 call's (views, gamma)."""
 
     def __init__(self, config: CupNetConfig) -> None:
         super().__init__(config)
         self.locator, self.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
         self.calls: list[tuple[int, float | None]] = []
 
-    def locate(self, images, gamma=None):
-        logits, affines = super().locate(images, gamma)
-        self.calls.append((len(images), gamma))
+    def locator_logits(self, views, gamma=None):
+        logits = super().locator_logits(views, gamma)
+        self.calls.append((len(views), gamma))
         if gamma is None:
-            dark = torch.tensor([float(im.max()) < 0.5 for im in images])
+            dark = views.amax((1, 2, 3)) < 0.5
             logits = torch.where(dark[:, None, None, None], -20.0, logits)
-        return logits, affines
+        return logits
 
 
 @pytest.mark.parametrize("retry", [None, 0.4])
@@ -260,10 +309,11 @@ def test_locator_looks_again_only_where_it_found_no_cup(retry):
     found = model.detect([bright.float(), 0.4 * bright.float()], geometry, 52.0)
     assert len(found[0]) == 1
     if retry is None:
-        assert found[1] == [] and model.calls == [(2, None)]
+        assert found[1] == [] and model.calls == [(4, None)]
         return
-    # Only the dark image is looked at again; its cup lands where the bright one's does.
-    assert model.calls == [(2, None), (1, retry)]
+    # Only the dark image is looked at again (its two windows: 400 x 300 px); its cup lands
+    # where the bright one's does.
+    assert model.calls == [(4, None), (2, retry)]
     assert len(found[1]) == 1
     assert np.abs(found[1][0].ellipse - found[0][0].ellipse).max() < 0.5
     assert np.abs(found[1][0].ellipse[:2] - ellipse[0, :2].numpy()).max() < 1.0
