@@ -9,6 +9,7 @@ docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -38,16 +39,29 @@ from train.losses import POSE_SCALE as TARGETS  # noqa: E402  (the issue's targe
 from train.module import cup_errors  # noqa: E402
 
 
-def samples(config: str, seed: int, count: int, sizes: list[int] | None = None) -> list[dict]:
-    """``count`` fresh samples, split evenly over square image ``sizes`` (None: the config's)."""
+def samples(config: str, seed: int, count: int,
+            sizes: list[int] | list[tuple[int, int]] | None = None) -> list[dict]:
+    """``count`` fresh samples, split evenly over image ``sizes``: square sides, or
+    ``(width, height)`` (None: the config's)."""
     from data_synth import SynthDataset
 
     sizes = sizes or [None]
     out = []
     for i, size in enumerate(sizes):
         share = count // len(sizes) + (i < count % len(sizes))
-        out += list(SynthDataset(synth_config(config, size), seed=seed + i, length=share))
+        synth = (synth_config(config, size) if not isinstance(size, tuple)
+                 else dataclasses.replace(synth_config(config), image_size=size))
+        out += list(SynthDataset(synth, seed=seed + i, length=share))
     return out
+
+
+def shape(text: str) -> tuple[int, int]:
+    """``"WxH"`` -> ``(W, H)`` pixels (an argparse type)."""
+    width, _, height = text.partition("x")
+    try:
+        return int(width), int(height)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, got {text!r}") from None
 
 
 def geometry_of(sample: dict) -> Geometry:
@@ -147,6 +161,29 @@ def false_detections(model: CupNet, data: list[dict]) -> tuple[int, int]:
     return len(dets), sum(det.check for det in dets)
 
 
+def oblong_table(model: CupNet, args: argparse.Namespace) -> str:
+    """The shipped model's accuracy on oblong images (their field of view as wide as their
+    short side), per shape and pooled over the shapes' cups."""
+    rows, maes, found, cups = [], [], [], []
+    for i, size in enumerate(args.oblong):
+        count = args.oblong_images // len(args.oblong) + (i < args.oblong_images % len(args.oblong))
+        res = accuracy(model, samples(args.eval_config, args.seed + 11 + i, count, [size]))
+        print("oblong", size, res)
+        maes.append([res[f"mae_{n}"] for n in NAMES])
+        found.append(res["detected"] * res["cups"])
+        cups.append(res["cups"])
+        rows.append([f"{size[0]}x{size[1]}", count, *maes[-1],
+                     f"{100 * res['detected']:.1f} % of {res['cups']}"])
+    pooled = np.average(maes, axis=0, weights=found)  # each shape's MAE is over its found cups
+    rows.append(["all", args.oblong_images, *pooled,
+                 f"{100 * sum(found) / sum(cups):.1f} % of {sum(cups)}"])
+    return (f"Oblong images ({args.oblong_images} from `{args.eval_config}`, seeds "
+            f"{args.seed + 11} on, the shipped model; the locator sees them through square "
+            "windows of their short side, `cupnet.crops.square_windows`):\n\n"
+            + markdown_table(["shape (W x H px)", "images", *[f"MAE {n}" for n in NAMES],
+                              "detected"], rows))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
@@ -162,6 +199,10 @@ def main() -> None:
     parser.add_argument("--no-cup-images", type=int, default=60)
     parser.add_argument("--sizes", type=int, nargs="+", default=[512, 768, 1024],
                         help="square sizes (px) of the accuracy images, in equal shares")
+    parser.add_argument("--oblong", type=shape, nargs="*",
+                        default=[(768, 512), (512, 768), (1024, 640)],
+                        help="oblong image shapes (WxH) to score the shipped model on too")
+    parser.add_argument("--oblong-images", type=int, default=90)
     parser.add_argument("--seed", type=int, default=20_261_123)
     parser.add_argument("--gallery", default="docs/model_failures.png",
                         help="where to write the worst cases of the shipped model")
@@ -242,6 +283,8 @@ def main() -> None:
     text = markdown_table(header, table)
     text += ("\n\nAbsolute errors of the shipped model's detected cups: a few gross failures "
              "dominate the means.\n\n" + spread)
+    if args.oblong and args.oblong_images:
+        text += "\n\n" + oblong_table(model, args)
     print(text)
     write_section("model_accuracy", "## CupNet accuracy\n\n"
                   f"`python benchmarks/model.py`: {args.images} fresh DRRs from "
