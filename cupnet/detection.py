@@ -6,6 +6,7 @@ libraries.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,3 +58,32 @@ class CupDetection:
     doubt: float | None = None
     check: bool = False
     metal_bright: bool | None = None
+
+
+def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1
+                  ) -> list[CupDetection]:
+    """One image's ``detections`` less the repeats, in their order.
+
+    Two detections whose ellipses' centres and semi-axes agree within ``tolerance`` of the
+    larger major semi-axis are one cup found twice (a thin rim's locator blob can break in
+    two; where the locator's windows overlap an oblong image, both may see it): the one kept
+    has a pose rather than an error, then the lower doubt (None counting as the highest).
+    """
+    def rank(det: CupDetection) -> tuple[bool, float]:
+        return det.status.startswith("error"), math.inf if det.doubt is None else det.doubt
+
+    kept: list[CupDetection] = []
+    for det in sorted(detections, key=rank):
+        shape = np.asarray(det.ellipse, np.float64)[:4]
+        if not any(_same_ellipse(shape, np.asarray(other.ellipse, np.float64)[:4], tolerance)
+                   for other in kept):
+            kept.append(det)
+    return [det for det in detections if any(det is k for k in kept)]
+
+
+def _same_ellipse(one: np.ndarray, other: np.ndarray, tolerance: float) -> bool:
+    """Whether ``(cx, cy, a, b)`` px ``one`` and ``other`` agree within ``tolerance`` of the
+    larger ``a`` (False where either is NaN)."""
+    scale = tolerance * max(one[2], other[2])
+    return bool(np.hypot(*(one[:2] - other[:2])) <= scale
+                and (np.abs(one[2:] - other[2:]) <= scale).all())

@@ -47,7 +47,7 @@ from cupnet.crops import (
     square_windows,
     to_image,
 )
-from cupnet.detection import CupDetection
+from cupnet.detection import CupDetection, distinct_cups
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import ray_landmarks, soft_moments
@@ -859,7 +859,7 @@ class CupNet(nn.Module):
                        and doubt >= self.config.check_doubt),
                 metal_bright=bright[i],
             ))
-        return results
+        return [distinct_cups(found) for found in results]
 
     def _solved_picks(self, source: _Source, todo: Tensor, geometry: Geometry,
                       diameter: Tensor, cup_index: Tensor, batch: int
