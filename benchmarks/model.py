@@ -1,15 +1,15 @@
 """CupNet speed and accuracy: segmentation + pose per 512x512 image, and pose MAE on fresh DRRs.
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
-...] [--images N] [--speed-only]``.
-Writes the ``model`` (speed) and ``model_accuracy`` (accuracy, ablation) sections of
-docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases).
+...] [--images N] [--parts speed accuracy oblong]``.
+Writes the ``model`` (speed), ``model_accuracy`` (accuracy, ablation) and ``model_oblong``
+(oblong images) sections of docs/benchmarks.md, and docs/model_failures.png (the shipped
+model's worst cases).
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
 import sys
 import time
@@ -49,9 +49,7 @@ def samples(config: str, seed: int, count: int,
     out = []
     for i, size in enumerate(sizes):
         share = count // len(sizes) + (i < count % len(sizes))
-        synth = (synth_config(config, size) if not isinstance(size, tuple)
-                 else dataclasses.replace(synth_config(config), image_size=size))
-        out += list(SynthDataset(synth, seed=seed + i, length=share))
+        out += list(SynthDataset(synth_config(config, size), seed=seed + i, length=share))
     return out
 
 
@@ -161,10 +159,10 @@ def false_detections(model: CupNet, data: list[dict]) -> tuple[int, int]:
     return len(dets), sum(det.check for det in dets)
 
 
-def oblong_table(model: CupNet, args: argparse.Namespace) -> str:
+def oblong_section(model: CupNet, args: argparse.Namespace) -> str:
     """The shipped model's accuracy on oblong images (their field of view as wide as their
-    short side), per shape and pooled over the shapes' cups."""
-    rows, maes, found, cups = [], [], [], []
+    short side), per shape and pooled over the shapes' cups: the ``model_oblong`` section."""
+    rows, maes, found, cups, false = [], [], [], [], []
     for i, size in enumerate(args.oblong):
         count = args.oblong_images // len(args.oblong) + (i < args.oblong_images % len(args.oblong))
         res = accuracy(model, samples(args.eval_config, args.seed + 11 + i, count, [size]))
@@ -172,16 +170,101 @@ def oblong_table(model: CupNet, args: argparse.Namespace) -> str:
         maes.append([res[f"mae_{n}"] for n in NAMES])
         found.append(res["detected"] * res["cups"])
         cups.append(res["cups"])
+        false.append((res["false_positives"], res["false_positives_flagged"]))
         rows.append([f"{size[0]}x{size[1]}", count, *maes[-1],
-                     f"{100 * res['detected']:.1f} % of {res['cups']}"])
+                     f"{100 * res['detected']:.1f} % of {res['cups']}",
+                     "{} ({} flagged)".format(*false[-1])])
     pooled = np.average(maes, axis=0, weights=found)  # each shape's MAE is over its found cups
     rows.append(["all", args.oblong_images, *pooled,
-                 f"{100 * sum(found) / sum(cups):.1f} % of {sum(cups)}"])
-    return (f"Oblong images ({args.oblong_images} from `{args.eval_config}`, seeds "
-            f"{args.seed + 11} on, the shipped model; the locator sees them through square "
-            "windows of their short side, `cupnet.crops.square_windows`):\n\n"
+                 f"{100 * sum(found) / sum(cups):.1f} % of {sum(cups)}",
+                 "{} ({} flagged)".format(*np.sum(false, 0))])
+    return ("## CupNet on oblong images\n\n"
+            f"`python benchmarks/model.py --parts oblong`: {args.oblong_images} fresh DRRs from "
+            f"`{args.eval_config}` (seeds {args.seed + 11} on), the shipped model, MAE over "
+            "detected true cups (deg, deg, mm, mm, mm), false positives as in the accuracy "
+            "table. The locator sees an oblong image through square windows of its short "
+            "side (`cupnet.crops.square_windows`); it was trained on square images only.\n\n"
             + markdown_table(["shape (W x H px)", "images", *[f"MAE {n}" for n in NAMES],
-                              "detected"], rows))
+                              "detected", "false positives"], rows))
+
+
+def speed_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
+    """Time ``models`` end to end on 20 synthetic 512x512 images; writes the ``model`` section."""
+    speed_set = samples(args.speed_config, args.seed + 1, 20)
+    rows = []
+    for name, net in models.items():
+        for threads in args.threads:
+            torch.set_num_threads(threads)
+            timing = latency(net, speed_set)
+            rows.append([f"{name}: segmentation + pose, 512x512, batch 1, {threads} thread(s)",
+                         f"{1000 * timing['mean_s']:.1f}", f"{1000 * timing['median_s']:.1f}",
+                         f"{1 / timing['mean_s']:.1f}", f"{1000 * timing['cpu_s']:.1f}"])
+    torch.set_num_threads(args.threads[0])
+    speed = markdown_table(["model, pipeline", "mean ms / image", "median ms / image",
+                            "images / s", "CPU ms / image"], rows)
+    print(speed)
+    write_section("model", "## CupNet speed\n\n"
+                  f"`python benchmarks/model.py` on {machine()}; checkpoint "
+                  f"`{Path(args.checkpoint).name}`, as it is and with its speed presets "
+                  f"({', '.join(f'`--{p}`' for p in args.presets) or 'none'}, as `cupnet "
+                  "predict` takes them); 20 synthetic 512x512 images, "
+                  "`CupNet.detect` end to end (locator, 2 refiner passes, rim stages, pose "
+                  "with ML refinement; BatchNorm folded, as `cupnet predict` runs it), "
+                  "machine load at the start: "
+                  f"{os.getloadavg()[0]:.1f} (other agents share the CPU). No GPU was lent, so "
+                  "the H100 throughput is not measured. With 2 threads the rim networks' "
+                  "strips run one per core (`cupnet.parallel`), with the same results as on "
+                  "one.\n\n" + speed)
+
+
+def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
+    """Score ``models`` (the first the shipped one) on fresh DRRs and images without a cup;
+    writes the ``model_accuracy`` section and the shipped model's failure gallery."""
+    model = next(iter(models.values()))
+    eval_set = samples(args.eval_config, args.seed, args.images, args.sizes)
+    no_cup_set = samples(args.no_cup_config, args.seed + 7, args.no_cup_images, args.sizes)
+    header = ["model", *[f"MAE {n}" for n in NAMES], "detected", "false positives",
+              f"cups found in {len(no_cup_set)} no-cup images"]
+    table, spread = [], ""
+    for name, net in models.items():
+        cases: list = []
+        res = accuracy(net, eval_set, cases)
+        if net is model:
+            failure_gallery(cases, Path(args.gallery))
+            spread = markdown_table(
+                ["shipped model", *NAMES],
+                [[stat, *[res[f"{key}_{n}"] for n in NAMES]]
+                 for stat, key in (("mean", "mae"), ("median", "median"),
+                                   ("90th percentile", "p90"), ("MAE of the cups not flagged "
+                                                                "`check`", "unflagged_mae"))])
+            spread += (f"\n\nThe shipped model flags {res['flagged']} of the "
+                       f"{round(res['detected'] * res['cups'])} detected cups `check` (its "
+                       f"doubt >= `check_doubt` {net.config.check_doubt}), "
+                       f"{res['gross_flagged']} of the {res['gross']} gross failures "
+                       f"(anteversion or inclination off by more than {GROSS_DEG:g} deg) "
+                       "among them.")
+        no_cup, no_cup_flagged = false_detections(net, no_cup_set)
+        table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
+                      f"{res['false_positives']} ({res['false_positives_flagged']} flagged)",
+                      f"{no_cup} ({no_cup_flagged} flagged)"])
+        print(name, res)
+    text = markdown_table(header, table)
+    text += ("\n\nAbsolute errors of the shipped model's detected cups: a few gross failures "
+             "dominate the means.\n\n" + spread)
+    print(text)
+    write_section("model_accuracy", "## CupNet accuracy\n\n"
+                  f"`python benchmarks/model.py`: {args.images} fresh DRRs from "
+                  f"`{args.eval_config}` (CT background on every image) at "
+                  f"{', '.join(map(str, args.sizes))} px (seed {args.seed}), MAE over detected "
+                  "true cups "
+                  f"(deg, deg, mm, mm, mm); targets {TARGETS}; false positives: detections "
+                  "matching no true cup in those images; and the detections in "
+                  f"{len(no_cup_set)} images without a cup (`{args.no_cup_config}`), where "
+                  "each should say `no_cup` (of both, how many the model flags `check`; "
+                  "the others are mostly `error` rows, without a pose to doubt). The "
+                  "ablation (segmentation "
+                  "alone vs end to end, same set) and the training record are in "
+                  "docs/training.md; the worst cases in docs/model_failures.png.\n\n" + text)
 
 
 def main() -> None:
@@ -208,9 +291,10 @@ def main() -> None:
                         help="where to write the worst cases of the shipped model")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2],
                         help="torch intra-op threads to time with (accuracy uses the first)")
-    parser.add_argument("--speed-only", action="store_true",
-                        help="time the models and leave the accuracy section as it is (for "
-                             "a change that keeps every pose, such as a faster kernel)")
+    parser.add_argument("--parts", nargs="+", default=["speed", "accuracy", "oblong"],
+                        choices=["speed", "accuracy", "oblong"],
+                        help="the sections to measure; the others are left as they are "
+                             "(speed alone: for a change that keeps every pose)")
     args = parser.parse_args()
 
     def loaded(path: str, preset: str | None = None) -> CupNet:  # as cupnet predict runs it
@@ -226,79 +310,15 @@ def main() -> None:
     for item in args.ablation:
         name, path = item.split("=", 1)
         models[name] = loaded(path)
-    speed_set = samples(args.speed_config, args.seed + 1, 20)
-    rows = []
-    for name, net in timed.items():
-        for threads in args.threads:
-            torch.set_num_threads(threads)
-            timing = latency(net, speed_set)
-            rows.append([f"{name}: segmentation + pose, 512x512, batch 1, {threads} thread(s)",
-                         f"{1000 * timing['mean_s']:.1f}", f"{1000 * timing['median_s']:.1f}",
-                         f"{1 / timing['mean_s']:.1f}", f"{1000 * timing['cpu_s']:.1f}"])
-    torch.set_num_threads(args.threads[0])
-    speed = markdown_table(["model, pipeline", "mean ms / image", "median ms / image",
-                            "images / s", "CPU ms / image"], rows)
-    print(speed)
-    write_section("model", "## CupNet speed\n\n"
-                  f"`python benchmarks/model.py` on {machine()}; checkpoint "
-                  f"`{Path(args.checkpoint).name}`, as it is and with its speed presets "
-                  f"({', '.join(f'`--{p}`' for p in args.presets) or 'none'}, as `cupnet "
-                  "predict` takes them); 20 synthetic 512x512 images, "
-                  "`CupNet.detect` end to end (locator, 2 refiner passes, rim stages, pose "
-                  "with ML refinement; BatchNorm folded, as `cupnet predict` runs it), "
-                  "machine load at the start: "
-                  f"{os.getloadavg()[0]:.1f} (other agents share the CPU). No GPU was lent, so "
-                  "the H100 throughput is not measured. With 2 threads the rim networks' "
-                  "strips run one per core (`cupnet.parallel`), with the same results as on "
-                  "one.\n\n" + speed)
-    if args.speed_only:
-        return
-
-    eval_set = samples(args.eval_config, args.seed, args.images, args.sizes)
-    no_cup_set = samples(args.no_cup_config, args.seed + 7, args.no_cup_images, args.sizes)
-    header = ["model", *[f"MAE {n}" for n in NAMES], "detected", "false positives",
-              f"cups found in {len(no_cup_set)} no-cup images"]
-    table, spread = [], ""
-    for name, net in models.items():
-        cases: list = []
-        res = accuracy(net, eval_set, cases)
-        if net is model:
-            failure_gallery(cases, Path(args.gallery))
-            spread = markdown_table(
-                ["shipped model", *NAMES],
-                [[stat, *[res[f"{key}_{n}"] for n in NAMES]]
-                 for stat, key in (("mean", "mae"), ("median", "median"),
-                                   ("90th percentile", "p90"), ("MAE of the cups not flagged "
-                                                                "`check`", "unflagged_mae"))])
-            spread += (f"\n\nThe shipped model flags {res['flagged']} of the "
-                       f"{round(res['detected'] * res['cups'])} detected cups `check` (its "
-                       f"doubt >= `check_doubt` {net.config.check_doubt}), {res['gross_flagged']} "
-                       f"of the {res['gross']} gross failures (anteversion or inclination "
-                       f"off by more than {GROSS_DEG:g} deg) among them.")
-        no_cup, no_cup_flagged = false_detections(net, no_cup_set)
-        table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
-                      f"{res['false_positives']} ({res['false_positives_flagged']} flagged)",
-                      f"{no_cup} ({no_cup_flagged} flagged)"])
-        print(name, res)
-    text = markdown_table(header, table)
-    text += ("\n\nAbsolute errors of the shipped model's detected cups: a few gross failures "
-             "dominate the means.\n\n" + spread)
-    if args.oblong and args.oblong_images:
-        text += "\n\n" + oblong_table(model, args)
-    print(text)
-    write_section("model_accuracy", "## CupNet accuracy\n\n"
-                  f"`python benchmarks/model.py`: {args.images} fresh DRRs from "
-                  f"`{args.eval_config}` (CT background on every image) at "
-                  f"{', '.join(map(str, args.sizes))} px (seed {args.seed}), MAE over detected "
-                  "true cups "
-                  f"(deg, deg, mm, mm, mm); targets {TARGETS}; false positives: detections "
-                  "matching no true cup in those images; and the detections in "
-                  f"{len(no_cup_set)} images without a cup (`{args.no_cup_config}`), where "
-                  "each should say `no_cup` (of both, how many the model flags `check`; "
-                  "the others are mostly `error` rows, without a pose to doubt). The "
-                  "ablation (segmentation "
-                  "alone vs end to end, same set) and the training record are in "
-                  "docs/training.md; the worst cases in docs/model_failures.png.\n\n" + text)
+    if "speed" in args.parts:
+        speed_section(timed, args)
+    torch.set_num_threads(args.threads[0])  # what accuracy is scored with
+    if "accuracy" in args.parts:
+        accuracy_section(models, args)
+    if "oblong" in args.parts and args.oblong and args.oblong_images:
+        text = oblong_section(model, args)
+        print(text)
+        write_section("model_oblong", text)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ import lightning as L
 import pytest
 import torch
 
+from cupnet.crops import resample_batch, square_windows
 from cupnet.model import load_model, save_model
 from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule
@@ -210,6 +211,30 @@ def test_locator_targets_widen_thin_openings():
     area = (math.pi * 0.3 * (thin["ellipse"][..., 2].double() / scale[:, None]) ** 2
             * valid).sum(1)
     assert torch.allclose(target.sum((1, 2, 3)).double(), area, rtol=0.02)
+
+
+def test_locator_stage_sees_an_oblong_image_through_the_windows_detect_shows_it(monkeypatch):
+    L.seed_everything(5)
+    data = CupDataModule(synth=str(ROOT / "configs/synth_smoke.yaml"), batch_size=8,
+                         image_sizes=[[240, 160]])
+    batch = next(iter(data.train_dataset()))
+    assert batch["image"].shape[-2:] == (160, 240)
+    module = CupNetModule(model=RIM_MODEL, locator_only=True)
+    seen = []
+    monkeypatch.setattr("train.module.segmentation_loss",
+                        lambda logits, target: seen.append(target) or logits.mean())
+    module.locator_losses(batch)
+    # The inference's windows (two, one at each end) of each image, drawn at random, and
+    # each view's target the image's openings in that window.
+    windows, places = square_windows(160, 240, 64)
+    assert places[:, 0].tolist() == [0, 32]
+    masks = torch.stack([resample_batch(batch["mask"], windows[j].expand(8, 2, 3), 64)
+                         for j in range(2)], 1)  # (B, window, 1, S, S)
+    apart = [k for k in range(8) if not torch.allclose(masks[k, 0], masks[k, 1])]
+    assert len(apart) >= 6  # images whose cups the two windows show differently
+    drawn = [[j for j in range(2) if torch.allclose(seen[0][k], masks[k, j])] for k in apart]
+    assert all(len(j) == 1 for j in drawn)  # each target is one window's
+    assert {j[0] for j in drawn} == {0, 1}
 
 
 def test_locator_only_fit_trains_the_locator_alone(tmp_path):

@@ -15,9 +15,10 @@ import lightning as L
 from torch.utils.data import DataLoader, IterableDataset, default_collate
 
 
-def synth_config(source: str | dict | None, image_size: int | None = None):
+def synth_config(source: str | dict | None,
+                 image_size: int | tuple[int, int] | list[int] | None = None):
     """A ``data_synth.SynthConfig`` from a YAML path, a dict of fields, or None (defaults),
-    with a square ``image_size`` (pixels) when given."""
+    with ``image_size`` when given: a square side, or ``(width, height)`` pixels."""
     from data_synth import SynthConfig
 
     if source is None:
@@ -28,8 +29,10 @@ def synth_config(source: str | dict | None, image_size: int | None = None):
         raise FileNotFoundError(f"synthesis config not found: {source}")
     else:
         config = SynthConfig.from_yaml(source)
-    if image_size is not None:
+    if isinstance(image_size, int):
         config = dataclasses.replace(config, image_size=(image_size, image_size))
+    elif image_size is not None:
+        config = dataclasses.replace(config, image_size=tuple(image_size))
     return config
 
 
@@ -63,8 +66,9 @@ class CupDataModule(L.LightningDataModule):
     Args:
         synth: synthesis config (YAML path or dict of ``SynthConfig`` fields), or a list of
             them, mixed batch by batch (e.g. a stream of hard cases beside the usual one).
-        image_sizes: square training image sizes (px), taken in turn batch by batch; None
-            keeps the config's ``image_size``.
+        image_sizes: training image sizes, taken in turn batch by batch: square sides (px)
+            or ``[width, height]`` (oblong images; see ``train.module.CupNetModule``'s
+            locator stage); None keeps the config's ``image_size``.
         val_synth: synthesis config for validation (default: ``synth``, its first).
         val_image_size: validation image size (None: the config's).
         batch_size: images per batch.
@@ -79,7 +83,7 @@ class CupDataModule(L.LightningDataModule):
     def __init__(
         self,
         synth: str | dict | list | None = None,
-        image_sizes: list[int] | None = None,
+        image_sizes: list[int | list[int]] | None = None,
         val_synth: str | dict | None = None,
         val_image_size: int | None = None,
         batch_size: int = 8,

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from cupnet.crops import ellipse_to_view, resample_batch
+from cupnet.crops import ellipse_to_view, resample_batch, square_windows
 from cupnet.detection import CupDetection
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
@@ -251,7 +251,10 @@ class CupNetModule(L.LightningModule):
         rim_far_starts: the fraction of the fine stage's ``rim_only`` starts that are instead
             :func:`far_rim_starts` (a disc's outline or a thin-rim hypothesis).
         locator_only: train the locator alone (its segmentation loss), every other network
-            frozen and not run.
+            frozen and not run; it sees each image through one of the square windows
+            :meth:`cupnet.model.CupNet.locate_windows` shows it (drawn at random; a square
+            image's one window is its letterbox), so oblong training images teach it what
+            it meets in an oblong image's windows.
         locator_min_ratio: the locator's target is the true openings, each widened to this
             axis ratio at least (0: the synthesised mask as it is); a nearly edge-on cup's
             opening is sub-pixel thin in the letterboxed view, and the locator then misses it
@@ -397,8 +400,9 @@ class CupNetModule(L.LightningModule):
         return terms
 
     def locator_targets(self, batch: dict, letterbox: Tensor) -> Tensor:
-        """The locator's target ``(B, 1, S, S)`` in its letterboxed views (``letterbox``
-        ``(B, 2, 3)``): the openings' coverage, widened by ``locator_min_ratio``."""
+        """The locator's target ``(B, 1, S, S)`` in its views (view-to-image affines
+        ``letterbox`` ``(B, 2, 3)``): the openings' coverage, widened by
+        ``locator_min_ratio``."""
         size, ratio = self.model.config.locator_size, self.hparams.locator_min_ratio
         if ratio <= 0:
             return resample_batch(batch["mask"], letterbox, size)
@@ -415,8 +419,13 @@ class CupNetModule(L.LightningModule):
         dark = torch.rand(len(images), device=images.device) < self.hparams.locator_dark_views
         gamma = torch.where(dark, 0.25 + 0.35 * torch.rand(len(images), device=images.device),
                             torch.ones(len(images), device=images.device))
-        logits, letterbox = self.model.locate(list(images), gamma)
-        loss = segmentation_loss(logits, self.locator_targets(batch, letterbox))
+        size = self.model.config.locator_size
+        windows, _ = square_windows(*images.shape[-2:], size, dtype=images.dtype)
+        drawn = (torch.randint(len(windows), (len(images),)) if len(windows) > 1
+                 else torch.zeros(len(images), dtype=torch.long))  # a square image's letterbox
+        affines = windows[drawn].to(images.device)
+        logits = self.model.locator_logits(resample_batch(images, affines, size), gamma)
+        loss = segmentation_loss(logits, self.locator_targets(batch, affines))
         return {"seg_locator": loss, "loss": loss.float()}
 
     def rim_losses(self, batch: dict) -> dict[str, Tensor]:
