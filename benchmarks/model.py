@@ -183,7 +183,9 @@ def oblong_section(model: CupNet, args: argparse.Namespace) -> str:
             f"`{args.eval_config}` (seeds {args.seed + 11} on), the shipped model, MAE over "
             "detected true cups (deg, deg, mm, mm, mm), false positives as in the accuracy "
             "table. The locator sees an oblong image through square windows of its short "
-            "side (`cupnet.crops.square_windows`); it was trained on square images only.\n\n"
+            "side (`cupnet.crops.square_windows`); it was trained on square images only. Its "
+            "blobs centred outside an intensifier's round field are dropped "
+            "(`cupnet.field.round_field`).\n\n"
             + markdown_table(["shape (W x H px)", "images", *[f"MAE {n}" for n in NAMES],
                               "detected", "false positives"], rows))
 

@@ -49,6 +49,7 @@ from cupnet.crops import (
 )
 from cupnet.detection import CupDetection, distinct_cups
 from cupnet.ellipse import fit_ellipse
+from cupnet.field import outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import ray_landmarks, soft_moments
 from cupnet.outline import outline_distances, over_dome, sphere_outline
@@ -126,6 +127,10 @@ class CupNetConfig:
             the image raised to this power (None: it does not): a cup under thick anatomy, in
             the dark part of an image with bright regions, has too little contrast left
             after standardisation; a power below 1 stretches the dark range.
+        round_field: drop the locator's cups centred outside the image intensifier's round
+            field where the image shows one (:func:`cupnet.field.round_field`: a flat
+            surround holding its corners, edged by a circle): the locator, trained on
+            square images, takes that surround at an oblong frame's ends for cups.
         metal: how the images show metal: ``"dark"`` (the usual fluoroscopy display, and
             most of the networks' training images: used as given), ``"bright"`` (a
             radiograph-style display, metal white: every image is turned over, as the
@@ -246,6 +251,7 @@ class CupNetConfig:
     thin_rim_gate: float | None = None
     thin_rim_margin: float = 0.0
     locator_retry_gamma: float | None = None
+    round_field: bool = False
     metal: str = "dark"
     max_theta_deg: float | None = None
     grown_rim_scale: float | None = None
@@ -465,23 +471,29 @@ class CupNet(nn.Module):
 
     def rough_ellipses(self, images: list[Tensor]) -> tuple[Tensor, Tensor]:
         """Stage 1 at inference: :meth:`ellipses_from_locator` of :meth:`locate_windows`,
-        looked for again with ``locator_retry_gamma`` in the images where no cup was found."""
-        rough, scores = self.ellipses_from_locator(*self.locate_windows(images))
+        looked for again with ``locator_retry_gamma`` in the images where no cup was found;
+        with ``round_field``, those centred outside the image's round field are dropped."""
+        fields = [round_field(image) if self.config.round_field else None for image in images]
+        rough, scores = self.ellipses_from_locator(*self.locate_windows(images), fields)
         gamma = self.config.locator_retry_gamma
         empty = (~torch.isfinite(rough).all(-1).any(-1)).nonzero()[:, 0]
         if gamma is not None and len(empty):
             again = self.ellipses_from_locator(
-                *self.locate_windows([images[i] for i in empty], gamma))
+                *self.locate_windows([images[i] for i in empty], gamma),
+                [fields[i] for i in empty])
             rough[empty], scores[empty] = again
         return rough, scores
 
-    def ellipses_from_locator(self, logits: Tensor | list[Tensor], letterbox: Tensor
+    def ellipses_from_locator(self, logits: Tensor | list[Tensor], letterbox: Tensor,
+                              fields: list[tuple[float, float, float] | None] | None = None
                               ) -> tuple[Tensor, Tensor]:
         """Rough cup ellipses from the locator's components (their second moments).
 
         Args:
             logits: ``(B, 1, S, S)``, or per image ``(1, h, w)`` (:meth:`locate_windows`).
             letterbox: ``(B, 2, 3)`` their pixel-to-image affines.
+            fields: per image its round field ``(cx, cy, r)`` px or None: components
+                centred outside it are no cups (None: no image has one).
         Returns:
             ellipses ``(B, C, 5)`` (cx, cy, a, b, alpha_deg) image pixels, NaN where no cup,
             largest components first; scores ``(B, C)`` (mean probability of the component).
@@ -491,6 +503,7 @@ class CupNet(nn.Module):
         ellipses = torch.full((len(prob), cfg.max_cups, 5), math.nan, dtype=torch.float64)
         scores = torch.zeros(len(prob), cfg.max_cups, dtype=torch.float64)
         for i, p in enumerate(prob):
+            affine = letterbox[i].double().cpu()
             count, labels = cv2.connectedComponents((p > cfg.detect_threshold).astype(np.uint8))
             found = []
             for label in range(1, count):
@@ -498,16 +511,18 @@ class CupNet(nn.Module):
                 if w.sum() < cfg.min_cup_area:
                     continue
                 _, centre, cov = soft_moments(torch.from_numpy(w)[None, None])
+                centre = to_image(centre, affine)[0]
+                if fields is not None and outside_field(centre, fields[i]):
+                    continue
                 evals, evecs = torch.linalg.eigh(cov[0])
                 axes = 2 * evals.clamp_min(1 / 12).sqrt().flip(0)  # a filled ellipse: 4 var = a^2
                 angle = math.degrees(math.atan2(float(evecs[1, 1]), float(evecs[0, 1]))) % 180
-                found.append((float(w.sum()), centre, axes, angle,
+                found.append((float(w.sum()), centre, axes * affine[0, 0], angle,
                               float(p[labels == label].mean())))
             found.sort(key=lambda f: -f[0])
-            affine = letterbox[i].double().cpu()
             for c, (_, centre, axes, angle, score) in enumerate(found[:cfg.max_cups]):
-                ellipses[i, c, :2] = to_image(centre, affine)[0]
-                ellipses[i, c, 2:4] = axes * affine[0, 0]
+                ellipses[i, c, :2] = centre
+                ellipses[i, c, 2:4] = axes
                 ellipses[i, c, 4] = angle
                 scores[i, c] = score
         return ellipses, scores

@@ -259,6 +259,29 @@ def test_detect_reports_no_cup_on_empty_image():
     assert model.detect(empty, geometry, 52.0) == [[], []]
 
 
+@pytest.mark.parametrize("drop_outside", [False, True])
+def test_locator_blobs_outside_the_round_field_are_no_cups(drop_outside):
+    # An intensifier frame, 720 x 400 px: a textured disc in a flat surround as bright as
+    # the cup, which the stand-in locator (it thresholds the image) takes for two cups
+    # larger than the true one, as the trained locator takes the dark surround.
+    config = CupNetConfig(**{**TINY.__dict__, "round_field": drop_outside, "max_cups": 2})
+    model = CupNet(config)
+    model.locator, model.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
+    image, geometry, ellipse = scene([[25.0, 20.0, 10.0, -5.0, 280.0]], 400, 720, spacing=0.6)
+    v, u = torch.meshgrid(torch.arange(400.0), torch.arange(720.0), indexing="ij")
+    outside = (u - 359.5).hypot(v - 199.5) > 215
+    image = image + 0.02 * torch.rand(image.shape, generator=torch.Generator().manual_seed(5))
+    image[:, outside] = 0.8
+    found = model.detect(image.float()[None], geometry, 52.0, return_masks=False)[0]
+    centres = np.array([det.ellipse[:2] for det in found])
+    far = np.hypot(*(centres - [359.5, 199.5]).T) > 215
+    if not drop_outside:  # the surround's blobs crowd the true cup out
+        assert far.any()
+        return
+    assert len(found) == 1 and found[0].status in ("ok", "ambiguous")
+    assert np.abs(found[0].ellipse[:2] - ellipse[0, :2].numpy()).max() < 1.0
+
+
 def test_checkpoint_round_trip(tmp_path):
     torch.manual_seed(1)
     model = CupNet(TINY).eval()

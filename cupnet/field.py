@@ -1,0 +1,109 @@
+"""The image intensifier's round field: the part of a frame that was exposed at all.
+
+An image intensifier's output is a disc, and frames grabbed from it (4:3 or 16:9 video,
+secondary-capture DICOMs) hold that disc in a flat, featureless surround. No cup lies
+outside the disc, yet the locator, trained on square images, takes the surround's dark
+corners at the long ends of an oblong frame for cups (docs/training.md, item 23).
+:func:`round_field` finds the disc from the surround's inner edge;
+:func:`outside_field` tells which ellipses' centres lie beyond it.
+
+The surround is told from the image by being flat (no noise, no anatomy) and holding an
+image corner; its edge must be a circle, so a saturated stem or bright air reaching the
+border (flat too) neither makes a field nor, being few of the edge's points, bends one.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from torch import Tensor
+
+# Flat: the intensity range over a 5x5 window at most this (of the image's [0, 1]): exact
+# plateaus of 8- and 16-bit images, where the field's quantum noise spans several levels.
+FLAT_RANGE = 1e-3
+# The surround's edge points that count as the circle's: within this many pixels of it ...
+INLIER_PX = 2.0
+# ... at least this share of them (the rest: where metal or text joins the surround) ...
+MIN_INLIERS = 0.7
+# ... the circle at least this wide (its radius over the image's shorter side) ...
+MIN_RADIUS = 0.25
+# ... and centred within this (of the shorter side) of the image's centre, as an
+# intensifier's disc is framed (a short arc's fit, as of one corner, falls far off).
+MAX_OFFSET = 0.15
+_TRIM_ROUNDS = 6
+_MAX_EDGE_POINTS = 4000
+
+
+def flat_corners(image: np.ndarray) -> np.ndarray:
+    """The flat regions that hold a corner of ``image``.
+
+    Args:
+        image: ``(H, W)`` float in [0, 1].
+    Returns:
+        ``(H, W)`` bool: pixels of the 4-connected flat components (5x5 range at most
+        :data:`FLAT_RANGE`) that contain one of the image's four corner pixels.
+    """
+    image = np.ascontiguousarray(image, np.float32)
+    kernel = np.ones((5, 5), np.uint8)
+    flat = (cv2.dilate(image, kernel) - cv2.erode(image, kernel)) <= FLAT_RANGE
+    _, labels = cv2.connectedComponents(flat.astype(np.uint8), connectivity=4)
+    corners = labels[[0, 0, -1, -1], [0, -1, 0, -1]]
+    return np.isin(labels, corners[corners > 0])
+
+
+def fit_circle(points: np.ndarray) -> tuple[float, float, float]:
+    """Algebraic (Kasa) circle through ``points``: ``(N, 2)`` px -> ``(cx, cy, r)`` px."""
+    x, y = points[:, 0], points[:, 1]
+    design = np.stack([x, y, np.ones_like(x)], 1)
+    (d, e, f), *_ = np.linalg.lstsq(design, -(x * x + y * y), rcond=None)
+    cx, cy = -d / 2, -e / 2
+    return float(cx), float(cy), float(np.sqrt(max(cx * cx + cy * cy - f, 0.0)))
+
+
+def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None:
+    """The exposed disc of an intensifier frame, or None where the image shows none.
+
+    Args:
+        image: ``(H, W)`` or ``(1, H, W)`` in [0, 1].
+    Returns:
+        ``(cx, cy, r)`` image pixels (the circle through the flat surround's inner edge,
+        fitted with its outliers trimmed), or None: no flat corner, or the corners' edge
+        is not a circle (:data:`MIN_INLIERS` within
+        :data:`INLIER_PX`), or the circle is narrower than :data:`MIN_RADIUS` of the
+        shorter side or centred farther than :data:`MAX_OFFSET` of it from the image's
+        centre.
+    """
+    pixels = image.detach().cpu().numpy() if isinstance(image, Tensor) else np.asarray(image)
+    pixels = pixels.reshape(pixels.shape[-2:])
+    height, width = pixels.shape
+    surround = flat_corners(pixels).astype(np.uint8)
+    # Its inner edge: surround pixels beside exposed ones (the image's border is no edge).
+    inner = cv2.erode(surround, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    v, u = np.nonzero(surround > inner)
+    if len(u) < 16:
+        return None
+    step = max(1, len(u) // _MAX_EDGE_POINTS)
+    points = np.stack([u[::step], v[::step]], 1).astype(np.float64)
+    keep = np.ones(len(points), bool)
+    for _ in range(_TRIM_ROUNDS):
+        if keep.sum() < 16:
+            return None
+        cx, cy, radius = fit_circle(points[keep])
+        off = np.abs(np.hypot(points[:, 0] - cx, points[:, 1] - cy) - radius)
+        # Trim progressively: a stem joining the surround pulls the first fit far off.
+        keep = off <= max(INLIER_PX, 3 * float(np.median(off[keep])))
+    inliers = (off <= INLIER_PX).mean()
+    short = min(height, width)
+    offset = np.hypot(cx - (width - 1) / 2, cy - (height - 1) / 2)
+    if inliers < MIN_INLIERS or radius < MIN_RADIUS * short or offset > MAX_OFFSET * short:
+        return None
+    return cx, cy, radius
+
+
+def outside_field(centres: Tensor, field: tuple[float, float, float] | None) -> Tensor:
+    """Which ``centres`` (``(..., 2)`` px) lie beyond ``field`` ``(cx, cy, r)`` px (all
+    False where ``field`` is None; NaN centres are not outside)."""
+    if field is None:
+        return centres.new_zeros(centres.shape[:-1], dtype=bool)
+    cx, cy, radius = field
+    return (centres[..., 0] - cx).hypot(centres[..., 1] - cy) > radius

@@ -1,0 +1,80 @@
+"""The intensifier's round field: found from its flat surround, and the cups outside it."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from cupnet.field import outside_field, round_field
+from data_synth import SynthConfig
+from data_synth.formation import form_image
+
+
+def framed(height: int, width: int, centre: tuple[float, float], radius: float,
+           surround: float = 0.03, seed: int = 0) -> np.ndarray:
+    """``(H, W)`` textured noise inside a disc, a flat ``surround`` outside it (float32)."""
+    rng = np.random.default_rng(seed)
+    v, u = np.mgrid[:height, :width]
+    image = 0.3 + 0.4 * rng.random((height, width))
+    image[np.hypot(u - centre[0], v - centre[1]) > radius] = surround
+    return image.astype(np.float32)
+
+
+@pytest.mark.parametrize(("height", "width", "centre", "radius"), [
+    (480, 640, (330.0, 235.0), 236.0),   # 4:3 video frame, the disc a little off centre
+    (512, 768, (383.5, 255.5), 300.0),   # the disc wider than the frame is high
+    (768, 512, (255.5, 383.5), 240.0),   # portrait
+])
+def test_round_field_recovers_a_drawn_disc(height, width, centre, radius):
+    found = round_field(torch.from_numpy(framed(height, width, centre, radius))[None])
+    assert found is not None
+    cx, cy, r = found
+    assert math.hypot(cx - centre[0], cy - centre[1]) < 1.0
+    # The flat test looks 2 px around: the surround's edge lies up to 3 px outside the disc.
+    assert radius <= r <= radius + 3.5
+
+
+def test_round_field_of_data_synths_intensifier_frame():
+    # An independent generator: data_synth's image formation with its round field, centred.
+    height, width, radius = 400, 600, 210.0
+    line_integral = torch.from_numpy(np.random.default_rng(1).uniform(0.5, 2.5, (height, width)))
+    for seed in range(4):  # 8- and 16-bit, inverted or not, any surround level
+        image = form_image(line_integral, radius, SynthConfig(), np.random.default_rng(seed))
+        cx, cy, r = round_field(image)
+        assert math.hypot(cx - (width - 1) / 2, cy - (height - 1) / 2) < 1.0
+        # Its edge is soft (2 px): the surround's flat part begins up to 5 px out.
+        assert radius - 1 <= r <= radius + 5
+
+
+def test_a_saturated_stem_joining_the_surround_does_not_bend_the_circle():
+    image = framed(480, 640, (319.5, 239.5), 230.0)
+    image[300:, 300:340] = 0.03  # metal as flat as the surround, from inside out to it
+    cx, cy, r = round_field(image)
+    assert math.hypot(cx - 319.5, cy - 239.5) < 1.0 and 230.0 <= r <= 233.5
+
+
+@pytest.mark.parametrize("case", ["noise", "one corner", "off centre", "shutters",
+                                  "small disc"])
+def test_no_round_field_where_the_image_shows_none(case):
+    # Each case is turned down by one check alone: a flat patch with a curved edge
+    # (bright air, a saturated stem) must not pass for the field and drop true cups.
+    rng = np.random.default_rng(2)
+    image = (0.3 + 0.4 * rng.random((480, 640))).astype(np.float32)
+    if case == "one corner":  # an arc too short to fit: the circle falls off centre
+        image = framed(480, 640, (365.0, 275.0), 422.0)
+    elif case == "off centre":  # no intensifier's disc is framed this far off
+        image = framed(480, 640, (150.0, 240.0), 300.0)
+    elif case == "shutters":  # a rectangular collimator: a flat frame with straight edges
+        image[:60], image[-60:], image[:, :80], image[:, -80:] = 0.02, 0.02, 0.02, 0.02
+    elif case == "small disc":  # a round patch, not a field: narrower than a quarter side
+        image = framed(480, 640, (319.5, 239.5), 100.0)
+    assert round_field(image) is None
+
+
+def test_outside_field_by_hand():
+    centres = torch.tensor([[100.0, 100.0], [100.0, 151.0], [math.nan, math.nan]])
+    assert outside_field(centres, (100.0, 100.0, 50.0)).tolist() == [False, True, False]
+    assert outside_field(centres, None).tolist() == [False, False, False]
