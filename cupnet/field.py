@@ -32,6 +32,9 @@ MIN_RADIUS = 0.25
 MAX_OFFSET = 0.15
 _TRIM_ROUNDS = 6
 _MAX_EDGE_POINTS = 4000
+# The image's corner pixels' 5x5 windows, clipped to the image.
+_CORNERS = [(rows, cols) for rows in (slice(0, 3), slice(-3, None))
+            for cols in (slice(0, 3), slice(-3, None))]
 
 
 def flat_corners(image: np.ndarray) -> np.ndarray:
@@ -76,6 +79,8 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
     pixels = image.detach().cpu().numpy() if isinstance(image, Tensor) else np.asarray(image)
     pixels = pixels.reshape(pixels.shape[-2:])
     height, width = pixels.shape
+    if not any(np.ptp(pixels[rows, cols]) <= FLAT_RANGE for rows, cols in _CORNERS):
+        return None  # no flat corner: the cheap answer for most images without a field
     surround = flat_corners(pixels).astype(np.uint8)
     # Its inner edge: surround pixels beside exposed ones (the image's border is no edge).
     inner = cv2.erode(surround, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)

@@ -78,3 +78,4 @@ def test_outside_field_by_hand():
     centres = torch.tensor([[100.0, 100.0], [100.0, 151.0], [math.nan, math.nan]])
     assert outside_field(centres, (100.0, 100.0, 50.0)).tolist() == [False, True, False]
     assert outside_field(centres, None).tolist() == [False, False, False]
+
