@@ -9,7 +9,8 @@ corners at the long ends of an oblong frame for cups (docs/training.md, item 23)
 
 The surround is told from the image by being flat (no noise, no anatomy) and holding an
 image corner; its edge must be a circle, so a saturated stem or bright air reaching the
-border (flat too) neither makes a field nor, being few of the edge's points, bends one.
+border (flat too) neither makes a field nor, being few of the edge's points, bends one;
+text burnt into the surround is no part of its edge.
 """
 
 from __future__ import annotations
@@ -47,6 +48,8 @@ def flat_corners(image: np.ndarray) -> np.ndarray:
         :data:`FLAT_RANGE`) that contain one of the image's four corner pixels.
     """
     image = np.ascontiguousarray(image, np.float32)
+    if not any(np.ptp(image[rows, cols]) <= FLAT_RANGE for rows, cols in _CORNERS):
+        return np.zeros(image.shape, bool)  # the cheap answer for most images without one
     kernel = np.ones((5, 5), np.uint8)
     flat = (cv2.dilate(image, kernel) - cv2.erode(image, kernel)) <= FLAT_RANGE
     _, labels = cv2.connectedComponents(flat.astype(np.uint8), connectivity=4)
@@ -71,22 +74,23 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
     Returns:
         ``(cx, cy, r)`` image pixels (the circle through the flat surround's inner edge,
         fitted with its outliers trimmed), or None: no flat corner, or the corners' edge
-        is not a circle (:data:`MIN_INLIERS` within
-        :data:`INLIER_PX`), or the circle is narrower than :data:`MIN_RADIUS` of the
-        shorter side or centred farther than :data:`MAX_OFFSET` of it from the image's
-        centre.
+        is not a circle (:data:`MIN_INLIERS` within :data:`INLIER_PX`), or the circle is
+        narrower than :data:`MIN_RADIUS` of the shorter side or centred farther than
+        :data:`MAX_OFFSET` of it from the image's centre.
     """
     pixels = image.detach().cpu().numpy() if isinstance(image, Tensor) else np.asarray(image)
     pixels = pixels.reshape(pixels.shape[-2:])
     height, width = pixels.shape
-    if not any(np.ptp(pixels[rows, cols]) <= FLAT_RANGE for rows, cols in _CORNERS):
-        return None  # no flat corner: the cheap answer for most images without a field
-    surround = flat_corners(pixels).astype(np.uint8)
-    # Its inner edge: surround pixels beside exposed ones (the image's border is no edge).
-    inner = cv2.erode(surround, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    v, u = np.nonzero(surround > inner)
-    if len(u) < 16:
+    surround = flat_corners(pixels)
+    if not surround.any():
         return None
+    # Its inner edge: surround pixels beside the largest exposed region (text burnt into
+    # the surround leaves small ones; the image's border is no edge).
+    count, labels, stats, _ = cv2.connectedComponentsWithStats((~surround).astype(np.uint8))
+    if count < 2:
+        return None
+    exposed = (labels == 1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])).astype(np.uint8)
+    v, u = np.nonzero(surround & cv2.dilate(exposed, np.ones((3, 3), np.uint8)).astype(bool))
     step = max(1, len(u) // _MAX_EDGE_POINTS)
     points = np.stack([u[::step], v[::step]], 1).astype(np.float64)
     keep = np.ones(len(points), bool)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -56,11 +57,31 @@ def test_a_saturated_stem_joining_the_surround_does_not_bend_the_circle():
     assert math.hypot(cx - 319.5, cy - 239.5) < 1.0 and 230.0 <= r <= 233.5
 
 
+def test_a_surround_with_a_few_levels_of_noise_is_still_flat():
+    # A 16-bit capture's surround a level or two off black: 4 levels of 65535 at most.
+    image = framed(480, 640, (319.5, 239.5), 236.0)
+    dark = image == 0.03
+    image[dark] += np.random.default_rng(3).integers(0, 5, dark.sum()) / 65535
+    cx, cy, r = round_field(image)
+    assert math.hypot(cx - 319.5, cy - 239.5) < 1.0 and 236.0 <= r <= 239.5
+
+
+def test_text_burnt_into_the_surrounds_corners_does_not_hide_the_field():
+    image = framed(480, 640, (319.5, 239.5), 236.0)
+    text = np.zeros(image.shape, np.uint8)
+    for u, v in ((4, 20), (470, 20), (4, 470), (470, 470)):  # every corner
+        cv2.putText(text, "PATIENT 12", (u, v), cv2.FONT_HERSHEY_SIMPLEX, 0.6, 255, 2)
+    image[text > 0] = 1.0
+    cx, cy, r = round_field(image)
+    assert math.hypot(cx - 319.5, cy - 239.5) < 1.0 and 236.0 <= r <= 239.5
+
+
 @pytest.mark.parametrize("case", ["noise", "one corner", "off centre", "shutters",
-                                  "small disc"])
+                                  "octagon", "small disc", "flat disc"])
 def test_no_round_field_where_the_image_shows_none(case):
-    # Each case is turned down by one check alone: a flat patch with a curved edge
-    # (bright air, a saturated stem) must not pass for the field and drop true cups.
+    # A flat patch with a curved edge (bright air, a saturated stem) must not pass for the
+    # field and drop true cups; but for "flat disc" (no flat corner), each case is turned
+    # down by one check alone.
     rng = np.random.default_rng(2)
     image = (0.3 + 0.4 * rng.random((480, 640))).astype(np.float32)
     if case == "one corner":  # an arc too short to fit: the circle falls off centre
@@ -69,8 +90,18 @@ def test_no_round_field_where_the_image_shows_none(case):
         image = framed(480, 640, (150.0, 240.0), 300.0)
     elif case == "shutters":  # a rectangular collimator: a flat frame with straight edges
         image[:60], image[-60:], image[:, :80], image[:, -80:] = 0.02, 0.02, 0.02, 0.02
+    elif case == "octagon":  # an iris collimator's field: not round
+        angles = np.radians(22.5 + 45 * np.arange(8))
+        corners = np.stack([319.5 + 250 * np.cos(angles), 239.5 + 250 * np.sin(angles)], 1)
+        mask = np.zeros(image.shape, np.uint8)
+        cv2.fillPoly(mask, [np.round(corners).astype(np.int32)], 1)
+        image[mask == 0] = 0.02
     elif case == "small disc":  # a round patch, not a field: narrower than a quarter side
         image = framed(480, 640, (319.5, 239.5), 100.0)
+    elif case == "flat disc":  # bright air or metal, flat inside its circle, at the border
+        v, u = np.mgrid[:480, :640]
+        image[np.hypot(u - 319.5, v - 239.5) < 150] = 1.0
+        image[235:245, 319:] = 1.0
     assert round_field(image) is None
 
 
