@@ -104,6 +104,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "bright): dark (the usual fluoroscopy display, used as given) "
                              "or bright (radiograph-style, metal white: every image turned "
                              "over); docs/training.md, item 20")
+    parser.add_argument("--keep-outside-field", action="store_true",
+                        help="keep the locator's cups centred outside an image "
+                             "intensifier's round field where the image shows one (the "
+                             "shipped model drops them, as the surround's dark ends of an "
+                             "oblong frame look like cups to it; docs/training.md, item 23)")
     parser.add_argument("--landmarks", type=Path,
                         help="solve from manual landmarks in this file instead of the network")
     parser.add_argument("--overwrite", action="store_true", help="replace existing results")
@@ -194,7 +199,8 @@ class NetworkDetector:
     """CupNet on a batch of images (weights loaded without running code from the file)."""
 
     def __init__(self, checkpoint: Path | None, save_masks: bool, preset: str | None = None,
-                 check_doubt: float | None = None, metal: str | None = None) -> None:
+                 check_doubt: float | None = None, metal: str | None = None,
+                 keep_outside_field: bool = False) -> None:
         from cupnet.fold import fold_batchnorm
         from cupnet.model import DEFAULT_CHECKPOINT, apply_speed_preset, load_model
 
@@ -204,6 +210,8 @@ class NetworkDetector:
             self.model.config.check_doubt = check_doubt
         if metal is not None:
             self.model.config.metal = metal
+        if keep_outside_field:
+            self.model.config.round_field = False
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),
@@ -582,7 +590,8 @@ def _run(args: argparse.Namespace) -> int:
     try:
         detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
                     else NetworkDetector(args.checkpoint, args.save_masks, args.preset,
-                                         args.check_doubt, args.metal))
+                                         args.check_doubt, args.metal,
+                                         args.keep_outside_field))
     except Exception as exc:  # any unreadable model or landmark file stops the run here
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {reason}",
