@@ -22,17 +22,20 @@ from torch import Tensor
 # Flat: the intensity range over a 5x5 window at most this (of the image's [0, 1]): exact
 # plateaus of 8- and 16-bit images, where the field's quantum noise spans several levels.
 FLAT_RANGE = 1e-3
-# The surround's edge points that count as the circle's: within this many pixels of it ...
+# How near the circle an edge point or the exposed region's pixel counts as on it.
 INLIER_PX = 2.0
-# ... at least this share of them (the rest: where metal or text joins the surround) ...
-MIN_INLIERS = 0.7
-# ... the circle at least this wide (its radius over the image's shorter side) ...
+# The circle at least this wide (its radius over the image's shorter side) ...
 MIN_RADIUS = 0.25
-# ... and centred within this (of the shorter side) of the image's centre, as an
-# intensifier's disc is framed (a short arc's fit, as of one corner, falls far off).
+# ... centred within this (of the shorter side) of the image's centre, as an
+# intensifier's disc is framed (a short arc's fit, as of one corner, falls far off) ...
 MAX_OFFSET = 0.15
+# ... and holding the exposed region but this share of it (a short arc's circle can pass
+# the checks above and still cut the field, and cups in it would be dropped).
+MAX_EXPOSED_OUTSIDE = 0.01
+# Trimming rounds at most (a stem's edge is gone after two or three), and edge points used
+# (every k-th: a 4096 px frame's edge holds tens of thousands).
 _TRIM_ROUNDS = 6
-_MAX_EDGE_POINTS = 4000
+_MAX_POINTS = 4000
 # The image's corner pixels' 5x5 windows, clipped to the image.
 _CORNERS = [(rows, cols) for rows in (slice(0, 3), slice(-3, None))
             for cols in (slice(0, 3), slice(-3, None))]
@@ -70,16 +73,24 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
     """The exposed disc of an intensifier frame, or None where the image shows none.
 
     Args:
-        image: ``(H, W)`` or ``(1, H, W)`` in [0, 1].
+        image: ``(H, W)`` or ``(1, H, W)`` intensities in [0, 1] (any float dtype, any
+            device).
     Returns:
         ``(cx, cy, r)`` image pixels (the circle through the flat surround's inner edge,
-        fitted with its outliers trimmed), or None: no flat corner, or the corners' edge
-        is not a circle (:data:`MIN_INLIERS` within :data:`INLIER_PX`), or the circle is
-        narrower than :data:`MIN_RADIUS` of the shorter side or centred farther than
-        :data:`MAX_OFFSET` of it from the image's centre.
+        fitted with its outliers trimmed), or None: no flat corner, or the circle is
+        narrower than :data:`MIN_RADIUS` of the shorter side, centred farther than
+        :data:`MAX_OFFSET` of it from the image's centre, or leaves more than
+        :data:`MAX_EXPOSED_OUTSIDE` of the exposed region (by :data:`INLIER_PX`) outside:
+        then the corners' edge is no circle holding the field (shutters, an iris, one
+        corner's short arc), and cups in it could be dropped.
+    Raises:
+        ValueError: ``image`` is not ``(H, W)`` or ``(1, H, W)``.
     """
-    pixels = image.detach().cpu().numpy() if isinstance(image, Tensor) else np.asarray(image)
-    pixels = pixels.reshape(pixels.shape[-2:])
+    if isinstance(image, Tensor):
+        image = image.detach().float().cpu().numpy()
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[0] != 1):
+        raise ValueError(f"round_field takes an (H, W) or (1, H, W) image, got {image.shape}")
+    pixels = image.reshape(image.shape[-2:])
     height, width = pixels.shape
     surround = flat_corners(pixels)
     if not surround.any():
@@ -90,9 +101,7 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
     if count < 2:
         return None
     exposed = (labels == 1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])).astype(np.uint8)
-    v, u = np.nonzero(surround & cv2.dilate(exposed, np.ones((3, 3), np.uint8)).astype(bool))
-    step = max(1, len(u) // _MAX_EDGE_POINTS)
-    points = np.stack([u[::step], v[::step]], 1).astype(np.float64)
+    points = _some_points(surround & cv2.dilate(exposed, np.ones((3, 3), np.uint8)).astype(bool))
     keep = np.ones(len(points), bool)
     for _ in range(_TRIM_ROUNDS):
         if keep.sum() < 16:
@@ -100,13 +109,25 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
         cx, cy, radius = fit_circle(points[keep])
         off = np.abs(np.hypot(points[:, 0] - cx, points[:, 1] - cy) - radius)
         # Trim progressively: a stem joining the surround pulls the first fit far off.
-        keep = off <= max(INLIER_PX, 3 * float(np.median(off[keep])))
-    inliers = (off <= INLIER_PX).mean()
+        trimmed = off <= max(INLIER_PX, 3 * float(np.median(off[keep])))
+        if (trimmed == keep).all():
+            break
+        keep = trimmed
+    inside = _some_points(exposed.astype(bool))
+    outside = (np.hypot(inside[:, 0] - cx, inside[:, 1] - cy) > radius + INLIER_PX).mean()
     short = min(height, width)
     offset = np.hypot(cx - (width - 1) / 2, cy - (height - 1) / 2)
-    if inliers < MIN_INLIERS or radius < MIN_RADIUS * short or offset > MAX_OFFSET * short:
+    if radius < MIN_RADIUS * short or offset > MAX_OFFSET * short or outside > MAX_EXPOSED_OUTSIDE:
         return None
     return cx, cy, radius
+
+
+def _some_points(mask: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` float64 (u, v) px of ``mask``'s pixels, every k-th: at most about
+    ``_MAX_POINTS``."""
+    v, u = np.nonzero(mask)
+    step = max(1, len(u) // _MAX_POINTS)
+    return np.stack([u[::step], v[::step]], 1).astype(np.float64)
 
 
 def outside_field(centres: Tensor, field: tuple[float, float, float] | None) -> Tensor:

@@ -473,6 +473,7 @@ class CupNet(nn.Module):
         """Stage 1 at inference: :meth:`ellipses_from_locator` of :meth:`locate_windows`,
         looked for again with ``locator_retry_gamma`` in the images where no cup was found;
         with ``round_field``, those centred outside the image's round field are dropped."""
+        # An image turned over (metal "bright") keeps its flat surround: no need to undo it.
         fields = [round_field(image) if self.config.round_field else None for image in images]
         rough, scores = self.ellipses_from_locator(*self.locate_windows(images), fields)
         gamma = self.config.locator_retry_gamma

@@ -42,7 +42,7 @@ def test_round_field_of_data_synths_intensifier_frame():
     # An independent generator: data_synth's image formation with its round field, centred.
     height, width, radius = 400, 600, 210.0
     line_integral = torch.from_numpy(np.random.default_rng(1).uniform(0.5, 2.5, (height, width)))
-    for seed in range(4):  # 8- and 16-bit, inverted or not, any surround level
+    for seed in range(4):  # the formation's random settings: bits, inversion, surround
         image = form_image(line_integral, radius, SynthConfig(), np.random.default_rng(seed))
         cx, cy, r = round_field(image)
         assert math.hypot(cx - (width - 1) / 2, cy - (height - 1) / 2) < 1.0
@@ -57,13 +57,18 @@ def test_a_saturated_stem_joining_the_surround_does_not_bend_the_circle():
     assert math.hypot(cx - 319.5, cy - 239.5) < 1.0 and 230.0 <= r <= 233.5
 
 
-def test_a_surround_with_a_few_levels_of_noise_is_still_flat():
-    # A 16-bit capture's surround a level or two off black: 4 levels of 65535 at most.
+@pytest.mark.parametrize(("levels", "flat"), [(50, True), (100, False)])
+def test_a_surround_is_flat_up_to_a_thousandth(levels, flat):
+    # A 16-bit capture's surround some levels off black: 50 of 65535 (7.6e-4) is flat,
+    # 100 (1.5e-3) is not, and without a flat corner there is no field.
     image = framed(480, 640, (319.5, 239.5), 236.0)
     dark = image == 0.03
-    image[dark] += np.random.default_rng(3).integers(0, 5, dark.sum()) / 65535
-    cx, cy, r = round_field(image)
-    assert math.hypot(cx - 319.5, cy - 239.5) < 1.0 and 236.0 <= r <= 239.5
+    image[dark] += np.random.default_rng(3).integers(0, levels + 1, dark.sum()) / 65535
+    found = round_field(image)
+    assert (found is not None) == flat
+    if flat:
+        cx, cy, r = found
+        assert math.hypot(cx - 319.5, cy - 239.5) < 1.0 and 236.0 <= r <= 239.5
 
 
 def test_text_burnt_into_the_surrounds_corners_does_not_hide_the_field():
@@ -76,16 +81,19 @@ def test_text_burnt_into_the_surrounds_corners_does_not_hide_the_field():
     assert math.hypot(cx - 319.5, cy - 239.5) < 1.0 and 236.0 <= r <= 239.5
 
 
-@pytest.mark.parametrize("case", ["noise", "one corner", "off centre", "shutters",
-                                  "octagon", "small disc", "flat disc"])
+@pytest.mark.parametrize("case", ["noise", "one corner", "short arc", "off centre",
+                                  "shutters", "octagon", "small disc", "flat disc",
+                                  "air in a corner", "all flat", "tiny"])
 def test_no_round_field_where_the_image_shows_none(case):
-    # A flat patch with a curved edge (bright air, a saturated stem) must not pass for the
-    # field and drop true cups; but for "flat disc" (no flat corner), each case is turned
-    # down by one check alone.
+    # A flat patch with a curved edge (bright air, a saturated stem) or a short arc's
+    # circle must not pass for the field and drop true cups. The drawn fields are turned
+    # down each by one check alone; the rest have no flat corner or too few edge points.
     rng = np.random.default_rng(2)
     image = (0.3 + 0.4 * rng.random((480, 640))).astype(np.float32)
     if case == "one corner":  # an arc too short to fit: the circle falls off centre
         image = framed(480, 640, (365.0, 275.0), 422.0)
+    elif case == "short arc":  # one corner's arc: its circle would cut the field
+        image = framed(480, 640, (362.4, 192.9), 415.1)
     elif case == "off centre":  # no intensifier's disc is framed this far off
         image = framed(480, 640, (150.0, 240.0), 300.0)
     elif case == "shutters":  # a rectangular collimator: a flat frame with straight edges
@@ -102,6 +110,13 @@ def test_no_round_field_where_the_image_shows_none(case):
         v, u = np.mgrid[:480, :640]
         image[np.hypot(u - 319.5, v - 239.5) < 150] = 1.0
         image[235:245, 319:] = 1.0
+    elif case == "air in a corner":  # flat bright air beyond the body, round-edged
+        v, u = np.mgrid[:480, :640]
+        image[np.hypot(u, v) < 200] = 1.0
+    elif case == "all flat":
+        image[:] = 0.03
+    elif case == "tiny":
+        image = framed(8, 8, (3.5, 3.5), 3.0)
     assert round_field(image) is None
 
 
@@ -109,4 +124,3 @@ def test_outside_field_by_hand():
     centres = torch.tensor([[100.0, 100.0], [100.0, 151.0], [math.nan, math.nan]])
     assert outside_field(centres, (100.0, 100.0, 50.0)).tolist() == [False, True, False]
     assert outside_field(centres, None).tolist() == [False, False, False]
-
