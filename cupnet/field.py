@@ -101,7 +101,7 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
     if count < 2:
         return None
     exposed = (labels == 1 + np.argmax(stats[1:, cv2.CC_STAT_AREA])).astype(np.uint8)
-    points = _some_points(surround & cv2.dilate(exposed, np.ones((3, 3), np.uint8)).astype(bool))
+    points = _some_points(surround.view(np.uint8) & cv2.dilate(exposed, np.ones((3, 3), np.uint8)))
     keep = np.ones(len(points), bool)
     for _ in range(_TRIM_ROUNDS):
         if keep.sum() < 16:
@@ -113,7 +113,8 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
         if (trimmed == keep).all():
             break
         keep = trimmed
-    inside = _some_points(exposed.astype(bool))
+    # On a grid of every 4th pixel: the share wanted, at a sixteenth of the work.
+    inside = 4 * _some_points(np.ascontiguousarray(exposed[::4, ::4]))
     outside = (np.hypot(inside[:, 0] - cx, inside[:, 1] - cy) > radius + INLIER_PX).mean()
     short = min(height, width)
     offset = np.hypot(cx - (width - 1) / 2, cy - (height - 1) / 2)
@@ -123,11 +124,15 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
 
 
 def _some_points(mask: np.ndarray) -> np.ndarray:
-    """``(N, 2)`` float64 (u, v) px of ``mask``'s pixels, every k-th: at most about
+    """``(N, 2)`` float64 (u, v) px of ``mask``'s pixels (uint8), every k-th: at most about
     ``_MAX_POINTS``."""
-    v, u = np.nonzero(mask)
-    step = max(1, len(u) // _MAX_POINTS)
-    return np.stack([u[::step], v[::step]], 1).astype(np.float64)
+    # (u, v) int32, several times np.nonzero's speed (OpenCV 4 gave (N, 1, 2), 5 gives (N, 2)).
+    found = cv2.findNonZero(mask)
+    if found is None:
+        return np.zeros((0, 2))
+    found = found.reshape(-1, 2)
+    step = max(1, len(found) // _MAX_POINTS)
+    return found[::step].astype(np.float64)
 
 
 def outside_field(centres: Tensor, field: tuple[float, float, float] | None) -> Tensor:
