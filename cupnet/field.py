@@ -36,6 +36,8 @@ MAX_EXPOSED_OUTSIDE = 0.01
 # (every k-th: a 4096 px frame's edge holds tens of thousands).
 _TRIM_ROUNDS = 6
 _MAX_POINTS = 4000
+# Images up to twice this shorter side are looked at whole (px).
+_FULL_SIDE = 1024
 # The image's corner pixels' 5x5 windows, clipped to the image.
 _CORNERS = [(rows, cols) for rows in (slice(0, 3), slice(-3, None))
             for cols in (slice(0, 3), slice(-3, None))]
@@ -90,7 +92,10 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
         image = image.detach().float().cpu().numpy()
     if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[0] != 1):
         raise ValueError(f"round_field takes an (H, W) or (1, H, W) image, got {image.shape}")
-    pixels = image.reshape(image.shape[-2:])
+    # Every k-th pixel of a large image (k = shorter side // 1024): the same surround and
+    # circle to k px, at 1 / k^2 of the work (0.33 s on a 3000 x 4096 frame at full size).
+    stride = max(1, min(image.shape[-2:]) // _FULL_SIDE)
+    pixels = image.reshape(image.shape[-2:])[::stride, ::stride]
     height, width = pixels.shape
     surround = flat_corners(pixels)
     if not surround.any():
@@ -120,7 +125,7 @@ def round_field(image: Tensor | np.ndarray) -> tuple[float, float, float] | None
     offset = np.hypot(cx - (width - 1) / 2, cy - (height - 1) / 2)
     if radius < MIN_RADIUS * short or offset > MAX_OFFSET * short or outside > MAX_EXPOSED_OUTSIDE:
         return None
-    return cx, cy, radius
+    return cx * stride, cy * stride, radius * stride
 
 
 def _some_points(mask: np.ndarray) -> np.ndarray:
