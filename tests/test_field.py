@@ -73,6 +73,16 @@ def test_a_surround_is_flat_up_to_a_thousandth(levels, flat):
         assert math.hypot(cx - 319.5, cy - 239.5) < 1.0 and 236.0 <= r <= 239.5
 
 
+def test_a_jpeg_frame_keeps_its_field_a_little_wider():
+    # JPEG's ringing roughens the surround's edge and its flat part starts farther out: the
+    # circle may only grow (a wider field drops fewer blobs, never a cup inside the disc).
+    image = framed(480, 640, (319.5, 239.5), 236.0)
+    _, jpeg = cv2.imencode(".jpg", np.round(image * 255).astype(np.uint8),
+                           [cv2.IMWRITE_JPEG_QUALITY, 75])
+    cx, cy, r = round_field(cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255)
+    assert math.hypot(cx - 319.5, cy - 239.5) < 2.0 and 236.0 <= r <= 248.0
+
+
 def test_text_burnt_into_the_surrounds_corners_does_not_hide_the_field():
     image = framed(480, 640, (319.5, 239.5), 236.0)
     text = np.zeros(image.shape, np.uint8)
