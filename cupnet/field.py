@@ -8,9 +8,10 @@ corners at the long ends of an oblong frame for cups (docs/training.md, item 23)
 :func:`outside_field` tells which ellipses' centres lie beyond it.
 
 The surround is told from the image by being flat (no noise, no anatomy) and holding an
-image corner; its edge must be a circle, so a saturated stem or bright air reaching the
-border (flat too) neither makes a field nor, being few of the edge's points, bends one;
-text burnt into the surround is no part of its edge.
+image corner. The circle fitted to its edge must be wide, centred and hold the whole
+exposed region, so a saturated stem or bright air reaching the border (flat too) neither
+makes a field nor, being few of the edge's points, bends one; text burnt into the
+surround is no part of its edge.
 """
 
 from __future__ import annotations
