@@ -99,6 +99,10 @@ class CupNetConfig:
         max_cups: cups per image at most.
         detect_threshold: probability threshold of the locator's components.
         min_cup_area: smallest component (locator px) that counts as a cup.
+        min_score: a detected cup whose locator component's mean probability
+            (:attr:`CupDetection.score`) is below this is dropped (None: none is): weak
+            blobs make most false cups, many of them with confident poses (item 24 of
+            docs/training.md).
         refine_passes: stage-2 passes at inference (each re-frames on the last ellipse).
         locator_scale: the first pass frames the locator's blob enlarged by this factor and
             made round (axis ratio >= 0.8, no stretch), as in training's coarse frames.
@@ -236,6 +240,7 @@ class CupNetConfig:
     max_cups: int = 2
     detect_threshold: float = 0.5
     min_cup_area: float = 4.0
+    min_score: float | None = None
     refine_passes: int = 2
     locator_scale: float = 1.15
     rim_passes: int = 0
@@ -875,7 +880,9 @@ class CupNet(nn.Module):
                        and doubt >= self.config.check_doubt),
                 metal_bright=bright[i],
             ))
-        return [distinct_cups(found) for found in results]
+        floor = self.config.min_score
+        return [distinct_cups([det for det in found if floor is None or det.score >= floor])
+                for found in results]
 
     def _solved_picks(self, source: _Source, todo: Tensor, geometry: Geometry,
                       diameter: Tensor, cup_index: Tensor, batch: int

@@ -104,6 +104,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "bright): dark (the usual fluoroscopy display, used as given) "
                              "or bright (radiograph-style, metal white: every image turned "
                              "over); docs/training.md, item 20")
+    parser.add_argument("--min-score", type=float, metavar="PROBABILITY",
+                        help="drop a cup whose locator blob's mean probability is below this "
+                             "(default: the model's min_score, 0.8 for the shipped one; 0 "
+                             "keeps every blob; docs/training.md, item 24)")
     parser.add_argument("--keep-outside-field", action="store_true",
                         help="keep the locator's cups centred outside an image "
                              "intensifier's round field where the image shows one (the "
@@ -200,7 +204,7 @@ class NetworkDetector:
 
     def __init__(self, checkpoint: Path | None, save_masks: bool, preset: str | None = None,
                  check_doubt: float | None = None, metal: str | None = None,
-                 keep_outside_field: bool = False) -> None:
+                 keep_outside_field: bool = False, min_score: float | None = None) -> None:
         from cupnet.fold import fold_batchnorm
         from cupnet.model import DEFAULT_CHECKPOINT, apply_speed_preset, load_model
 
@@ -212,6 +216,8 @@ class NetworkDetector:
             self.model.config.metal = metal
         if keep_outside_field:
             self.model.config.round_field = False
+        if min_score is not None:
+            self.model.config.min_score = min_score
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),
@@ -591,7 +597,7 @@ def _run(args: argparse.Namespace) -> int:
         detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
                     else NetworkDetector(args.checkpoint, args.save_masks, args.preset,
                                          args.check_doubt, args.metal,
-                                         args.keep_outside_field))
+                                         args.keep_outside_field, args.min_score))
     except Exception as exc:  # any unreadable model or landmark file stops the run here
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {reason}",

@@ -283,6 +283,25 @@ def test_locator_blobs_outside_the_round_field_are_no_cups(drop_outside):
     assert np.abs(found[0].ellipse[:2] - ellipse[0, :2].numpy()).max() < 1.0
 
 
+def test_a_weak_locator_blob_is_dropped_below_min_score():
+    # Two cups in one square view, the second dim: the stand-in locator (a low gain on the
+    # standardised view) is less sure of it, and min_score between the two drops it alone.
+    truth = [[22.0, 35.0, -80.0, 10.0, 250.0], [15.0, -30.0, 80.0, -5.0, 330.0]]
+    image, geometry, ellipse = scene(truth, 800, 800, spacing=0.45)
+    image = image - 0.6 * ellipse_coverage(ellipse[None, 1:2], 800, 800)[0]
+    found = {}
+    for floor in (None, 0.88):
+        model = CupNet(CupNetConfig(**{**TINY.__dict__, "min_score": floor}))
+        model.locator, model.refiner = EdgeNet(gain=1.0), EdgeNet(gain=20.0)
+        found[floor] = sorted(model.detect(image.float()[None], geometry, 52.0,
+                                           return_masks=False)[0], key=lambda d: -d.score)
+    bright, dim = found[None]
+    assert bright.score > 0.88 > dim.score
+    assert np.abs(dim.ellipse[:2] - ellipse[1, :2].numpy()).max() < 2.0  # a cup, but weak
+    (kept,) = found[0.88]
+    assert np.array_equal(kept.ellipse, bright.ellipse) and np.array_equal(kept.pose, bright.pose)
+
+
 def test_checkpoint_round_trip(tmp_path):
     torch.manual_seed(1)
     model = CupNet(TINY).eval()

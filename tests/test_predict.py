@@ -441,17 +441,18 @@ def test_overlay_marks_a_cup_to_check(check: bool) -> None:
                            {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None}),
                           (["--check-doubt", "0.5"], None, {"check_doubt": 0.5}),
                           (["--metal", "bright"], None, {"metal": "bright"}),
-                          (["--keep-outside-field"], None, {"round_field": False})])
+                          (["--keep-outside-field"], None, {"round_field": False}),
+                          (["--min-score", "0"], None, {"min_score": 0.0})])
 def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
         tmp_path: Path, flags: list[str], preset: str | None, changed: dict) -> None:
     """``--fast`` turns the model's verification off, ``--fastest`` also its outline
     refinement and thin-rim hypotheses (the recorded config shows it, and the preset's name
     is recorded); ``--check-doubt`` sets the flag's threshold, ``--metal`` how the images
-    show metal, ``--keep-outside-field`` keeps cups outside a round field; every other
-    setting is the checkpoint's."""
+    show metal, ``--keep-outside-field`` keeps cups outside a round field, ``--min-score``
+    sets the weakest locator blob kept; every other setting is the checkpoint's."""
     stored = {"detect_threshold": 2.0, "verify_gate": 1.0, "check_doubt": 1.8,
               "outline_passes": 3, "thin_rim_gate": 0.3, "ambiguous_by_doubt": True,
-              "round_field": True}
+              "round_field": True, "min_score": 0.8}
     model = CupNet(CupNetConfig(**stored))
     weights = save_model(model, tmp_path / "gated.safetensors")
     noise_png(tmp_path / "a.png")
