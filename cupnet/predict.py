@@ -203,21 +203,16 @@ class NetworkDetector:
     """CupNet on a batch of images (weights loaded without running code from the file)."""
 
     def __init__(self, checkpoint: Path | None, save_masks: bool, preset: str | None = None,
-                 check_doubt: float | None = None, metal: str | None = None,
-                 keep_outside_field: bool = False, min_score: float | None = None) -> None:
+                 settings: dict[str, object] | None = None) -> None:
+        """``settings``: :class:`cupnet.model.CupNetConfig` fields set over the checkpoint's
+        (and the preset's), as the command line gives them."""
         from cupnet.fold import fold_batchnorm
         from cupnet.model import DEFAULT_CHECKPOINT, apply_speed_preset, load_model
 
         self.model = fold_batchnorm(load_model(checkpoint))
         apply_speed_preset(self.model.config, preset)
-        if check_doubt is not None:
-            self.model.config.check_doubt = check_doubt
-        if metal is not None:
-            self.model.config.metal = metal
-        if keep_outside_field:
-            self.model.config.round_field = False
-        if min_score is not None:
-            self.model.config.min_score = min_score
+        for name, value in (settings or {}).items():
+            setattr(self.model.config, name, value)
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),
@@ -582,6 +577,14 @@ def run(args: argparse.Namespace) -> int:
         torch.set_num_threads(threads)
 
 
+def _model_settings(args: argparse.Namespace) -> dict[str, object]:
+    """The model settings the command line overrides (flags not given keep the model's)."""
+    given = {"check_doubt": args.check_doubt, "metal": args.metal,
+             "min_score": args.min_score,
+             "round_field": False if args.keep_outside_field else None}
+    return {name: value for name, value in given.items() if value is not None}
+
+
 def _run(args: argparse.Namespace) -> int:
     problem = _check_args(args)
     if problem is None:
@@ -596,8 +599,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
                     else NetworkDetector(args.checkpoint, args.save_masks, args.preset,
-                                         args.check_doubt, args.metal,
-                                         args.keep_outside_field, args.min_score))
+                                         _model_settings(args)))
     except Exception as exc:  # any unreadable model or landmark file stops the run here
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {reason}",
