@@ -51,6 +51,7 @@ from cupnet.io.results import (
     status_row,
     write_results_csv,
 )
+from cupnet.offload import resolve_device
 from cupnet.overlay import CupDrawing, draw_overlay, pose_lines, write_png
 from cupnet.polarity import METAL_DISPLAYS
 
@@ -120,6 +121,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep existing results and process only the images not in them")
     parser.add_argument("--save-masks", action="store_true", help="write cup masks as PNG")
     parser.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs")
+    parser.add_argument("--device", default="cpu",
+                        help="where the networks run: cpu (default), cuda, cuda:N or mps; "
+                             "the geometry between their calls stays on the CPU "
+                             "(cupnet.offload)")
     parser.add_argument("--batch-size", type=int, default=8, help="images per network batch")
     parser.add_argument("--threads", type=int, default=1,
                         help="PyTorch threads per network batch (default 1: two batches, "
@@ -203,20 +208,25 @@ class NetworkDetector:
     """CupNet on a batch of images (weights loaded without running code from the file)."""
 
     def __init__(self, checkpoint: Path | None, save_masks: bool, preset: str | None = None,
-                 settings: dict[str, object] | None = None) -> None:
+                 settings: dict[str, object] | None = None, device: str = "cpu") -> None:
         """``settings``: :class:`cupnet.model.CupNetConfig` fields set over the checkpoint's
-        (and the preset's), as the command line gives them."""
+        (and the preset's), as the command line gives them; ``device``: where the networks
+        run (:func:`cupnet.offload.networks_on`)."""
         from cupnet.fold import fold_batchnorm
         from cupnet.model import DEFAULT_CHECKPOINT, apply_speed_preset, load_model
+        from cupnet.offload import networks_on  # loads the model's libraries
 
         self.model = fold_batchnorm(load_model(checkpoint))
+        if device != "cpu":
+            self.model = networks_on(self.model, device)
         apply_speed_preset(self.model.config, preset)
         for name, value in (settings or {}).items():
             setattr(self.model.config, name, value)
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),
-                     "speed_preset": preset, "config": dict(vars(self.model.config))}
+                     "speed_preset": preset, "device": device,
+                     "config": dict(vars(self.model.config))}
 
     def file_values(self, name: str) -> dict[str, float]:
         return {}
@@ -400,6 +410,11 @@ def _check_args(args: argparse.Namespace) -> str | None:
         return "--batch-size must be >= 1"
     if args.threads < 1:
         return "--threads must be >= 1"
+    if args.device != "cpu" and args.landmarks is None:
+        try:
+            resolve_device(args.device)
+        except ValueError as exc:
+            return str(exc)  # it names the device
     for key, value in geometry_flags(args).items():
         if key in REQUIRED and not (math.isfinite(value) and value > 0):
             return f"{REQUIRED[key][1]} must be a positive number of mm, got {value}"
@@ -599,7 +614,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
                     else NetworkDetector(args.checkpoint, args.save_masks, args.preset,
-                                         _model_settings(args)))
+                                         _model_settings(args), args.device))
     except Exception as exc:  # any unreadable model or landmark file stops the run here
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {reason}",
