@@ -120,7 +120,7 @@ def batched_rows(model: CupNet, data: list[dict], device: torch.device, batches:
             found = batched_detections(model, data, device, max(batches), precision)
         quality = scores(found, data)
         for batch in batches:
-            part = data[:batch] * max(1, -(-len(data) // batch)) if batch > len(data) else data
+            part = (data * -(-batch // len(data)))[:batch] if batch > len(data) else data
             groups = [stacked(part[i:i + batch], device) for i in range(0, len(part), batch)]
 
             def run(groups: list = groups, precision: torch.dtype | None = precision) -> None:
@@ -178,6 +178,9 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=20_261_124)
     args = parser.parse_args()
     device = resolve_device(args.device)
+    if device.type == "mps":  # the batched pipeline's solver is float64 on the device
+        parser.error("--device mps: MPS has no float64; cupnet predict --device mps runs the "
+                     "networks there and solves on the CPU")
     torch.set_num_threads(args.threads)
     gpu = device.type != "cpu"
     batches = args.batches or ([1, 64, 256] if gpu else [1, 16])

@@ -138,30 +138,32 @@ def resample(image: Tensor, crop_to_image: Tensor, size: int, antialias: bool = 
         crop_to_image: ``(2, 3)`` affine.
         size: view size in pixels.
     Returns:
-        ``(C, size, size)`` in the image's dtype.
+        ``(C, size, size)`` in the image's dtype. Computed with autocast off: the affines are
+        geometry, and in bfloat16 they would move the samples by pixels.
     """
-    affine = crop_to_image.to(image.dtype)
-    # Box-filter only by the smaller scale: a stretched direction must keep its detail.
-    step = float(torch.linalg.svdvals(affine[:, :2])[-1])
-    pool = max(1, math.floor(step)) if antialias else 1
-    if pool > 1:
-        last = size - 1.0
-        corners = to_image(torch.tensor([[0.0, 0.0], [last, 0.0], [0.0, last], [last, last]],
-                                        dtype=image.dtype, device=image.device), affine)
-        lo = (corners.min(0).values - pool).floor().clamp_min(0).long()
-        hi = (corners.max(0).values + pool + 1).ceil().long()
-        u0, v0 = int(lo[0]), int(lo[1])
-        u1, v1 = min(int(hi[0]), image.shape[-1]), min(int(hi[1]), image.shape[-2])
-        if u1 - u0 < pool or v1 - v0 < pool:  # the view lies outside the image
-            return image.new_zeros(image.shape[0], size, size)
-        region = F.avg_pool2d(image[None, :, v0:v1, u0:u1], pool)[0]
-        # Pooled pixel j covers region pixels [j p, j p + p - 1]: centre u0 + j p + (p - 1) / 2.
-        shift = torch.tensor([u0 + (pool - 1) / 2, v0 + (pool - 1) / 2], dtype=image.dtype,
-                             device=image.device)
-        affine = torch.cat([affine[:, :2] / pool, ((affine[:, 2] - shift) / pool)[:, None]], 1)
-        image = region
-    image_to_crop = invert_affine_transform(affine[None])
-    return warp_affine(image[None], image_to_crop, (size, size), align_corners=True)[0]
+    with torch.autocast(image.device.type, enabled=False):
+        affine = crop_to_image.to(image.dtype)
+        # Box-filter only by the smaller scale: a stretched direction must keep its detail.
+        step = float(torch.linalg.svdvals(affine[:, :2])[-1])
+        pool = max(1, math.floor(step)) if antialias else 1
+        if pool > 1:
+            last = size - 1.0
+            corners = to_image(torch.tensor([[0.0, 0.0], [last, 0.0], [0.0, last], [last, last]],
+                                            dtype=image.dtype, device=image.device), affine)
+            lo = (corners.min(0).values - pool).floor().clamp_min(0).long()
+            hi = (corners.max(0).values + pool + 1).ceil().long()
+            u0, v0 = int(lo[0]), int(lo[1])
+            u1, v1 = min(int(hi[0]), image.shape[-1]), min(int(hi[1]), image.shape[-2])
+            if u1 - u0 < pool or v1 - v0 < pool:  # the view lies outside the image
+                return image.new_zeros(image.shape[0], size, size)
+            region = F.avg_pool2d(image[None, :, v0:v1, u0:u1], pool)[0]
+            # Pooled pixel j covers region pixels [j p, j p + p - 1]: centre u0 + j p + (p - 1) / 2.
+            shift = torch.tensor([u0 + (pool - 1) / 2, v0 + (pool - 1) / 2], dtype=image.dtype,
+                                 device=image.device)
+            affine = torch.cat([affine[:, :2] / pool, ((affine[:, 2] - shift) / pool)[:, None]], 1)
+            image = region
+        image_to_crop = invert_affine_transform(affine[None])
+        return warp_affine(image[None], image_to_crop, (size, size), align_corners=True)[0]
 
 
 def resample_batch(images: Tensor | list[Tensor], crop_to_image: Tensor, size: int,

@@ -703,8 +703,8 @@ class CupNet(nn.Module):
                     else diameter[cup_index[:, 0]])
         if points.shape[0] == 0:
             empty = points.new_zeros(0, 5)
-            return PoseSolution(empty, empty, torch.zeros(0, dtype=torch.bool), empty,
-                                points.new_zeros(0), torch.zeros(0, dtype=torch.bool), [])
+            none = torch.zeros(0, dtype=torch.bool, device=points.device)
+            return PoseSolution(empty, empty, none, empty, points.new_zeros(0), none, [])
         return solve_pose(points, Geometry.from_rows(rows), diameter, weights, refine=refine,
                           on_error="flag")
 

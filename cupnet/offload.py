@@ -44,13 +44,17 @@ class OnDevice(nn.Module):
     """
 
     def __init__(self, module: nn.Module, device: torch.device | str) -> None:
+        """Moves ``module`` to ``device`` (in place, as ``nn.Module.to`` does)."""
         super().__init__()
         self.device = torch.device(device)
         self.module = module.to(self.device)
 
     def forward(self, *inputs: Tensor) -> object:
+        # Where the module's weights are now (a later .to() moves them), else where it was put.
+        weight = next(self.module.parameters(), None)
+        device = weight.device if weight is not None else self.device
         home = inputs[0].device
-        return _moved(self.module(*(_moved(x, self.device) for x in inputs)), home)
+        return _moved(self.module(*(_moved(x, device) for x in inputs)), home)
 
     def __getattr__(self, name: str) -> object:
         try:
@@ -87,8 +91,8 @@ def resolve_device(name: str) -> torch.device:
 def networks_on(model: CupNet, device: torch.device | str) -> CupNet:
     """A copy of ``model`` whose networks run on ``device`` (:class:`OnDevice`) and whose
     :meth:`~cupnet.model.CupNet.detect` otherwise runs on the CPU; ``model`` itself is left
-    as it is. For inference: the copy's state dict carries the wrappers' ``module.`` keys.
-    On the CPU the copy's detections equal ``model``'s."""
+    as it is. For inference: the copy's state dict carries the wrappers' ``module.`` keys,
+    so save ``model``, not the copy. On the CPU the copy's detections equal ``model``'s."""
     device = resolve_device(str(device))
     moved = copy.deepcopy(model)
     for name in NETWORKS:

@@ -740,7 +740,8 @@ def solve_pose(
     # Unusable items are solved on a stand-in so the batch stays finite; masked at the end.
     safe_geometry = _safe_geometry(geometry, ok, batch, dtype, device)
     safe_radius = torch.where(ok, radius, torch.full_like(radius, 25.0))
-    safe_conic = torch.where(ok[:, None, None], fit.conic, _stand_in_conic(safe_geometry, dtype))
+    safe_conic = torch.where(ok[:, None, None], fit.conic, _stand_in_conic(safe_geometry, dtype,
+                                                                         device))
     solutions = poses_from_conic(safe_conic.detach() if refine else safe_conic, safe_geometry,
                                  safe_radius)
     if refine:
@@ -796,7 +797,7 @@ def _refine_candidates(solutions: Tensor, points: Tensor, weights: Tensor | None
     batch, n = points.shape[:2]
     dtype, device = points.dtype, points.device
     weights = torch.ones(batch, n, dtype=dtype, device=device) if weights is None else weights
-    points = torch.where(ok[:, None, None], points, _stand_in_points(geometry, n, dtype))
+    points = torch.where(ok[:, None, None], points, _stand_in_points(geometry, n, dtype, device))
     weights = torch.where(ok[:, None], weights, torch.ones_like(weights))
     violation = range_violation(solutions)
     chosen = _preferred(solutions)
@@ -826,19 +827,20 @@ def _safe_geometry(geometry: Geometry, ok: Tensor, batch: int, dtype: torch.dtyp
     return Geometry.from_rows(torch.where(ok[:, None], rows, stand_in))
 
 
-def _stand_in_pose(batch: int, dtype: torch.dtype) -> Tensor:
-    return torch.tensor([0.5, 0.3, 0.0, 0.0, 300.0], dtype=dtype).expand(batch, 5)
+def _stand_in_pose(batch: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    return torch.tensor([0.5, 0.3, 0.0, 0.0, 300.0], dtype=dtype, device=device).expand(batch, 5)
 
 
-def _stand_in_conic(geometry: Geometry, dtype: torch.dtype) -> Tensor:
-    batch = _batch_geometry(geometry, 1, dtype, None).shape[0]  # type: ignore[arg-type]
-    return rim_conic(_stand_in_pose(batch, dtype), 25.0, geometry)
+def _stand_in_conic(geometry: Geometry, dtype: torch.dtype, device: torch.device) -> Tensor:
+    batch = _batch_geometry(geometry, 1, dtype, device).shape[0]
+    return rim_conic(_stand_in_pose(batch, dtype, device), 25.0, geometry)
 
 
-def _stand_in_points(geometry: Geometry, n: int, dtype: torch.dtype) -> Tensor:
-    batch = _batch_geometry(geometry, 1, dtype, None).shape[0]  # type: ignore[arg-type]
-    t = torch.linspace(0, 2 * math.pi, n + 1, dtype=dtype)[:-1]
-    return project_rim(_stand_in_pose(batch, dtype), 25.0, geometry, t)
+def _stand_in_points(geometry: Geometry, n: int, dtype: torch.dtype,
+                     device: torch.device) -> Tensor:
+    batch = _batch_geometry(geometry, 1, dtype, device).shape[0]
+    t = torch.linspace(0, 2 * math.pi, n + 1, dtype=dtype, device=device)[:-1]
+    return project_rim(_stand_in_pose(batch, dtype, device), 25.0, geometry, t)
 
 
 def orthographic_pose(ellipse: Tensor) -> Tensor:

@@ -76,6 +76,20 @@ def test_resample_matches_opencv_warp_affine():
     assert np.abs(ours - ref).max() < 1e-3
 
 
+@pytest.mark.parametrize("antialias", [False, True])
+def test_resample_ignores_autocast(antialias: bool) -> None:
+    """Under bfloat16 autocast (a network's mixed precision around CupNet.forward) the views
+    are sampled where they are in float32: on a ramp, a sample's value is its position."""
+    height, width = 300, 420
+    ramp = (torch.arange(width, dtype=torch.float32) / width).expand(1, height, width)
+    affine = ellipse_crop_affine(torch.tensor([211.3, 140.7, 145.5, 52.0, 33.0],
+                                              dtype=torch.float64), 64)
+    plain = resample(ramp, affine, 64, antialias)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        mixed = resample(ramp, affine, 64, antialias)
+    assert mixed.dtype == torch.float32 and torch.equal(mixed, plain)
+
+
 def test_to_view_inverts_to_image():
     affine = ellipse_crop_affine(torch.tensor([300.2, 123.4, 211.0, 70.0, 121.0],
                                               dtype=torch.float64), 128)

@@ -48,6 +48,16 @@ def test_inputs_go_to_the_device_and_outputs_come_back() -> None:
         _ = wrapped.no_such_attribute
 
 
+def test_a_moved_wrapper_sends_inputs_where_its_weights_are() -> None:
+    recorder = DeviceRecorder()
+    recorder.weight = nn.Parameter(torch.zeros(1))
+    wrapped = OnDevice(recorder, "cpu")
+    wrapped(torch.rand(2, 3))
+    wrapped.to("meta")
+    wrapped(torch.rand(2, 3))
+    assert recorder.seen == ["cpu", "meta"]
+
+
 def test_rim_network_attributes_pass_through() -> None:
     rim = RimNet(4)
     assert OnDevice(rim, "cpu").columns_seen == rim.columns_seen == 11
