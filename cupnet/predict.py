@@ -51,6 +51,7 @@ from cupnet.io.results import (
     status_row,
     write_results_csv,
 )
+from cupnet.io.review import write_review_page
 from cupnet.offload import resolve_device
 from cupnet.overlay import CupDrawing, draw_overlay, pose_lines, write_png
 from cupnet.polarity import METAL_DISPLAYS
@@ -347,6 +348,7 @@ class Outputs:
                     "images": list(self.records.values())}
         atomic_write(self.json_path, lambda f: json.dump(document, f, indent=1, default=_json))
         write_results_csv(self.csv_path, self.records.values())
+        write_review_page(self.out / "review.html", self.records.values(), document["summary"])
         self.last_flush = time.monotonic()
         self.flush_interval = max(FLUSH_SECONDS, FLUSH_RATIO * (self.last_flush - start))
 
@@ -572,7 +574,7 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     if summary["metal_bright"]:
         lines.append(f"  {summary['metal_bright']} image(s) taken to show metal bright and "
                      "turned over for the networks: metal=bright in results.csv")
-    lines.append(f"results: {out / 'results.csv'} and results.json"
+    lines.append(f"results: {out / 'results.csv'}, results.json and review.html"
                  + (f"; overlays: {out / 'overlays'}" if overlays else "")
                  + f" ({elapsed:.1f} s this run)")
     if interrupted:

@@ -27,14 +27,6 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return save_model(CupNet(), tmp_path_factory.mktemp("model") / "untrained.safetensors")
 
 
-@pytest.fixture(scope="module")
-def blind_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """An untrained CupNet that never reports a cup (threshold above any probability): for
-    the tests of bookkeeping, where detections only cost time."""
-    model = CupNet(CupNetConfig(detect_threshold=2.0))
-    return save_model(model, tmp_path_factory.mktemp("model") / "blind.safetensors")
-
-
 def noise_png(path: Path, dtype: type = np.uint16, size: int = 160) -> Path:
     rng = np.random.default_rng(len(path.name))
     cv2.imwrite(str(path), (rng.random((size, size)) * np.iinfo(dtype).max).astype(dtype))
