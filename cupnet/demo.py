@@ -68,6 +68,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"\ndemo finished in {time.perf_counter() - start:.0f} s\n"
           f"  overlays: {out / 'predict' / 'overlays'}\n"
           f"  results:  {out / 'predict' / 'results.csv'}\n"
+          f"  review:   {out / 'predict' / 'review.html'} (each pose beside its overlay)\n"
           f"  plots:    {out / 'evaluate' / 'plots'}\n"
           f"  report:   {out / 'evaluate' / 'report.md'}")
     return 0
