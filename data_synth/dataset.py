@@ -191,12 +191,25 @@ def _synthesize(config: SynthConfig, rng: np.random.Generator, index: int) -> di
     }
 
 
+def stream_share() -> tuple[int, int]:
+    """This reader's share of a sample stream, ``(share, shares)``: one per DataLoader worker
+    in each process of a distributed run (DDP: ``torch.distributed``, when initialised), so
+    that no two readers make the same samples."""
+    rank, world = ((torch.distributed.get_rank(), torch.distributed.get_world_size())
+                   if torch.distributed.is_available() and torch.distributed.is_initialized()
+                   else (0, 1))
+    info = get_worker_info()
+    worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+    return rank * workers + worker, world * workers
+
+
 class SynthDataset(IterableDataset):
     """Endless (or ``length``-long) stream of :func:`synthesize` samples for a DataLoader.
 
-    Worker ``w`` of ``n`` makes samples ``w, w + n, w + 2n, ...``. Sample ``i`` is the same
-    whatever the number of workers (its ``index`` entry says which it is); only the order in
-    which a multi-worker DataLoader batches them changes.
+    Reader ``r`` of ``n`` (:func:`stream_share`: DataLoader workers, times DDP processes)
+    makes samples ``r, r + n, r + 2n, ...``. Sample ``i`` is the same whatever the number
+    of readers (its ``index`` entry says which it is); only the order in which they are
+    batched changes.
     """
 
     def __init__(self, config: SynthConfig, seed: int, length: int | None = None) -> None:
@@ -217,9 +230,8 @@ class SynthDataset(IterableDataset):
         return synthesize(self.config, self.seed, index)
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
-        info = get_worker_info()
-        worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
-        indices = (itertools.count(worker, workers) if self.length is None
-                   else range(worker, self.length, workers))
+        share, shares = stream_share()
+        indices = (itertools.count(share, shares) if self.length is None
+                   else range(share, self.length, shares))
         for index in indices:
             yield synthesize(self.config, self.seed, index)

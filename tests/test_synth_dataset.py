@@ -58,6 +58,20 @@ def test_stream_is_the_same_for_any_number_of_workers():
     assert torch.equal(single[2]["image"], dataset[2]["image"])
 
 
+def test_ddp_processes_make_disjoint_shares(monkeypatch: pytest.MonkeyPatch):
+    """Under DDP each process reads its own share of the stream (Lightning does not split
+    an iterable dataset), so two GPUs do not train on the same images."""
+    dataset = SynthDataset(SynthConfig(**SMALL), seed=11, length=7)
+    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: True)
+    monkeypatch.setattr(torch.distributed, "get_world_size", lambda: 2)
+    shares = []
+    for rank in (0, 1):
+        monkeypatch.setattr(torch.distributed, "get_rank", lambda rank=rank: rank)
+        shares.append([int(s["index"]) for s in dataset])
+    assert shares == [[0, 2, 4, 6], [1, 3, 5]]
+    assert torch.equal(next(iter(dataset))["image"], dataset[1]["image"])  # rank 1's first
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_truth_is_consistent_with_itself_and_the_image(seed):
     # No anatomy and no round field: the implant is the only thing on a flat background.

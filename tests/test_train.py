@@ -84,6 +84,8 @@ def test_smoke_config_loss_decreases(smoke_run):
     seg = [float(r["train/seg_crop"]) + float(r["train/seg_locator"]) for r in rows]
     assert len(seg) >= 10
     assert sum(seg[-3:]) / 3 < sum(seg[:3]) / 3
+    # validation ran the full detect path and scored it
+    assert any(r.get("val/score") for r in _metrics(smoke_run))
 
 
 def test_smoke_checkpoints_round_trip(smoke_run):

@@ -16,6 +16,7 @@ from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
 from cupnet.model import CupNet, CupNetConfig, load_model, save_model, usable_fit
+from cupnet.offload import networks_on
 from cupnet.pose import PoseSolution
 from train.losses import (
     POSE_NAMES,
@@ -496,10 +497,21 @@ class CupNetModule(L.LightningModule):
                  batch_size=batch["image"].shape[0])
         return terms["loss"]
 
+    def on_validation_epoch_start(self) -> None:
+        # detect keeps its geometry on the CPU: on an accelerator only the networks run
+        # there (cupnet.offload). Kept out of the module's children, so out of checkpoints.
+        self.__dict__["_detector"] = (self.model if self.device.type == "cpu"
+                                      else networks_on(self.model, self.device))
+
+    def on_validation_epoch_end(self) -> None:
+        self.__dict__.pop("_detector", None)
+
     def validation_step(self, batch: dict, batch_idx: int) -> None:
         """Full inference path (locator -> crops -> pose) against the truth."""
-        detections = self.model.detect(batch["image"], batch_geometry(batch["geometry"]),
-                                       batch["cup_diameter"][:, 0].double(), return_masks=False)
+        batch = {k: v.cpu() for k, v in batch.items()}
+        detector = self.__dict__.get("_detector", self.model)
+        detections = detector.detect(batch["image"], batch_geometry(batch["geometry"]),
+                                     batch["cup_diameter"][:, 0].double(), return_masks=False)
         errors, found, total = [], 0, 0
         truth_pose = batch["pose"].double().cpu().numpy()
         for b, dets in enumerate(detections):
@@ -510,14 +522,16 @@ class CupNetModule(L.LightningModule):
             total += t
         size = batch["image"].shape[0]
         detected = found / max(total, 1)
-        self.log("val/detected", detected, batch_size=size)
+        # sync_dist: under DDP each process validates its share of the images.
+        self.log("val/detected", detected, batch_size=size, sync_dist=True)
         mae = np.mean(errors, 0) if errors else np.full(5, np.nan)
         for j, name in enumerate(POSE_NAMES):
-            self.log(f"val/mae_{name}", float(mae[j]), batch_size=size)
+            self.log(f"val/mae_{name}", float(mae[j]), batch_size=size, sync_dist=True)
         # One figure for checkpoint selection: each MAE relative to its target, plus missed
         # cups; logged on every batch (a large value when nothing was found).
         relative = float(np.mean(mae / np.array(POSE_SCALE))) if errors else 100.0
-        self.log("val/score", relative + 10 * (1 - detected), batch_size=size, prog_bar=True)
+        self.log("val/score", relative + 10 * (1 - detected), batch_size=size, prog_bar=True,
+                 sync_dist=True)
 
     def configure_optimizers(self):
         optimizer = torch.optim.AdamW((p for p in self.parameters() if p.requires_grad),
