@@ -2,7 +2,8 @@
 
 Rerun: ``.venv/bin/python -m benchmarks.throughput [--device cuda] [--batches 1 64 256]
 [--images 256] [--precision fp32 bf16]``; on a lent GPU the defaults measure it (``--device``
-defaults to cuda where there is one). Writes the ``throughput_<device type>`` section of
+defaults to cuda where there is one; ``benchmarks/gpu_check.sh`` runs it there, with the
+wheels that machine lacks). Writes the ``throughput_<device type>`` section of
 docs/benchmarks.md.
 
 Two pipelines, on 512 x 512 DRRs with the CT background (``configs/synth_speed.yaml``):
@@ -120,7 +121,10 @@ def batched_rows(model: CupNet, data: list[dict], device: torch.device, batches:
             found = batched_detections(model, data, device, max(batches), precision)
         quality = scores(found, data)
         for batch in batches:
-            part = (data * -(-batch // len(data)))[:batch] if batch > len(data) else data
+            # At least one full call, and 32 images for the small batches (not all of them:
+            # one image a call is slow, and its figure steady after a few dozen).
+            count = max(batch, min(len(data), 32))
+            part = (data * -(-count // len(data)))[:count]
             groups = [stacked(part[i:i + batch], device) for i in range(0, len(part), batch)]
 
             def run(groups: list = groups, precision: torch.dtype | None = precision) -> None:
@@ -199,16 +203,16 @@ def main() -> None:
                f"{' '.join(args.precision)} --threads {args.threads}")
     write_section(f"throughput_{device.type}", (
         f"## CupNet throughput on {name}\n\n`{command}` on {machine()}. 512 x 512 DRRs with "
-        f"the CT background ({len(data)} distinct images, repeated to fill the larger "
-        "batches); the batched pipeline is `CupNet.forward` (one refiner pass, the fine rim "
-        "stage, the solver with its ML refinement; no fallbacks, outline refinement, "
-        "verification or search), `detect` the shipped pipeline with its networks on the "
-        f"device, {DETECT_BATCH} images a call. MAE in deg (theta, phi) and mm (k, l, h) "
-        "over the cups each finds: a small sample, to set the speeds beside what each "
-        "pipeline gives (the figures of record are the benchmark's, `CupNet accuracy`). "
-        "On a lent GPU, `make install && .venv/bin/python -m benchmarks.throughput "
-        "--precision fp32 bf16` measures it (see `benchmarks/throughput.py`).\n\n" + table))
-
+        f"the CT background ({len(data)} distinct images; each batch size timed on at least "
+        "one full call and 32 images, repeated where there are fewer); the batched pipeline "
+        "is `CupNet.forward` (one refiner pass, the fine rim stage, the solver with its ML "
+        "refinement; no fallbacks, outline refinement, verification or search), `detect` "
+        f"the shipped pipeline with its networks on the device, {DETECT_BATCH} images a "
+        "call. MAE in deg (theta, phi) and mm (k, l, h) over the cups each finds: a small "
+        "sample, to set the speeds beside what each pipeline gives (the figures of record "
+        "are the benchmark's, `CupNet accuracy`). On a lent GPU machine (no package index "
+        "there): `make gpu-wheels` here, then `bash benchmarks/gpu_check.sh` there "
+        "(see `benchmarks/throughput.py`).\n\n" + table))
 
 if __name__ == "__main__":
     main()
