@@ -7,27 +7,34 @@
 # Here first (it needs the package index): make gpu-wheels. Then, with the device tool:
 #   run(command="bash benchmarks/gpu_check.sh", carry=[".whl"], timeout_s=600)
 # About 8 minutes of the machine's 10 a call (each part has its own time limit).
+# A dry run on a CPU (the flow, not the figures): PYTHON=.venv/bin/python WHEELS=<wheels for
+# its Python> THROUGHPUT_ARGS="--images 8 --batches 4 --detect-images 0"
+# TRAIN_ARGS="--trainer.accelerator cpu --trainer.max_steps 4 ..." bash benchmarks/gpu_check.sh
 set -uo pipefail
 OUT=${OUT:-/tmp/gpu_check}
+PYTHON=${PYTHON:-python3}
 mkdir -p "$OUT"
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-    --target /tmp/site .whl/*.whl || exit 1
+"$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+    --target /tmp/site "${WHEELS:-.whl}"/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 {
     nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
-    python3 -c "import torch; print('torch', torch.__version__, torch.cuda.get_device_name())"
+    "$PYTHON" -c "import torch; print('torch', torch.__version__, torch.cuda.is_available()
+        and torch.cuda.get_device_name())"
     nproc
 } 2>&1 | tee "$OUT/device.txt"
 
-timeout 300 python3 -m benchmarks.throughput --precision fp32 bf16 --threads 8 \
-    > "$OUT/throughput.txt" 2>&1
+# shellcheck disable=SC2086  # the optional arguments split into words
+timeout 300 "$PYTHON" -m benchmarks.throughput --precision fp32 bf16 --threads 8 \
+    ${THROUGHPUT_ARGS:-} > "$OUT/throughput.txt" 2>&1
 echo "throughput: exit $?" | tee -a "$OUT/throughput.txt"
 cp docs/benchmarks.md "$OUT/benchmarks.md"
 
 start=$(date +%s)
-timeout 280 python3 -m train fit -c configs/gpu.yaml -c configs/gpu_check.yaml \
-    > "$OUT/train.txt" 2>&1
+# shellcheck disable=SC2086
+timeout 280 "$PYTHON" -m train fit -c configs/gpu.yaml -c configs/gpu_check.yaml \
+    ${TRAIN_ARGS:-} > "$OUT/train.txt" 2>&1
 echo "train: exit $?, $(( $(date +%s) - start )) s with start-up" | tee -a "$OUT/train.txt"
 cp runs/gpu_check/csv/version_0/metrics.csv "$OUT/train_metrics.csv" 2>/dev/null
 ls -la runs/gpu_check >> "$OUT/train.txt" 2>&1
-tail -5 "$OUT/throughput.txt" "$OUT/train.txt"
+tail -n 5 "$OUT/throughput.txt" "$OUT/train.txt"
