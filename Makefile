@@ -31,7 +31,8 @@ bench: $(STAMP)
 # A lent GPU machine reaches no package index and lacks these (docs/training.md, item 25):
 # their wheels, for its Python 3.12, go into .whl/ for benchmarks/gpu_check.sh to install.
 GPU_WHEELS := kornia==0.9.0 kornia_rs==0.2.0 segmentation_models_pytorch==0.6.0 \
-	pydicom==3.0.2 jsonargparse==4.53.0 docstring_parser==0.18.0 typeshed_client==2.15.0
+	pydicom==3.0.2 jsonargparse==4.53.0 docstring_parser==0.18.0 typeshed_client==2.15.0 \
+	timm==1.0.31
 gpu-wheels: $(STAMP)
 	$(BIN)/pip download -q --no-deps --only-binary=:all: --python-version 3.12 \
 		--implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
