@@ -22,17 +22,12 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from benchmarks.report import machine, markdown_table, write_section  # noqa: E402
+from cupnet.config import SPEED_PRESETS, apply_speed_preset  # noqa: E402
 from cupnet.detection import CupDetection  # noqa: E402
 from cupnet.evaluate import GROSS_DEG  # noqa: E402
 from cupnet.fold import fold_batchnorm  # noqa: E402
 from cupnet.geometry import Geometry  # noqa: E402
-from cupnet.model import (  # noqa: E402
-    DEFAULT_CHECKPOINT,
-    SPEED_PRESETS,
-    CupNet,
-    apply_speed_preset,
-    load_model,
-)
+from cupnet.model import DEFAULT_CHECKPOINT, CupNet, load_model  # noqa: E402
 from train.data import synth_config  # noqa: E402
 from train.losses import POSE_NAMES as NAMES  # noqa: E402
 from train.losses import POSE_SCALE as TARGETS  # noqa: E402  (the issue's target MAEs)

@@ -30,7 +30,7 @@ from pathlib import Path
 import cv2
 
 from benchmarks.report import machine, markdown_table, write_section
-from cupnet.model import SPEED_PRESETS
+from cupnet.config import SPEED_PRESETS
 
 SIZE = 1024
 SYNTH_SIZE = 256

@@ -37,9 +37,10 @@ import torch
 
 from benchmarks.model import samples
 from benchmarks.report import machine, markdown_table, write_section
+from cupnet.config import SPEED_PRESETS, apply_speed_preset
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
-from cupnet.model import SPEED_PRESETS, CupNet, apply_speed_preset, load_model
+from cupnet.model import CupNet, load_model
 from cupnet.offload import networks_on, resolve_device
 from train.losses import POSE_NAMES
 from train.module import cup_errors

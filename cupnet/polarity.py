@@ -23,7 +23,7 @@ from cupnet.ellipse import ellipse_points
 _INSIDE_SCALES = (0.2, 0.4, 0.6, 0.8)
 _AROUND_SCALES = (1.2, 1.35, 1.5)
 _SPOKES = 32
-# How images may show metal (cupnet.model.CupNetConfig.metal).
+# How images may show metal (cupnet.config.CupNetConfig.metal).
 METAL_DISPLAYS = ("dark", "bright", "auto")
 # How much brighter (in the image's 5-95 % intensity range) the inside must be to count:
 # near-ties are mostly a locator blob on something else, and keep the image as it is. On

@@ -210,11 +210,12 @@ class NetworkDetector:
 
     def __init__(self, checkpoint: Path | None, save_masks: bool, preset: str | None = None,
                  settings: dict[str, object] | None = None, device: str = "cpu") -> None:
-        """``settings``: :class:`cupnet.model.CupNetConfig` fields set over the checkpoint's
+        """``settings``: :class:`cupnet.config.CupNetConfig` fields set over the checkpoint's
         (and the preset's), as the command line gives them; ``device``: where the networks
         run (:func:`cupnet.offload.networks_on`)."""
+        from cupnet.config import apply_speed_preset
         from cupnet.fold import fold_batchnorm
-        from cupnet.model import DEFAULT_CHECKPOINT, apply_speed_preset, load_model
+        from cupnet.model import DEFAULT_CHECKPOINT, load_model
         from cupnet.offload import networks_on  # loads the model's libraries
 
         self.model = fold_batchnorm(load_model(checkpoint))

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from cupnet.model import CupNet, CupNetConfig, save_model
+from cupnet.config import CupNetConfig
+from cupnet.model import CupNet, save_model
 
 
 @pytest.fixture

@@ -10,6 +10,7 @@ import pytest
 import torch
 from torch import nn
 
+from cupnet.config import SPEED_PRESETS, CupNetConfig, apply_speed_preset
 from cupnet.crops import (
     ellipse_crop_affine,
     ellipse_to_view,
@@ -24,14 +25,7 @@ from cupnet.ellipse import fit_ellipse
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage, ray_landmarks, soft_moments
-from cupnet.model import (
-    SPEED_PRESETS,
-    CupNet,
-    CupNetConfig,
-    apply_speed_preset,
-    load_model,
-    save_model,
-)
+from cupnet.model import CupNet, load_model, save_model
 from cupnet.pose import ellipse_of_pose
 from data_synth import SynthConfig, synthesize
 

@@ -12,8 +12,9 @@ import torch
 from torch import nn
 
 from cupnet.cli import main
+from cupnet.config import CupNetConfig
 from cupnet.geometry import Geometry
-from cupnet.model import CupNet, CupNetConfig, load_model
+from cupnet.model import CupNet, load_model
 from cupnet.offload import NETWORKS, OnDevice, networks_on, resolve_device
 from cupnet.rim import RimNet
 from data_synth import SynthConfig, synthesize

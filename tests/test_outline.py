@@ -10,8 +10,9 @@ import pytest
 import torch
 from cup_cases import paper_poses, rim_landmarks
 
+from cupnet.config import SPEED_PRESETS
 from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
-from cupnet.model import SPEED_PRESETS, _doubtful, geometry_rows, load_model
+from cupnet.model import _doubtful, geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.pose import PoseSolution, ellipse_of_pose, refine_pose, refine_pose_with_outline
 from data_synth import SynthConfig, synthesize

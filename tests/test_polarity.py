@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
+from cupnet.config import CupNetConfig
 from cupnet.geometry import Geometry
-from cupnet.model import CupNetConfig, load_model
+from cupnet.model import load_model
 from cupnet.polarity import metal_shows_bright
 from data_synth import SynthConfig, synthesize
 

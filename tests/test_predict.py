@@ -14,10 +14,11 @@ from dicom_factory import write_dicom
 
 import cupnet.predict as predict
 from cupnet.cli import main
+from cupnet.config import CupNetConfig
 from cupnet.geometry import Geometry, pose_to_radians, project_rim
 from cupnet.io.images import Frame, ImageSource
 from cupnet.io.results import POSE_COLUMNS, RESULT_COLUMNS
-from cupnet.model import CupNet, CupNetConfig, save_model
+from cupnet.model import CupNet, save_model
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,11 @@ import pytest
 import torch
 from torch import nn
 
+from cupnet.config import CupNetConfig
 from cupnet.ellipse import ellipse_points, fit_ellipse, params_to_conic, sampson_distance
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
-from cupnet.model import CupNet, CupNetConfig, load_model, save_model
+from cupnet.model import CupNet, load_model, save_model
 from cupnet.pose import ellipse_of_pose
 from cupnet.rim import (
     RimLandmarks,

@@ -10,12 +10,13 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from cupnet.config import CupNetConfig
 from cupnet.crops import ellipse_to_view, resample_batch, square_windows
 from cupnet.detection import CupDetection
 from cupnet.ellipse import fit_ellipse
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage
-from cupnet.model import CupNet, CupNetConfig, load_model, save_model, usable_fit
+from cupnet.model import CupNet, load_model, save_model, usable_fit
 from cupnet.offload import networks_on
 from cupnet.pose import PoseSolution
 from train.losses import (
@@ -127,7 +128,7 @@ def far_rim_starts(ellipse: Tensor, ratio: float) -> Tensor:
     """True ellipses ``(K, 5)`` replaced by the starts the thin-rim hypotheses and a disc give
     the fine rim stage at inference, mostly out of its reach: half a disc's round outline
     (:func:`coarse_rim_starts`' femoral heads), half a thin ellipse (axis ratio ``ratio``, as
-    :attr:`cupnet.model.CupNetConfig.thin_rim_ratio`; the semi-major axis
+    :attr:`cupnet.config.CupNetConfig.thin_rim_ratio`; the semi-major axis
     ``a exp(N(0, 0.1))``, the centre within ``N(0, 0.05 a)``) at any angle.
     The rim stage learns to say where it cannot see the rim (a large ``sigma``), which is how
     :meth:`cupnet.model.CupNet.trusted_rim_landmarks` chooses among its starts."""
@@ -227,7 +228,7 @@ class CupNetModule(L.LightningModule):
     """CupNet training: locator + refiner segmentation, then ellipse and pose losses.
 
     Args:
-        model: :class:`cupnet.model.CupNetConfig` fields.
+        model: :class:`cupnet.config.CupNetConfig` fields.
         lr: AdamW learning rate (cosine decay to ``lr / 20`` over ``max_steps``).
         weight_decay: AdamW weight decay.
         ellipse_start, pose_start: steps at which the ellipse and pose losses come in, each
@@ -261,7 +262,7 @@ class CupNetModule(L.LightningModule):
             opening is sub-pixel thin in the letterboxed view, and the locator then misses it
             (its blob only frames the refiner's first, round crop).
         locator_dark_views: the fraction of the locator's views raised to a power in
-            ``[0.25, 0.6]``, as :attr:`cupnet.model.CupNetConfig.locator_retry_gamma` shows
+            ``[0.25, 0.6]``, as :attr:`cupnet.config.CupNetConfig.locator_retry_gamma` shows
             them to it where it found no cup.
         freeze: networks not to train (``locator``, ``refiner``, ``rim``, ``coarse_rim``),
             kept in eval mode: e.g. a refiner-only stage.

@@ -1,0 +1,259 @@
+"""CupNet's settings: the networks' shapes and every inference stage's, and the speed presets.
+
+:class:`CupNetConfig` travels with the weights (the JSON beside a checkpoint,
+:func:`cupnet.model.save_model`); :data:`SPEED_PRESETS` are faster operating points of the
+same weights, inference settings only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+from cupnet.polarity import METAL_DISPLAYS
+
+
+@dataclass
+class CupNetConfig:
+    """Architecture and inference settings (stored as JSON beside a checkpoint).
+
+    Attributes:
+        encoder: smp encoder name of both U-Nets (never downloaded: ``encoder_weights=None``).
+        decoder_channels: U-Net decoder widths, deepest first.
+        encoder_weights: optional path of an encoder state dict (safetensors or torch) loaded
+            into both encoders, e.g. an ImageNet checkpoint the user has locally.
+        locator_size: letterbox side (px) of stage 1.
+        crop_size: crop side (px) of stage 2.
+        crop_fill: rim major diameter / crop side.
+        crop_min_ratio: the minor direction of a crop is stretched so the rim's axis ratio
+            in the crop is at least this ...
+        crop_max_stretch: ... stretching by this factor at most.
+        n_rays: soft landmarks per cup.
+        ray_samples: samples per ray.
+        max_cups: cups per image at most.
+        detect_threshold: probability threshold of the locator's components.
+        min_cup_area: smallest component (locator px) that counts as a cup.
+        min_score: a detected cup whose locator component's mean probability
+            (:attr:`CupDetection.score`) is below this is dropped (None: none is): weak
+            blobs make most false cups, many of them with confident poses (item 24 of
+            docs/training.md).
+        refine_passes: stage-2 passes at inference (each re-frames on the last ellipse).
+        locator_scale: the first pass frames the locator's blob enlarged by this factor and
+            made round (axis ratio >= 0.8, no stretch), as in training's coarse frames.
+        rim_passes: rim-stage passes (0: no rim stage; the landmarks are the refiner's); each
+            pass after the first is framed on the weighted fit of the pass before.
+        rim_points: rim landmarks (strip columns) per cup.
+        rim_samples: samples along each normal (strip rows) ...
+        rim_step: ... this many image pixels apart.
+        rim_channels: width of :class:`cupnet.rim.RimNet` (both rim stages).
+        coarse_rim_passes: coarse rim-stage passes before the fine ones (0: none) ...
+        coarse_rim_reach: ... their strips reaching this many semi-major axes either side of
+            the ellipse, in ``rim_samples`` rows.
+        coarse_rim_gate: at inference the coarse stage runs on the cups whose fine landmarks
+            (from the refiner's fit) get no pose (within ``max_theta_deg``), and on those
+            whose mean ``log sigma`` (px) exceeds this (None: on no others).
+        thin_rim_angles: orientations of the thin-rim hypotheses (see
+            :func:`cupnet.rim.thin_rim_starts`) ...
+        thin_rim_ratio: ... their axis ratio ...
+        thin_rim_gate: ... tried on the cups whose fine landmarks (from the refiner's fit)
+            have a mean ``log sigma`` (px) above this (None: on no cup), and on the cups the
+            other sources give no pose ...
+        thin_rim_margin: ... and their landmarks replace the first ones where their mean
+            ``log sigma`` is lower by more than this: a thin ellipse across a femoral head's
+            disc can win by chance over an open rim the head partly hides.
+        locator_retry_gamma: where the locator finds no cup in an image, it looks again at
+            the image raised to this power (None: it does not): a cup under thick anatomy, in
+            the dark part of an image with bright regions, has too little contrast left
+            after standardisation; a power below 1 stretches the dark range.
+        round_field: drop the locator's cups centred outside the image intensifier's round
+            field where the image shows one (:func:`cupnet.field.round_field`: a flat
+            surround holding its corners, edged by a circle): the locator, trained on
+            square images, takes that surround at an oblong frame's ends for cups.
+        metal: how the images show metal: ``"dark"`` (the usual fluoroscopy display, and
+            most of the networks' training images: used as given), ``"bright"`` (a
+            radiograph-style display, metal white: every image is turned over, as the
+            networks find and place rims best with metal dark), or ``"auto"`` (turned over
+            after the locator where :func:`cupnet.polarity.metal_shows_bright` finds the
+            cups it found brighter than their surroundings; wrong on about 1 % of images).
+        max_theta_deg: a pose with a larger anteversion (deg) counts as a failure of its
+            landmarks: the cup goes on to :meth:`CupNet.detect`'s next landmark source and
+            keeps that pose only where none gives one within range (None: any anteversion).
+            Set it a little above the largest anteversion of the training data: a pose
+            beyond it is one the network was never shown, in practice the outline of a
+            nearly edge-on cup and its femoral head taken for an open rim.
+        grown_rim_scale: where no other landmark source gives a cup a pose (within
+            ``max_theta_deg``), :meth:`CupNet.detect` starts the coarse rim stage again from
+            the refiner's ellipse enlarged to this many times the smallest rim the cup can
+            make (magnification 1; never shrunk), then the fine stage from the coarse fit;
+            None: it does not (needs both rim stages).
+        reframe_min_scale: each refiner pass's fit is grown (never shrunk) to at least this
+            fraction of the semi-major axis of the ellipse its crop was framed on before it
+            frames the next pass or starts the rim stages (None: as it is): a fit much
+            smaller than its frame is mostly a femoral head inside the cup, and a crop or
+            strips framed on it miss the rim.
+        outline_passes: passes at most of the dome-outline refinement of each solved pose
+            (:meth:`CupNet.outline_refined`; 0: none): the fine rim network locates the
+            sphere's outline on the dome's side of the pose's rim plane, and the solver fits
+            those landmarks beside the rim's. Needs the fine rim stage.
+        outline_min_side: outline points nearer the rim plane than this many radii are left
+            out: there the dome's outline meets the rim's tips, and a wrong pose's side of
+            the plane may not be the dome's.
+        outline_weight: the outline landmarks' weights are this over their ``sigma^2`` (the
+            rim landmarks' are their residual's inverse variance).
+        outline_inner_rim_weight: in the dome-outline refinement, the rim landmarks over the
+            dome's own shadow (:func:`cupnet.outline.over_dome`) count this much: the edge the
+            network finds there is the shell's inner surface, inside the rim.
+        outline_rim_resample: each dome-outline pass also takes the fine rim network's
+            landmarks across the current pose's own rim, weighted by their inverse variance
+            ``1 / sigma^2`` (on the outline landmarks' scale), in place of the landmarks the
+            pose was solved from: those came from strips framed on an ellipse fit, often a
+            few pixels off where a femoral head's edge crosses the rim, and the pose's rim
+            is nearer the true one each pass.
+        verify_gate: after the dome-outline refinement, a cup whose refined pose the fine rim
+            network doubts (:meth:`CupNet.pose_doubt` at least this) is solved again from
+            every landmark source (:meth:`CupNet.verified`), each pose refined with the
+            outline, and keeps the one the network doubts least ... (None: no cup; needs
+            ``outline_passes``)
+        verify_margin: ... where it beats the first pose's doubt by more than this.
+        verify_thin_rims: the thin-rim hypotheses among those sources: the fine rim stage from
+            each of the hypotheses it trusts most after one pass (at most
+            ``thin_rim_angles``).
+        verify_turn_deg: a candidate whose anteversion differs from the first pose's by more
+            than this (deg) must also beat its doubt on the rim alone by ``verify_margin``
+            (None: no such rule): the dome's outline tells the centre, not the rim's
+            orientation, and a thin rim at the wrong angle through the right centre fits the
+            outline as well as the right rim.
+        verify_anteversions: anteversions (deg) to which the first pose's rim is turned (its
+            inclination and centre kept) for more of those sources: the fine rim network's
+            landmarks across each turned rim. A gross failure left after the outline has the
+            centre and mostly the inclination right and the anteversion far off; a turned rim
+            within the network's reach of the true one is then drawn to it
+            (``outline_rim_resample``).
+        ambiguous_by_doubt: of an ambiguous cup's two poses, report first the one
+            :meth:`CupNet.pose_doubt` doubts less (otherwise the larger anteversion); needs
+            ``outline_passes``.
+        search_gate: a cup still doubted this much or more after the verification (the sum
+            of the doubt's parts) is searched over its rim's orientation
+            (:meth:`CupNet.searched`; None: no cup; needs ``verify_gate`` and
+            ``outline_rim_resample``) ...
+        search_part_gate: ... and so is a cup either of whose doubt's two parts (rim,
+            outline) reaches this (None: the sum alone counts; a rim the network finds
+            nowhere near the pose, with a dome outline that fits, sums to little). The
+            search: a grid of ``search_anteversions`` (deg) by inclinations every
+            ``search_inclination_step`` (deg) at its pose's centre, whose ``search_keep``
+            least doubted rims give the candidates ...
+        search_keep_settled: ... and so do this many other grid poses (0: none), those
+            doubted least once their rim's offsets are settled (the ellipse step their own
+            landmarks would fit taken out, :func:`cupnet.rim.settled_offsets`): a thin rim's
+            doubt is sharp, about 1 deg wide in inclination, so a grid pose a few pixels off
+            the true rim is doubted as if no rim lay there ...
+        search_rim_doubt: ... each taken only where the network doubts its rim no more than
+            this (None: any); a search candidate must also beat the cup's rim doubt by
+            ``verify_margin`` where it turns the rim's anteversion or inclination by more
+            than ``verify_turn_deg``. No landmark source proposed it, so the rim must
+            support it: a grid pose refined onto a femoral head's outline or the shell's
+            inner edge can explain the dome better than a right pose whose rim the image
+            hides (true poses' rim doubt: 99th percentile 1.7-2.1 on the evaluation sets).
+        check_doubt: a detected cup whose reported pose the network doubts this much or
+            more (the larger of :meth:`CupNet.pose_doubt`'s rim and outline parts) is
+            flagged ``check`` (None: none is): the edges the network finds across its rim or
+            dome outline lie off them, as they do for most gross failures (needs
+            ``outline_passes``).
+    """
+
+    encoder: str = "timm-mobilenetv3_small_100"
+    decoder_channels: tuple[int, ...] = (64, 32, 16, 16, 8)
+    encoder_weights: str | None = None
+    locator_size: int = 128
+    crop_size: int = 128
+    crop_fill: float = 0.78
+    crop_min_ratio: float = 0.5
+    crop_max_stretch: float = 6.0
+    n_rays: int = 64
+    ray_samples: int = 128
+    max_cups: int = 2
+    detect_threshold: float = 0.5
+    min_cup_area: float = 4.0
+    min_score: float | None = None
+    refine_passes: int = 2
+    locator_scale: float = 1.15
+    rim_passes: int = 0
+    rim_points: int = 128
+    rim_samples: int = 64
+    rim_step: float = 0.5
+    rim_channels: int = 16
+    coarse_rim_passes: int = 0
+    coarse_rim_reach: float = 0.6
+    coarse_rim_gate: float | None = None
+    thin_rim_angles: int = 12
+    thin_rim_ratio: float = 0.15
+    thin_rim_gate: float | None = None
+    thin_rim_margin: float = 0.0
+    locator_retry_gamma: float | None = None
+    round_field: bool = False
+    metal: str = "dark"
+    max_theta_deg: float | None = None
+    grown_rim_scale: float | None = None
+    reframe_min_scale: float | None = None
+    outline_passes: int = 0
+    outline_min_side: float = 0.3
+    outline_weight: float = 0.5
+    outline_inner_rim_weight: float = 1.0
+    outline_rim_resample: bool = False
+    verify_gate: float | None = None
+    verify_margin: float = 0.8
+    verify_thin_rims: int = 3
+    verify_turn_deg: float | None = None
+    verify_anteversions: tuple[float, ...] = ()
+    ambiguous_by_doubt: bool = False
+    search_gate: float | None = None
+    search_anteversions: tuple[float, ...] = (3.0, 10.0, 20.0, 30.0, 40.0, 48.0)
+    search_inclination_step: float = 15.0
+    search_keep: int = 4
+    search_part_gate: float | None = None
+    search_keep_settled: int = 0
+    search_rim_doubt: float | None = None
+    check_doubt: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.metal not in METAL_DISPLAYS:
+            raise ValueError(f"unknown metal display {self.metal!r}; choose from "
+                             f"{', '.join(METAL_DISPLAYS)}")
+
+    @classmethod
+    def from_dict(cls, values: dict) -> CupNetConfig:
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown CupNet config keys: {sorted(unknown)}")
+        values = dict(values)
+        # JSON has lists
+        for key in ("decoder_channels", "verify_anteversions", "search_anteversions"):
+            if key in values:
+                values[key] = tuple(values[key])
+        return cls(**values)
+
+
+# Faster operating points of a trained model: inference settings only, the weights unchanged
+# (figures in docs/benchmarks.md, "CupNet accuracy" and "CupNet speed").
+SPEED_PRESETS: dict[str, dict[str, object]] = {
+    # no verification, so no search either, of doubtful cups (items 12 and 16 of
+    # docs/training.md)
+    "fast": {"verify_gate": None},
+    # ... nor the dome's outline (so no doubt, no check flag and no ordering of ambiguous
+    # pairs, which all measure the pose against the outline) nor the thin-rim hypotheses:
+    # segmentation, the rim stages and the solver alone
+    "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None},
+}
+
+
+def apply_speed_preset(config: CupNetConfig, preset: str | None) -> CupNetConfig:
+    """``config`` with the inference settings of the :data:`SPEED_PRESETS` entry ``preset``
+    (None: unchanged), in place; an unknown name is a ValueError naming the presets."""
+    if preset is None:
+        return config
+    if preset not in SPEED_PRESETS:
+        raise ValueError(f"unknown speed preset {preset!r}; choose from "
+                         f"{', '.join(SPEED_PRESETS)}")
+    for key, value in SPEED_PRESETS[preset].items():
+        setattr(config, key, value)
+    return config
