@@ -45,6 +45,7 @@ class CupNetConfig:
         rim_samples: samples along each normal (strip rows) ...
         rim_step: ... this many image pixels apart.
         rim_channels: width of :class:`cupnet.rim.RimNet` (both rim stages).
+        coarse_rim_channels: the coarse stage's width where it differs (None: the same).
         coarse_rim_passes: coarse rim-stage passes before the fine ones (0: none) ...
         coarse_rim_reach: ... their strips reaching this many semi-major axes either side of
             the ellipse, in ``rim_samples`` rows.
@@ -181,6 +182,7 @@ class CupNetConfig:
     rim_samples: int = 64
     rim_step: float = 0.5
     rim_channels: int = 16
+    coarse_rim_channels: int | None = None
     coarse_rim_passes: int = 0
     coarse_rim_reach: float = 0.6
     coarse_rim_gate: float | None = None

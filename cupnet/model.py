@@ -189,7 +189,7 @@ class CupNet(nn.Module):
         self.locator = _unet(self.config).to(memory_format=torch.channels_last)
         self.refiner = _unet(self.config).to(memory_format=torch.channels_last)
         self.rim = RimNet(self.config.rim_channels) if self.config.rim_passes > 0 else None
-        self.coarse_rim = (RimNet(self.config.rim_channels)
+        self.coarse_rim = (RimNet(self.config.coarse_rim_channels or self.config.rim_channels)
                            if self.config.coarse_rim_passes > 0 else None)
         if self.config.encoder_weights:
             state, _ = _read_checkpoint(Path(self.config.encoder_weights))

@@ -15,7 +15,7 @@ from cupnet.crops import resample_batch, square_windows
 from cupnet.model import load_model, save_model
 from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule
-from train.losses import pose_errors, ramp, wrap_angle
+from train.losses import distill_loss, pose_errors, ramp, wrap_angle
 from train.module import CupNetModule, coarse_rim_starts, far_rim_starts, jittered_ellipses
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -305,3 +305,45 @@ def test_full_training_of_a_rim_model_adds_the_rim_loss():
     terms["rim"].backward()
     grads = [p.grad for p in module.model.rim.parameters() if p.grad is not None]
     assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_distill_loss_is_zero_on_the_teacher_and_its_gradient_is_the_softmax_gap():
+    torch.manual_seed(0)
+    logits, log_sigma = torch.randn(3, 16, 10, dtype=torch.float64), torch.randn(3, 10)
+    assert distill_loss((logits, log_sigma), (logits, log_sigma)).item() == pytest.approx(0.0)
+    teacher = (torch.randn(3, 16, 10), torch.randn(3, 10))
+    student = logits.float().requires_grad_()
+    distill_loss((student, log_sigma), teacher).backward()
+    # d/ds of the mean over K n columns of KL(t || softmax(s)): (softmax(s) - t) / (K n)
+    gap = (torch.softmax(student.detach(), 1) - torch.softmax(teacher[0], 1)) / 30
+    assert torch.allclose(student.grad, gap, atol=1e-6)
+
+
+def test_a_narrower_rim_network_is_taught_by_a_wider_one(tmp_path):
+    """init_weights of a wider rim network: every other network's weights load, the rim
+    network starts afresh; rim_teacher adds the distillation term, and it falls as the
+    narrow network learns to match the teacher on the same strips."""
+    wide = CupNetModule(model={**RIM_MODEL, "rim_channels": 12, "coarse_rim_passes": 1}).model
+    weights = tmp_path / "wide.safetensors"
+    save_model(wide, weights)
+    narrow = {**RIM_MODEL, "rim_channels": 4, "coarse_rim_channels": 12, "coarse_rim_passes": 1}
+    module = CupNetModule(model=narrow, rim_only=True, rim_copies=2,
+                          init_weights=str(weights), rim_teacher=str(weights))
+    state = module.model.state_dict()
+    loaded = {k for k, v in wide.state_dict().items() if not k.startswith("rim.")}
+    assert all(torch.equal(wide.state_dict()[k], state[k]) for k in loaded)
+    assert module.model.rim.offset_head.in_channels == 4
+    assert not any(k.startswith("_rim_teacher") for k in module.state_dict())
+    batch = _smoke_batch()
+    optimizer = torch.optim.Adam((p for p in module.parameters() if p.requires_grad), lr=3e-3)
+    distill = []
+    for _ in range(15):
+        torch.manual_seed(0)  # the same jittered starts, so the same strips, each step
+        terms = module.losses(batch, 0)
+        optimizer.zero_grad()
+        terms["loss"].backward()
+        optimizer.step()
+        distill.append(terms["distill"].item())
+    assert distill[-1] < 0.7 * distill[0]
+    with pytest.raises(ValueError, match="rim_teacher"):
+        CupNetModule(model=narrow, rim_teacher=str(weights))

@@ -44,6 +44,23 @@ def ellipse_loss(conic: Tensor, rim: Tensor, pixel_scale: Tensor, valid: Tensor)
     return F.smooth_l1_loss(dist, torch.zeros_like(dist), beta=1.0)
 
 
+def distill_loss(student: tuple[Tensor, Tensor], teacher: tuple[Tensor, Tensor]) -> Tensor:
+    """How far a rim network's outputs on strips lie from a teacher's on the same strips.
+
+    Args:
+        student, teacher: :class:`cupnet.rim.RimNet` outputs, offset logits ``(K, S, n)``
+            and ``log sigma`` ``(K, n)`` (the teacher's taken as constants).
+    Returns:
+        the mean over columns of the KL divergence from the teacher's offset distribution to
+        the student's, plus the mean absolute difference of their ``log sigma``.
+    """
+    logits, log_sigma = student
+    teacher_logits, teacher_log_sigma = (t.detach().float() for t in teacher)
+    divergence = F.kl_div(F.log_softmax(logits.float(), 1), F.log_softmax(teacher_logits, 1),
+                          log_target=True, reduction="none").sum(1)
+    return divergence.mean() + (log_sigma.float() - teacher_log_sigma).abs().mean()
+
+
 def rim_loss(rim: RimLandmarks, truth: Tensor) -> Tensor:
     """Laplace negative log-likelihood of the rim stage's offsets.
 

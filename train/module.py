@@ -22,6 +22,7 @@ from cupnet.pose import PoseSolution
 from train.losses import (
     POSE_NAMES,
     POSE_SCALE,
+    distill_loss,
     ellipse_loss,
     pose_errors,
     pose_loss,
@@ -269,7 +270,14 @@ class CupNetModule(L.LightningModule):
         torch_threads: intra-op threads (None: torch's default); 1 suits a shared CPU,
             where the data worker takes the other core.
         init_weights: a checkpoint whose network weights start this run (fine-tuning; a
-            resume with ``--ckpt_path`` restores the old run's hyper-parameters instead).
+            resume with ``--ckpt_path`` restores the old run's hyper-parameters instead);
+            a rim network of another width than this model's starts afresh.
+        rim_teacher: a checkpoint whose fine rim network teaches this one (``rim_only``,
+            ``rim_stage: fine``): on every training strip, the KL divergence from the
+            teacher's offset distribution to this network's, per column, and the absolute
+            difference of their ``log sigma``, weighted ``distill_weight``, beside the
+            truth's loss (a narrower, faster rim network learns the wider one's doubts too,
+            which the verification's gates were tuned on).
         export_path: where :meth:`on_fit_end` writes the model as safetensors + JSON.
     """
 
@@ -306,15 +314,21 @@ class CupNetModule(L.LightningModule):
         freeze: tuple[str, ...] = (),
         torch_threads: int | None = None,
         init_weights: str | None = None,
+        rim_teacher: str | None = None,
+        distill_weight: float = 1.0,
         export_path: str | None = None,
     ) -> None:
         super().__init__()
         self.save_hyperparameters()
         self.model = CupNet(CupNetConfig.from_dict(model or {}))
         if init_weights:
-            # A model gaining a rim stage starts from weights without one.
-            missing, unexpected = self.model.load_state_dict(
-                load_model(init_weights).state_dict(), strict=False)
+            # A model gaining a rim stage starts from weights without one; a rim network of
+            # another width starts afresh.
+            own = self.model.state_dict()
+            state = {k: v for k, v in load_model(init_weights).state_dict().items()
+                     if not (k.startswith(("rim.", "coarse_rim.")) and k in own
+                             and own[k].shape != v.shape)}
+            missing, unexpected = self.model.load_state_dict(state, strict=False)
             if unexpected or any(not k.startswith(("rim.", "coarse_rim.")) for k in missing):
                 raise ValueError(f"{init_weights} does not fit this model: missing "
                                  f"{missing[:5]}, unexpected {unexpected[:5]}")
@@ -324,6 +338,15 @@ class CupNetModule(L.LightningModule):
             if self._trained_rim() is None:
                 raise ValueError(f"rim_only with rim_stage {rim_stage!r} needs a model with that "
                                  "rim stage (rim_passes or coarse_rim_passes > 0)")
+        if rim_teacher:
+            if not (rim_only and rim_stage == "fine"):
+                raise ValueError("rim_teacher teaches the fine rim stage: set rim_only and "
+                                 "rim_stage: fine")
+            teacher = load_model(rim_teacher).rim
+            if teacher is None:
+                raise ValueError(f"{rim_teacher} has no fine rim network to teach with")
+            # Not a child module: no optimiser state, not in this run's checkpoints.
+            self.__dict__["_rim_teacher"] = teacher.requires_grad_(False).eval()
         unknown = set(freeze) - {"locator", "refiner", "rim", "coarse_rim"}
         if unknown:
             raise ValueError(f"freeze names unknown networks: {sorted(unknown)}")
@@ -436,14 +459,30 @@ class CupNetModule(L.LightningModule):
         cup_index = batch["cup_valid"].bool().nonzero().repeat(hp.rim_copies, 1)  # (K, 2)
         i, c = cup_index[:, 0], cup_index[:, 1]
         truth = batch["ellipse"][i, c].double()
-        rim = self.model.rim_landmarks(batch["image"], i, self.rim_starts(batch["image"], i, truth),
-                                       passes=1, coarse=hp.rim_stage == "coarse")
+        teacher = self.__dict__.get("_rim_teacher")
+        seen: list[tuple[Tensor, tuple[Tensor, Tensor]]] = []  # (strips, outputs) per call
+        hook = (self._trained_rim().register_forward_hook(
+            lambda _, inputs, outputs: seen.append((inputs[0], outputs)))
+            if teacher is not None else None)
+        try:
+            rim = self.model.rim_landmarks(batch["image"], i,
+                                           self.rim_starts(batch["image"], i, truth), passes=1,
+                                           coarse=hp.rim_stage == "coarse")
+        finally:
+            if hook is not None:
+                hook.remove()
         solution = self.model.solve(rim.landmarks, rim.weights, batch_geometry(batch["geometry"]),
                                     batch["cup_diameter"], cup_index, batch["image"].shape[0],
                                     refine=hp.refine_pose)
         terms = {"rim": rim_loss(rim, truth),
                  "pose": pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)}
         total = hp.rim_weight * terms["rim"] + hp.pose_weight * terms["pose"]
+        if teacher is not None and seen:
+            with torch.no_grad():
+                taught = [teacher.to(strips.device).forward_batch(strips) for strips, _ in seen]
+            terms["distill"] = sum(distill_loss(outputs, target) for (_, outputs), target
+                                   in zip(seen, taught, strict=True)) / len(seen)
+            total = total + hp.distill_weight * terms["distill"]
         if len(cup_index) == 0:  # no cup in the batch: a zero loss that still has a graph
             total = total + sum(p.sum() for p in self._trained_rim().parameters()) * 0.0
         terms["loss"] = total.float()
