@@ -142,6 +142,15 @@ def test_truncated_png_jpeg_and_dicom(tmp_path: Path) -> None:
     assert "corrupt or truncated DICOM" in read_frames(tmp_path / "cut.dcm")[0].error
 
 
+def test_a_float_tiff_with_nan_is_named_as_such_not_as_corrupt(tmp_path: Path) -> None:
+    image = gradient().astype(np.float32)
+    image[3, 4] = np.nan
+    cv2.imwrite(str(tmp_path / "nan.tiff"), image)
+    with pytest.raises(ImageReadError) as caught:
+        read_image(tmp_path / "nan.tiff")
+    assert str(caught.value) == f"{tmp_path / 'nan.tiff'}: image contains NaN or infinite values"
+
+
 def test_size_limit(tmp_path: Path) -> None:
     cv2.imwrite(str(tmp_path / "wide.png"), np.zeros((8, MAX_SIDE + 1), np.uint16))
     assert "too large" in read_frames(tmp_path / "wide.png")[0].error

@@ -277,9 +277,10 @@ def _read_raster(path: Path, page: int | None) -> np.ndarray:
         try:
             with Image.open(path) as im:
                 im.seek(page or 0)
-                return to_unit_range(np.asarray(im))
+                pixels = np.asarray(im)
         except (OSError, ValueError, EOFError) as exc:
             raise ImageReadError(f"corrupt or truncated TIFF ({exc})") from exc
+        return to_unit_range(pixels)  # a decoded file's values: their own error, not "corrupt"
     # libjpeg decodes a cut-off JPEG into a partly grey image without failing: require the
     # end-of-image marker (some writers pad after it, so look at the last kilobyte).
     if suffix in (".jpg", ".jpeg") and _JPEG_END not in _tail(path, 1024):
