@@ -35,7 +35,13 @@ from tqdm import tqdm
 
 from cupnet import __version__
 from cupnet.geometry import Geometry
-from cupnet.io.images import Frame, ImageSource, find_images, iter_frames
+from cupnet.io.images import (
+    PATIENT_SPACING_SOURCE,
+    Frame,
+    ImageSource,
+    find_images,
+    iter_frames,
+)
 from cupnet.io.meta import (
     GEOMETRY_KEYS,
     REQUIRED,
@@ -180,7 +186,8 @@ def resolve_geometry(frame: Frame, meta: dict[str, float], flags: dict[str, floa
                                ("image centre", centre)):
             if values.get(key) is not None:
                 geometry.values[key] = float(values[key])
-                geometry.sources[key] = source
+                geometry.sources[key] = ((frame.tag_sources or {}).get(key, source)
+                                         if values is tags else source)
                 break
         else:
             geometry.missing.append(key)
@@ -363,10 +370,12 @@ def _json(value: object) -> object:
 def summarise(records: Iterable[dict]) -> dict:
     """Counts over image records: images, cups found, statuses, failures by reason."""
     statuses: Counter[str] = Counter()
-    images = cups = check = bright = 0
+    images = cups = check = bright = patient_spacing = 0
     seconds = 0.0
     for record in records:
         images += 1
+        spacing = record.get("geometry", {}).get("pixel_spacing_mm", {})
+        patient_spacing += spacing.get("source") == PATIENT_SPACING_SOURCE
         for row in record["rows"]:
             statuses[row["status"]] += 1
             cups += row["status"] in ("ok", "ambiguous")
@@ -376,7 +385,7 @@ def summarise(records: Iterable[dict]) -> dict:
     errors = {k: v for k, v in statuses.items() if k.startswith("error")}
     return {"images": images, "cups": cups, "ok": statuses["ok"],
             "ambiguous": statuses["ambiguous"], "check": check, "no_cup": statuses["no_cup"],
-            "metal_bright": bright,
+            "metal_bright": bright, "patient_spacing": patient_spacing,
             "errors": sum(errors.values()), "error_reasons": errors,
             "seconds_per_image": seconds / images if images else None}
 
@@ -572,6 +581,11 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     if summary["check"]:
         lines.append(f"  {summary['check']} cup(s) the model doubts: check=1 in results.csv, "
                      "drawn in magenta on the overlays; look before trusting them")
+    if summary.get("patient_spacing"):
+        lines.append(f"  {summary['patient_spacing']} image(s) with the detector's pixel spacing "
+                     "taken from DICOM PixelSpacing, without a magnification factor (by the "
+                     "standard the patient's spacing: h then comes out small by it); check, "
+                     "or give --pixel-spacing")
     if summary["metal_bright"]:
         lines.append(f"  {summary['metal_bright']} image(s) taken to show metal bright and "
                      "turned over for the networks: metal=bright in results.csv")

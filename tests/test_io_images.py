@@ -11,6 +11,7 @@ from dicom_factory import write_dicom
 
 from cupnet.io.images import (
     MAX_SIDE,
+    PATIENT_SPACING_SOURCE,
     ImageReadError,
     ImageSource,
     find_images,
@@ -58,8 +59,16 @@ def test_dicom_geometry_tags(tmp_path: Path) -> None:
                           EstimatedRadiographicMagnificationFactor=1.2)
     bare = write_dicom(tmp_path / "bare.dcm", stored)
     skewed = write_dicom(tmp_path / "skewed.dcm", stored, ImagerPixelSpacing=[0.1, 0.2])
-    (f_imager,), (f_patient,), (f_bare,), (f_skewed,) = (read_frames(p) for p in
-                                                         (imager, patient, bare, skewed))
+    plain = write_dicom(tmp_path / "plain.dcm", stored, PixelSpacing=[0.125, 0.125])
+    (f_imager,), (f_patient,), (f_bare,), (f_skewed,), (f_plain,) = (
+        read_frames(p) for p in (imager, patient, bare, skewed, plain))
+    assert f_imager.tag_sources == {"sdd_mm": "DICOM DistanceSourceToDetector",
+                                    "pixel_spacing_mm": "DICOM ImagerPixelSpacing"}
+    assert f_patient.tag_sources == {
+        "pixel_spacing_mm": "DICOM PixelSpacing x EstimatedRadiographicMagnificationFactor"}
+    # PixelSpacing alone: used as it is, and the source says so.
+    assert f_plain.pixel_spacing_mm == pytest.approx(0.125)
+    assert f_plain.tag_sources == {"pixel_spacing_mm": PATIENT_SPACING_SOURCE}
     assert f_imager.error is None
     assert f_imager.sdd_mm == pytest.approx(1040.0)
     assert f_imager.pixel_spacing_mm == pytest.approx(0.148)  # ImagerPixelSpacing wins

@@ -16,7 +16,7 @@ import cupnet.predict as predict
 from cupnet.cli import main
 from cupnet.config import CupNetConfig
 from cupnet.geometry import Geometry, pose_to_radians, project_rim
-from cupnet.io.images import Frame, ImageSource
+from cupnet.io.images import PATIENT_SPACING_SOURCE, Frame, ImageSource
 from cupnet.io.results import POSE_COLUMNS, RESULT_COLUMNS
 from cupnet.model import CupNet, save_model
 
@@ -353,6 +353,26 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
         difference = np.abs([float(row[c]) - float(dark[c]) for c in POSE_COLUMNS])
         assert (difference < [1.5, 1.5, 1.0, 1.0, 5.0]).all()
     assert "1 image(s) taken to show metal bright" in capsys.readouterr().out
+
+
+def test_spacing_from_patient_plane_pixel_spacing_is_recorded_and_reported(
+        tmp_path: Path, blind_checkpoint: Path, capsys: pytest.CaptureFixture) -> None:
+    stored = np.zeros((64, 80), np.uint16)
+    write_dicom(tmp_path / "plain.dcm", stored, PixelSpacing=[0.2, 0.2],
+                DistanceSourceToDetector=1000.0)
+    write_dicom(tmp_path / "imager.dcm", stored, ImagerPixelSpacing=[0.2, 0.2],
+                DistanceSourceToDetector=1000.0)
+    out = tmp_path / "out"
+    assert main(["predict", str(tmp_path), "--out", str(out), "--checkpoint",
+                 str(blind_checkpoint), "--cup-diameter", "52", "--quiet"]) == 0
+    document = json.loads((out / "results.json").read_text())
+    sources = {r["image"]: r["geometry"]["pixel_spacing_mm"]["source"]
+               for r in document["images"]}
+    assert sources == {"plain.dcm": PATIENT_SPACING_SOURCE,
+                       "imager.dcm": "DICOM ImagerPixelSpacing"}
+    assert document["summary"]["patient_spacing"] == 1
+    assert "1 image(s) with the detector's pixel spacing taken from DICOM PixelSpacing" in (
+        capsys.readouterr().out)
 
 
 def test_several_inputs_as_a_shell_expands_them(tmp_path: Path, blind_checkpoint: Path) -> None:

@@ -62,6 +62,7 @@ class Frame:
         sdd_mm: DistanceSourceToDetector from DICOM tags, else None.
         pixel_spacing_mm: detector pixel spacing from DICOM tags, else None.
         tag_notes: why a tag value present in the file was not usable (value name -> reason).
+        tag_sources: the tags each value read from them came from (value name -> text).
         error: why the file or frame could not be read, else None.
         seconds: time spent reading and decoding.
         skipped: not decoded because its name was in ``iter_frames``' ``skip``.
@@ -74,6 +75,7 @@ class Frame:
     sdd_mm: float | None = None
     pixel_spacing_mm: float | None = None
     tag_notes: dict[str, str] | None = None
+    tag_sources: dict[str, str] | None = None
     error: str | None = None
     seconds: float = 0.0
     skipped: bool = False
@@ -200,7 +202,15 @@ def _positive(value: object) -> float | None:
     return number if np.isfinite(number) and number > 0 else None
 
 
-def dicom_geometry(ds: pydicom.Dataset) -> tuple[float | None, float | None, dict[str, str]]:
+# The source of a detector spacing read from PixelSpacing alone: by the standard the spacing in
+# the patient, smaller than the detector's by the magnification (often 1.1-1.5), so h comes out
+# too small by that factor unless the file means the detector's.
+PATIENT_SPACING_SOURCE = ("DICOM PixelSpacing, taken as the detector's (no ImagerPixelSpacing "
+                          "or EstimatedRadiographicMagnificationFactor)")
+
+
+def dicom_geometry(ds: pydicom.Dataset
+                   ) -> tuple[float | None, float | None, dict[str, str], dict[str, str]]:
     """Source-to-detector distance and detector pixel spacing (mm) from DICOM tags.
 
     Spacing comes from ImagerPixelSpacing (at the detector), else from PixelSpacing times
@@ -208,11 +218,16 @@ def dicom_geometry(ds: pydicom.Dataset) -> tuple[float | None, float | None, dic
     patient, ImagerPixelSpacing / magnification). Non-square pixels are not usable.
 
     Returns:
-        ``(sdd_mm, pixel_spacing_mm, notes)``; a value is None where absent or unusable, and
-        ``notes`` says why for tags that were present but unusable.
+        ``(sdd_mm, pixel_spacing_mm, notes, sources)``; a value is None where absent or
+        unusable, ``notes`` says why for tags that were present but unusable, and
+        ``sources`` which tags each value came from (:data:`PATIENT_SPACING_SOURCE` where
+        PixelSpacing had no magnification factor beside it).
     """
     notes: dict[str, str] = {}
+    sources: dict[str, str] = {}
     sdd = _positive(ds.get("DistanceSourceToDetector"))
+    if sdd is not None:
+        sources["sdd_mm"] = "DICOM DistanceSourceToDetector"
     if sdd is None and "DistanceSourceToDetector" in ds:
         notes["sdd_mm"] = f"DICOM DistanceSourceToDetector {ds.DistanceSourceToDetector!r} unusable"
     spacing = None
@@ -229,11 +244,15 @@ def dicom_geometry(ds: pydicom.Dataset) -> tuple[float | None, float | None, dic
                                          "give --pixel-spacing")
             break
         spacing = (row + col) / 2
+        sources["pixel_spacing_mm"] = f"DICOM {keyword}"
         if keyword == "PixelSpacing":
             magnification = _positive(ds.get("EstimatedRadiographicMagnificationFactor"))
             spacing *= magnification or 1.0
+            sources["pixel_spacing_mm"] = ("DICOM PixelSpacing x "
+                                           "EstimatedRadiographicMagnificationFactor"
+                                           if magnification else PATIENT_SPACING_SOURCE)
         break
-    return sdd, spacing, notes
+    return sdd, spacing, notes, sources
 
 
 def _dicom_header(path: Path) -> pydicom.Dataset:
@@ -347,7 +366,8 @@ def _decode(unit: _Unit) -> Frame:
     try:
         if unit.header is not None:
             frame.image = _dicom_frame(unit.source.path, unit.header, unit.index)
-            frame.sdd_mm, frame.pixel_spacing_mm, frame.tag_notes = dicom_geometry(unit.header)
+            (frame.sdd_mm, frame.pixel_spacing_mm, frame.tag_notes,
+             frame.tag_sources) = dicom_geometry(unit.header)
         else:
             frame.image = _read_raster(unit.source.path, unit.index)
     except ImageReadError as exc:
