@@ -43,7 +43,7 @@ from cupnet.geometry import Geometry
 from cupnet.model import CupNet, load_model
 from cupnet.offload import networks_on, resolve_device
 from train.losses import POSE_NAMES
-from train.module import cup_errors
+from train.module import score_detections
 
 DETECT_BATCH = 8  # images per detect call, as cupnet predict's default --batch-size
 
@@ -99,16 +99,22 @@ def autocast(device: torch.device, precision: torch.dtype | None) -> object:
 
 def scores(found: list[list], data: list[dict]) -> dict[str, float]:
     """Pose MAE of the matched cups and the share of true cups found with a pose."""
-    errors, total, false_positives = [], 0, 0
+    errors, detected, total = [], 0, 0
     for cups, s in zip(found, data, strict=True):
-        matched, fp = cup_errors(cups, s["pose"].double().numpy(), s["ellipse"].numpy(),
-                                 s["cup_valid"].numpy().astype(bool))
-        errors += [err for _, _, err in matched if err is not None]
-        total += len(matched)
-        false_positives += fp
+        e, d, t, _ = score_detections(cups, s["pose"].double().numpy(), s["ellipse"].numpy(),
+                                      s["cup_valid"].numpy().astype(bool))
+        errors, detected, total = errors + e, detected + d, total + t
     mae = np.mean(errors, 0) if errors else np.full(5, np.nan)
-    return {**dict(zip(POSE_NAMES, mae.tolist(), strict=True)),
-            "found": len(errors) / max(total, 1), "false": false_positives}
+    return {**dict(zip(POSE_NAMES, mae.tolist(), strict=True)), "found": detected / max(total, 1)}
+
+
+def table_row(pipeline: str, networks: str, per_call: int, images: int, seconds: float,
+              quality: dict[str, float]) -> list[object]:
+    """One row of the table: the pipeline, its speed over ``images`` in ``seconds``, and
+    its :func:`scores`."""
+    return [pipeline, networks, per_call, f"{images / seconds:.1f}",
+            f"{1000 * seconds / images:.2f}", *(f"{quality[n]:.2f}" for n in POSE_NAMES),
+            f"{100 * quality['found']:.1f} %"]
 
 
 def batched_rows(model: CupNet, data: list[dict], device: torch.device, batches: list[int],
@@ -135,10 +141,8 @@ def batched_rows(model: CupNet, data: list[dict], device: torch.device, batches:
 
             seconds = best_seconds(run, device, repeats)
             count = sum(len(g[0]) for g in groups)
-            rows.append(["batched (`CupNet.forward`)", name, batch,
-                         f"{count / seconds:.1f}", f"{1000 * seconds / count:.2f}",
-                         *(f"{quality[n]:.2f}" for n in POSE_NAMES),
-                         f"{100 * quality['found']:.1f} %"])
+            rows.append(table_row("batched (`CupNet.forward`)", name, batch, count, seconds,
+                                  quality))
     return rows
 
 
@@ -160,10 +164,8 @@ def detect_rows(model: CupNet, data: list[dict], device: torch.device,
 
         seconds = best_seconds(run, device, repeats)
         quality = scores(found, data)
-        rows.append([f"`detect`{f', --{preset}' if preset else ''}", "fp32", DETECT_BATCH,
-                     f"{len(data) / seconds:.1f}", f"{1000 * seconds / len(data):.2f}",
-                     *(f"{quality[n]:.2f}" for n in POSE_NAMES),
-                     f"{100 * quality['found']:.1f} %"])
+        rows.append(table_row(f"`detect`{f', --{preset}' if preset else ''}", "fp32",
+                              DETECT_BATCH, len(data), seconds, quality))
     return rows
 
 
