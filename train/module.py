@@ -478,10 +478,10 @@ class CupNetModule(L.LightningModule):
                  "pose": pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)}
         total = hp.rim_weight * terms["rim"] + hp.pose_weight * terms["pose"]
         if teacher is not None and seen:
-            with torch.no_grad():
-                taught = [teacher.to(strips.device).forward_batch(strips) for strips, _ in seen]
-            terms["distill"] = sum(distill_loss(outputs, target) for (_, outputs), target
-                                   in zip(seen, taught, strict=True)) / len(seen)
+            # The teacher's weights and the strips need no gradient: no graph is built.
+            terms["distill"] = sum(
+                distill_loss(outputs, teacher.to(strips.device).forward_batch(strips))
+                for strips, outputs in seen) / len(seen)
             total = total + hp.distill_weight * terms["distill"]
         if len(cup_index) == 0:  # no cup in the batch: a zero loss that still has a graph
             total = total + sum(p.sum() for p in self._trained_rim().parameters()) * 0.0
