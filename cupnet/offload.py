@@ -35,7 +35,22 @@ def _moved(value: object, device: torch.device) -> object:
     return value
 
 
-class OnDevice(nn.Module):
+class PassThrough(nn.Module):
+    """A wrapper of the child ``module`` whose attributes it lacks are the child's."""
+
+    module: nn.Module
+
+    def __getattr__(self, name: str) -> object:
+        try:
+            return super().__getattr__(name)
+        except AttributeError:
+            modules = self.__dict__.get("_modules", {})
+            if "module" not in modules:  # while being built or copied
+                raise
+            return getattr(modules["module"], name)
+
+
+class OnDevice(PassThrough):
     """``module`` on ``device``: called with tensors anywhere, it runs them there and gives
     its outputs back on the device of its first input.
 
@@ -55,15 +70,6 @@ class OnDevice(nn.Module):
         device = weight.device if weight is not None else self.device
         home = inputs[0].device
         return _moved(self.module(*(_moved(x, device) for x in inputs)), home)
-
-    def __getattr__(self, name: str) -> object:
-        try:
-            return super().__getattr__(name)
-        except AttributeError:
-            modules = self.__dict__.get("_modules", {})
-            if "module" not in modules:  # while being built or copied
-                raise
-            return getattr(modules["module"], name)
 
 
 def resolve_device(name: str) -> torch.device:

@@ -61,6 +61,7 @@ from cupnet.io.review import write_review_page
 from cupnet.offload import resolve_device
 from cupnet.overlay import CupDrawing, draw_overlay, pose_lines, write_png
 from cupnet.polarity import METAL_DISPLAYS
+from cupnet.runtime import RUNTIMES, onnx_runtime_available
 
 # --assume-defaults: the paper's SDD, a common cup size, and a mid-size detector whose width
 # spans the image (so the spacing scales with the image size).
@@ -132,6 +133,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where the networks run: cpu (default), cuda, cuda:N or mps; "
                              "the geometry between their calls stays on the CPU "
                              "(cupnet.offload)")
+    parser.add_argument("--runtime", choices=RUNTIMES, default="torch",
+                        help="what runs the networks on the CPU: torch (default) or onnx "
+                             "(ONNX Runtime: about 15 %% faster an image, the same poses to "
+                             "float rounding; each network is exported once, about 30 s in "
+                             "all, and cached; cupnet.runtime)")
     parser.add_argument("--batch-size", type=int, default=8, help="images per network batch")
     parser.add_argument("--threads", type=int, default=1,
                         help="PyTorch threads per network batch (default 1: two batches, "
@@ -216,10 +222,13 @@ class NetworkDetector:
     """CupNet on a batch of images (weights loaded without running code from the file)."""
 
     def __init__(self, checkpoint: Path | None, save_masks: bool, preset: str | None = None,
-                 settings: dict[str, object] | None = None, device: str = "cpu") -> None:
+                 settings: dict[str, object] | None = None, device: str = "cpu",
+                 runtime: str = "torch") -> None:
         """``settings``: :class:`cupnet.config.CupNetConfig` fields set over the checkpoint's
         (and the preset's), as the command line gives them; ``device``: where the networks
-        run (:func:`cupnet.offload.networks_on`)."""
+        run (:func:`cupnet.offload.networks_on`); ``runtime``: ``"onnx"`` to run them in ONNX
+        Runtime on the CPU (:func:`cupnet.runtime.networks_in_onnx_runtime`), on
+        ``torch.get_num_threads()`` threads."""
         from cupnet.config import apply_speed_preset
         from cupnet.fold import fold_batchnorm
         from cupnet.model import DEFAULT_CHECKPOINT, load_model
@@ -228,13 +237,17 @@ class NetworkDetector:
         self.model = fold_batchnorm(load_model(checkpoint))
         if device != "cpu":
             self.model = networks_on(self.model, device)
+        if runtime == "onnx":
+            from cupnet.runtime import networks_in_onnx_runtime
+
+            self.model = networks_in_onnx_runtime(self.model)
         apply_speed_preset(self.model.config, preset)
         for name, value in (settings or {}).items():
             setattr(self.model.config, name, value)
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),
-                     "speed_preset": preset, "device": device,
+                     "speed_preset": preset, "device": device, "runtime": runtime,
                      "config": dict(vars(self.model.config))}
 
     def file_values(self, name: str) -> dict[str, float]:
@@ -422,6 +435,12 @@ def _check_args(args: argparse.Namespace) -> str | None:
         return "--batch-size must be >= 1"
     if args.threads < 1:
         return "--threads must be >= 1"
+    if args.runtime == "onnx" and args.landmarks is None:
+        if args.device != "cpu":
+            return f"--runtime onnx runs the networks on the CPU, not on --device {args.device}"
+        missing = onnx_runtime_available()
+        if missing is not None:
+            return f"--runtime onnx: {missing}"
     if args.device != "cpu" and args.landmarks is None:
         try:
             resolve_device(args.device)
@@ -631,7 +650,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         detector = (LandmarkDetector(args.landmarks) if args.landmarks is not None
                     else NetworkDetector(args.checkpoint, args.save_masks, args.preset,
-                                         _model_settings(args), args.device))
+                                         _model_settings(args), args.device, args.runtime))
     except Exception as exc:  # any unreadable model or landmark file stops the run here
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {reason}",

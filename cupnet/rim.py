@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from typing import NamedTuple
@@ -253,6 +253,29 @@ def memoised_strips() -> Iterator[None]:
         _STRIP_MEMO.reset(token)
 
 
+def strips_one_by_one(run: Callable[[Tensor], tuple[Tensor, Tensor]], strips: Tensor,
+                      owner: object) -> tuple[Tensor, Tensor]:
+    """A rim network's ``run`` (strips ``(K, 1, S, n)`` -> logits ``(K, S, n)``, ``log sigma``
+    ``(K, n)``) on CPU strips one at a time: one strip's activations stay in cache, a batch's
+    do not (12 strips of 64 x 128: 43 ms one by one, 89 ms as a batch, on 2 cores); with
+    several torch threads, one strip on each core (:mod:`cupnet.parallel`); within a
+    :func:`memoised_strips` block without gradients, each distinct strip of ``owner`` (the
+    network) once.
+    """
+    parts = strips.split(1)
+    memo = _STRIP_MEMO.get()
+    if memo is None or torch.is_grad_enabled():
+        outputs = map_on_cores(run, parts)
+    else:
+        keys = [(id(owner), tuple(part.shape), hashlib.blake2b(
+            part.numpy().tobytes(), digest_size=16).digest()) for part in parts]
+        new = {key: part for key, part in zip(keys, parts, strict=True) if key not in memo}
+        memo.update(zip(new, map_on_cores(run, list(new.values())), strict=True))
+        outputs = [memo[key] for key in keys]
+    logits, log_sigma = zip(*outputs, strict=True)
+    return torch.cat(logits), torch.cat(log_sigma)
+
+
 class RimNet(nn.Module):
     """Strip ``(K, 1, S, n)`` -> offset logits ``(K, S, n)`` and ``log sigma`` ``(K, n)``.
 
@@ -279,22 +302,7 @@ class RimNet(nn.Module):
     def forward(self, strips: Tensor) -> tuple[Tensor, Tensor]:
         if self.training or strips.device.type != "cpu" or strips.shape[0] == 0:
             return self.forward_batch(strips)  # training keeps the batch (BatchNorm statistics)
-        # One strip at a time on a CPU: its activations stay in cache, a batch's do not
-        # (12 strips of 64 x 128: 43 ms one by one, 89 ms as a batch, on 2 cores); with
-        # several torch threads, one strip on each core (cupnet.parallel).
-        parts = strips.split(1)
-        memo = _STRIP_MEMO.get()
-        if memo is None or torch.is_grad_enabled():
-            outputs = map_on_cores(self.forward_batch, parts)
-        else:
-            keys = [(id(self), tuple(part.shape), hashlib.blake2b(
-                part.numpy().tobytes(), digest_size=16).digest()) for part in parts]
-            new = {key: part for key, part in zip(keys, parts, strict=True) if key not in memo}
-            memo.update(zip(new, map_on_cores(self.forward_batch, list(new.values())),
-                            strict=True))
-            outputs = [memo[key] for key in keys]
-        logits, log_sigma = zip(*outputs, strict=True)
-        return torch.cat(logits), torch.cat(log_sigma)
+        return strips_one_by_one(self.forward_batch, strips, self)
 
     def forward_batch(self, strips: Tensor) -> tuple[Tensor, Tensor]:
         """:meth:`forward` on the whole batch at once."""

@@ -1,0 +1,124 @@
+"""cupnet.runtime: CupNet's networks in ONNX Runtime, checked against PyTorch's own outputs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from cupnet.cli import main
+from cupnet.fold import fold_batchnorm
+from cupnet.geometry import Geometry
+from cupnet.model import load_model
+from cupnet.offload import NETWORKS
+from cupnet.rim import RimNet, memoised_strips
+from cupnet.runtime import InOnnxRuntime, cache_dir, export_key, networks_in_onnx_runtime
+from data_synth import SynthConfig, synthesize
+
+
+@pytest.fixture(scope="module")
+def onnx_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One export cache for the module's tests (each network is exported once)."""
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(autouse=True)
+def _cache_in(onnx_cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CUPNET_CACHE_DIR", str(onnx_cache))
+
+
+@pytest.fixture(scope="module")
+def shipped() -> torch.nn.Module:
+    return fold_batchnorm(load_model())
+
+
+def rim_net(seed: int) -> RimNet:
+    torch.manual_seed(seed)
+    rim = RimNet(8)
+    for layer in rim.body:  # BatchNorm statistics away from the identity
+        layer.norm.running_mean.uniform_(-0.5, 0.5)
+        layer.norm.running_var.uniform_(0.5, 2.0)
+    return rim.eval()
+
+
+def test_a_rim_network_gives_what_pytorch_gives(generator: torch.Generator) -> None:
+    """Strips of the rim's and of other shapes (the graph's dimensions are dynamic), one by
+    one and at once."""
+    rim = rim_net(0)
+    wrapped = InOnnxRuntime(rim)
+    assert wrapped.columns_seen == rim.columns_seen
+    for shape in [(3, 1, 64, 128), (1, 1, 48, 96)]:
+        strips = torch.rand(shape, generator=generator)
+        with torch.no_grad():
+            expected = rim(strips)
+            got, at_once = wrapped(strips), wrapped.run(strips)
+        for mine, theirs in [(got, expected), (at_once, expected)]:
+            assert [m.shape for m in mine] == [t.shape for t in theirs]
+            for m, t in zip(mine, theirs, strict=True):
+                assert m.dtype == torch.float32
+                torch.testing.assert_close(m, t, atol=1e-4, rtol=1e-4)
+
+
+def test_graphs_are_cached_by_weights(onnx_cache: Path) -> None:
+    first, same, other = rim_net(1), rim_net(1), rim_net(2)
+    assert export_key(first) == export_key(same) != export_key(other)
+    InOnnxRuntime(first)
+    cached = sorted(cache_dir().glob("rim-*.onnx"))
+    assert cache_dir() == onnx_cache / "onnx"
+    assert f"rim-{export_key(first)}.onnx" in [p.name for p in cached]
+    InOnnxRuntime(same)  # loaded, not exported again
+    assert sorted(cache_dir().glob("rim-*.onnx")) == cached
+
+
+def test_no_gradients_through_onnx_runtime() -> None:
+    wrapped = InOnnxRuntime(rim_net(0))
+    with pytest.raises(RuntimeError, match="no gradients"):
+        wrapped(torch.rand(1, 1, 64, 128, requires_grad=True))
+
+
+def test_the_shipped_model_detects_the_same_cup(shipped: torch.nn.Module) -> None:
+    """Every network wrapped, the original left as it is; the cup of a DRR found with the
+    same pose to well within its error (float rounding only), and U-Net logits equal to
+    PyTorch's; a U-Net input of a side the graph was not made for runs in PyTorch."""
+    wrapped = networks_in_onnx_runtime(shipped, threads=1)
+    assert all(isinstance(getattr(wrapped, name), InOnnxRuntime) for name in NETWORKS)
+    assert not any(isinstance(getattr(shipped, name), InOnnxRuntime) for name in NETWORKS)
+    sample = synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0), 0, 0)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    with memoised_strips():
+        ours, theirs = (m.detect(sample["image"][None], geometry,
+                                 float(sample["cup_diameter"][0]), return_masks=False)[0]
+                        for m in (wrapped, shipped))
+    assert len(ours) == len(theirs) == 1 and ours[0].status == theirs[0].status == "ok"
+    np.testing.assert_allclose(ours[0].pose, theirs[0].pose, atol=1e-3)
+    np.testing.assert_allclose(ours[0].landmarks, theirs[0].landmarks, atol=1e-2)
+    views = torch.rand(2, 1, 128, 128)
+    with torch.no_grad():
+        torch.testing.assert_close(wrapped.locator(views), shipped.locator(views),
+                                   atol=2e-4, rtol=1e-4)
+        odd = torch.rand(1, 1, 96, 96)
+        torch.testing.assert_close(wrapped.refiner(odd), shipped.refiner(odd))
+
+
+def test_predict_runs_and_records_onnx_runtime(tmp_path: Path,
+                                               blind_checkpoint: Path) -> None:
+    blank = tmp_path / "blank.png"
+    cv2.imwrite(str(blank), np.zeros((128, 128), np.uint8))
+    out = tmp_path / "out"
+    assert main(["predict", str(blank), "--out", str(out), "--assume-defaults", "--quiet",
+                 "--checkpoint", str(blind_checkpoint), "--runtime", "onnx"]) == 0
+    assert json.loads((out / "results.json").read_text())["model"]["runtime"] == "onnx"
+
+
+def test_predict_refuses_onnx_runtime_on_another_device(tmp_path: Path,
+                                                         capsys: pytest.CaptureFixture) -> None:
+    out = tmp_path / "out"
+    assert main(["predict", str(tmp_path), "--out", str(out), "--runtime", "onnx",
+                 "--device", "cuda"]) == 2
+    assert ("--runtime onnx runs the networks on the CPU, not on --device cuda"
+            in capsys.readouterr().err)
+    assert not out.exists()
