@@ -1,7 +1,7 @@
 """CupNet speed and accuracy: segmentation + pose per 512x512 image, and pose MAE on fresh DRRs.
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
-...] [--images N] [--parts speed accuracy oblong]``.
+...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong]``.
 Writes the ``model`` (speed), ``model_accuracy`` (accuracy, ablation) and ``model_oblong``
 (oblong images) sections of docs/benchmarks.md, and docs/model_failures.png (the shipped
 model's worst cases).
@@ -28,6 +28,7 @@ from cupnet.evaluate import GROSS_DEG  # noqa: E402
 from cupnet.fold import fold_batchnorm  # noqa: E402
 from cupnet.geometry import Geometry  # noqa: E402
 from cupnet.model import DEFAULT_CHECKPOINT, CupNet, load_model  # noqa: E402
+from cupnet.runtime import RUNTIMES, networks_in_onnx_runtime  # noqa: E402
 from train.data import synth_config  # noqa: E402
 from train.losses import POSE_NAMES as NAMES  # noqa: E402
 from train.losses import POSE_SCALE as TARGETS  # noqa: E402  (the issue's target MAEs)
@@ -211,7 +212,9 @@ def speed_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
                   f"{os.getloadavg()[0]:.1f} (other agents share the CPU). No GPU was lent, so "
                   "the H100 throughput is not measured. With 2 threads the rim networks' "
                   "strips run one per core (`cupnet.parallel`), with the same results as on "
-                  "one.\n\n" + speed)
+                  "one. 'ONNX Runtime': the networks run by ONNX Runtime "
+                  "(`cupnet predict --runtime onnx`, `cupnet.runtime`; its U-Nets on one "
+                  "thread), the geometry as in PyTorch's rows.\n\n" + speed)
 
 
 def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
@@ -288,21 +291,29 @@ def main() -> None:
                         help="where to write the worst cases of the shipped model")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2],
                         help="torch intra-op threads to time with (accuracy uses the first)")
+    parser.add_argument("--runtimes", nargs="+", default=["torch"], choices=RUNTIMES,
+                        help="what runs the networks (cupnet predict --runtime); the first "
+                             "model of the first is the shipped one of the gallery")
     parser.add_argument("--parts", nargs="+", default=["speed", "accuracy", "oblong"],
                         choices=["speed", "accuracy", "oblong"],
                         help="the sections to measure; the others are left as they are "
                              "(speed alone: for a change that keeps every pose)")
     args = parser.parse_args()
 
-    def loaded(path: str, preset: str | None = None) -> CupNet:  # as cupnet predict runs it
-        net = fold_batchnorm(load_model(path))
+    def loaded(path: str, preset: str | None = None, runtime: str = "torch") -> CupNet:
+        net = fold_batchnorm(load_model(path))  # as cupnet predict runs it
         apply_speed_preset(net.config, preset)
-        return net
+        # one thread a U-Net call, as predict's default (the strips take the timed threads)
+        return networks_in_onnx_runtime(net, threads=1) if runtime == "onnx" else net
 
     model = loaded(args.checkpoint)
-    models = {"shipped (end to end)": model}
-    models.update({f"shipped, --{preset}": loaded(args.checkpoint, preset)
-                   for preset in args.presets})
+    models = {}
+    for runtime in args.runtimes:
+        suffix = ", ONNX Runtime" if runtime == "onnx" else ""
+        models[f"shipped (end to end){suffix}"] = (model if runtime == "torch"
+                                                   else loaded(args.checkpoint, None, runtime))
+        models.update({f"shipped, --{preset}{suffix}": loaded(args.checkpoint, preset, runtime)
+                       for preset in args.presets})
     timed = dict(models)  # the shipped model and its presets; the ablations are scored only
     for item in args.ablation:
         name, path = item.split("=", 1)

@@ -1,6 +1,7 @@
 """Throughput and peak memory of ``cupnet predict`` on a folder of 1024 x 1024 16-bit PNGs.
 
-Rerun: ``.venv/bin/python -m benchmarks.predict [--images 200] [--checkpoint PATH]``.
+Rerun: ``.venv/bin/python -m benchmarks.predict [--images 200] [--checkpoint PATH]
+[--runtimes torch onnx]``.
 
 The folder is made from ``cupnet synth`` images (CT anatomy, one or two cups or none)
 rendered at 256 px and upsampled to 1024 px, with meta.csv scaled to match; a few distinct
@@ -31,6 +32,7 @@ import cv2
 
 from benchmarks.report import machine, markdown_table, write_section
 from cupnet.config import SPEED_PRESETS
+from cupnet.runtime import RUNTIMES
 
 SIZE = 1024
 SYNTH_SIZE = 256
@@ -87,12 +89,13 @@ def make_folder(root: Path, n_images: int, n_unique: int, seed: int) -> tuple[Pa
 
 
 def measure(images: Path, meta: Path, out: Path, overlays: bool,
-            checkpoint: str | None, preset: str | None = None) -> dict:
+            checkpoint: str | None, preset: str | None = None, runtime: str = "torch") -> dict:
     """One fresh ``cupnet predict`` process (with ``--PRESET`` where given): start-up, timed
     run, peak memory."""
     common = ["--meta", str(meta), "--quiet"] + (["--checkpoint", checkpoint] if checkpoint
                                                  else [])
     common += ([] if overlays else ["--no-overlays"]) + ([f"--{preset}"] if preset else [])
+    common += ["--runtime", runtime]
     first = sorted(images.iterdir())[0]
     warm = ["predict", str(first), "--out", str(out / "warm"), *common]
     run = ["predict", str(images), "--out", str(out / "run"), *common]
@@ -114,6 +117,8 @@ def main() -> None:
     parser.add_argument("--unique", type=int, default=20, help="distinct synthetic images")
     parser.add_argument("--checkpoint", help="model weights (default: the shipped model)")
     parser.add_argument("--seed", type=int, default=7)
+    parser.add_argument("--runtimes", nargs="+", choices=RUNTIMES, default=["torch"],
+                        help="cupnet predict --runtime values to run each configuration with")
     args = parser.parse_args()
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="cupnet-bench-") as tmp:
@@ -122,25 +127,28 @@ def main() -> None:
         # (speed preset, overlays): the default both ways, then each preset with overlays
         runs = [(None, False), (None, True), *((preset, True) for preset in SPEED_PRESETS)]
         results = {}
-        for preset, overlays in runs:
-            out = root / f"out_{preset or 'default'}_{'overlays' if overlays else 'plain'}"
-            results[preset, overlays] = measure(images, meta, out, overlays, args.checkpoint,
-                                                preset)
+        for runtime in args.runtimes:
+            for preset, overlays in runs:
+                out = root / (f"out_{runtime}_{preset or 'default'}_"
+                              f"{'overlays' if overlays else 'plain'}")
+                results[runtime, preset, overlays] = measure(images, meta, out, overlays,
+                                                             args.checkpoint, preset, runtime)
     rows = []
-    for (preset, overlays), r in results.items():
+    for (runtime, preset, overlays), r in results.items():
         cpu_per_image = r["cpu_s"] / r["images"]
-        rows.append([f"--{preset}" if preset else "default", "on" if overlays else "off",
-                     r["images"], r["cups"], r["errors"],
+        rows.append([runtime, f"--{preset}" if preset else "default",
+                     "on" if overlays else "off", r["images"], r["cups"], r["errors"],
                      r["run_s"], r["images"] / r["run_s"], cpu_per_image,
                      os.cpu_count() / cpu_per_image, r["peak_rss_mb"], r["startup_s"]])
-    table = markdown_table(["speed preset", "overlays", "images", "cups found", "error rows",
-                            "run (s)",
-                            "images / s", "CPU s / image", "images / s if cores were free",
+    table = markdown_table(["runtime", "speed preset", "overlays", "images", "cups found",
+                            "error rows", "run (s)", "images / s", "CPU s / image",
+                            "images / s if cores were free",
                             "peak memory (MB)", "process start-up (s)"], rows)
     body = "\n".join([
         "## cupnet predict: throughput and memory",
         "",
-        f"`.venv/bin/python -m benchmarks.predict --images {args.images}` on {machine()}; "
+        f"`.venv/bin/python -m benchmarks.predict --images {args.images} --runtimes "
+        f"{' '.join(args.runtimes)}` on {machine()}; "
         f"load average {load:.1f} when started (the machine's cores may be shared). "
         f"Folder: {args.images} PNGs, {SIZE} x {SIZE}, 16-bit (synthetic, CT anatomy); "
         f"model: {args.checkpoint or 'shipped default'}; predict's defaults (batches of 8, "

@@ -42,6 +42,7 @@ from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
 from cupnet.model import CupNet, load_model
 from cupnet.offload import networks_on, resolve_device
+from cupnet.runtime import RUNTIMES, networks_in_onnx_runtime
 from train.losses import POSE_NAMES
 from train.module import score_detections
 
@@ -146,9 +147,14 @@ def batched_rows(model: CupNet, data: list[dict], device: torch.device, batches:
     return rows
 
 
-def detect_rows(model: CupNet, data: list[dict], device: torch.device,
-                repeats: int) -> list[list[object]]:
-    moved = networks_on(fold_batchnorm(model), device)
+def detect_rows(model: CupNet, data: list[dict], device: torch.device, repeats: int,
+                runtime: str = "torch") -> list[list[object]]:
+    """Rows of ``detect`` with each speed preset, its networks on ``device`` (``runtime``
+    ``"onnx"``: run by ONNX Runtime on the CPU, :mod:`cupnet.runtime`)."""
+    folded = fold_batchnorm(model)
+    moved = (networks_in_onnx_runtime(folded) if runtime == "onnx"
+             else networks_on(folded, device))
+    networks = "fp32, ONNX Runtime" if runtime == "onnx" else "fp32"
     shipped = moved.config
     rows = []
     for preset in [None, *SPEED_PRESETS]:
@@ -164,7 +170,7 @@ def detect_rows(model: CupNet, data: list[dict], device: torch.device,
 
         seconds = best_seconds(run, device, repeats)
         quality = scores(found, data)
-        rows.append(table_row(f"`detect`{f', --{preset}' if preset else ''}", "fp32",
+        rows.append(table_row(f"`detect`{f', --{preset}' if preset else ''}", networks,
                               DETECT_BATCH, len(data), seconds, quality))
     return rows
 
@@ -182,12 +188,16 @@ def main() -> None:
     parser.add_argument("--detect-images", type=int, default=32,
                         help="images of the detect rows (0: skip them)")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
+    parser.add_argument("--runtimes", nargs="+", default=["torch"], choices=RUNTIMES,
+                        help="what runs detect's networks (onnx: ONNX Runtime, CPU only)")
     parser.add_argument("--seed", type=int, default=20_261_124)
     args = parser.parse_args()
     device = resolve_device(args.device)
     if device.type == "mps":  # the batched pipeline's solver is float64 on the device
         parser.error("--device mps: MPS has no float64; cupnet predict --device mps runs the "
                      "networks there and solves on the CPU")
+    if "onnx" in args.runtimes and device.type != "cpu":
+        parser.error("--runtimes onnx: ONNX Runtime runs the networks on the CPU")
     torch.set_num_threads(args.threads)
     gpu = device.type != "cpu"
     batches = args.batches or ([1, 64, 256] if gpu else [1, 16])
@@ -195,7 +205,9 @@ def main() -> None:
     model = load_model()
     rows = batched_rows(model, data, device, batches, args.precision, args.repeats)
     if args.detect_images:
-        rows += detect_rows(model, data[:args.detect_images], device, args.repeats)
+        for runtime in args.runtimes:
+            rows += detect_rows(model, data[:args.detect_images], device, args.repeats,
+                                runtime)
     name = (torch.cuda.get_device_name(device) if device.type == "cuda" else device.type)
     table = markdown_table(["pipeline", "networks", "images a call", "images / s",
                             "ms / image", *(f"MAE {n}" for n in POSE_NAMES), "cups found"],
@@ -203,7 +215,8 @@ def main() -> None:
     print(table)
     command = (f"python -m benchmarks.throughput --device {args.device} --batches "
                f"{' '.join(map(str, batches))} --images {len(data)} --precision "
-               f"{' '.join(args.precision)} --threads {args.threads}")
+               f"{' '.join(args.precision)} --threads {args.threads} --runtimes "
+               f"{' '.join(args.runtimes)}")
     write_section(f"throughput_{device.type}", (
         f"## CupNet throughput on {name}\n\n`{command}` on {machine()}. 512 x 512 DRRs with "
         f"the CT background ({len(data)} distinct images; each batch size timed on at least "

@@ -28,6 +28,7 @@ from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -62,6 +63,9 @@ from cupnet.offload import resolve_device
 from cupnet.overlay import CupDrawing, draw_overlay, pose_lines, write_png
 from cupnet.polarity import METAL_DISPLAYS
 from cupnet.runtime import RUNTIMES, onnx_runtime_available
+
+if TYPE_CHECKING:  # the model's libraries load only when a model is
+    from cupnet.model import CupNet
 
 # --assume-defaults: the paper's SDD, a common cup size, and a mid-size detector whose width
 # spans the image (so the spacing scales with the image size).
@@ -133,11 +137,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where the networks run: cpu (default), cuda, cuda:N or mps; "
                              "the geometry between their calls stays on the CPU "
                              "(cupnet.offload)")
-    parser.add_argument("--runtime", choices=RUNTIMES, default="torch",
-                        help="what runs the networks on the CPU: torch (default) or onnx "
-                             "(ONNX Runtime: about 15 %% faster an image, the same poses to "
-                             "float rounding; each network is exported once, about 30 s in "
-                             "all, and cached; cupnet.runtime)")
+    parser.add_argument("--runtime", choices=("auto", *RUNTIMES), default="auto",
+                        help="what runs the networks: onnx (ONNX Runtime, on the CPU: about "
+                             "15-30 %% faster an image than torch, the same poses to float "
+                             "rounding; each network is exported once, about 30 s in all, "
+                             "and cached; cupnet.runtime), torch, or auto (default: onnx on "
+                             "the CPU where it loads, else torch)")
     parser.add_argument("--batch-size", type=int, default=8, help="images per network batch")
     parser.add_argument("--threads", type=int, default=1,
                         help="PyTorch threads per network batch (default 1: two batches, "
@@ -218,17 +223,38 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+def _in_onnx_runtime(model: CupNet, strict: bool) -> tuple[CupNet, str]:
+    """``model`` with its networks run by ONNX Runtime, and ``"onnx"``; where that fails,
+    the error if ``strict``, else ``model`` as it is and ``"torch"``, with a note."""
+    from cupnet.runtime import networks_in_onnx_runtime
+
+    def announce(path: Path) -> None:
+        print(f"cupnet predict: exporting a network for ONNX Runtime (once, a few seconds; "
+              f"cached as {path})", file=sys.stderr)
+
+    try:
+        return networks_in_onnx_runtime(model, on_export=announce), "onnx"
+    except Exception as exc:  # noqa: BLE001 - any failure to export or load falls back alike
+        if strict:
+            raise
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        print(f"cupnet predict: ONNX Runtime cannot run the networks ({reason}); they run "
+              "in PyTorch", file=sys.stderr)
+        return model, "torch"
+
+
 class NetworkDetector:
     """CupNet on a batch of images (weights loaded without running code from the file)."""
 
     def __init__(self, checkpoint: Path | None, save_masks: bool, preset: str | None = None,
                  settings: dict[str, object] | None = None, device: str = "cpu",
-                 runtime: str = "torch") -> None:
+                 runtime: str = "auto") -> None:
         """``settings``: :class:`cupnet.config.CupNetConfig` fields set over the checkpoint's
         (and the preset's), as the command line gives them; ``device``: where the networks
-        run (:func:`cupnet.offload.networks_on`); ``runtime``: ``"onnx"`` to run them in ONNX
-        Runtime on the CPU (:func:`cupnet.runtime.networks_in_onnx_runtime`), on
-        ``torch.get_num_threads()`` threads."""
+        run (:func:`cupnet.offload.networks_on`); ``runtime`` (on the CPU): ``"onnx"`` runs
+        them in ONNX Runtime (:func:`cupnet.runtime.networks_in_onnx_runtime`, the U-Nets on
+        ``torch.get_num_threads()`` threads), ``"torch"`` in PyTorch, ``"auto"`` in ONNX
+        Runtime where it loads, else in PyTorch. ``info["runtime"]`` says which ran."""
         from cupnet.config import apply_speed_preset
         from cupnet.fold import fold_batchnorm
         from cupnet.model import DEFAULT_CHECKPOINT, load_model
@@ -236,11 +262,9 @@ class NetworkDetector:
 
         self.model = fold_batchnorm(load_model(checkpoint))
         if device != "cpu":
-            self.model = networks_on(self.model, device)
-        if runtime == "onnx":
-            from cupnet.runtime import networks_in_onnx_runtime
-
-            self.model = networks_in_onnx_runtime(self.model)
+            self.model, runtime = networks_on(self.model, device), "torch"
+        elif runtime != "torch":
+            self.model, runtime = _in_onnx_runtime(self.model, strict=runtime == "onnx")
         apply_speed_preset(self.model.config, preset)
         for name, value in (settings or {}).items():
             setattr(self.model.config, name, value)
@@ -435,7 +459,7 @@ def _check_args(args: argparse.Namespace) -> str | None:
         return "--batch-size must be >= 1"
     if args.threads < 1:
         return "--threads must be >= 1"
-    if args.runtime == "onnx" and args.landmarks is None:
+    if args.runtime == "onnx" and args.landmarks is None:  # asked for by name: it must run
         if args.device != "cpu":
             return f"--runtime onnx runs the networks on the CPU, not on --device {args.device}"
         missing = onnx_runtime_available()

@@ -23,6 +23,7 @@ import hashlib
 import inspect
 import os
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -86,10 +87,11 @@ def export_key(module: nn.Module) -> str:
     return digest.hexdigest()[:32]
 
 
-def exported_graph(module: nn.Module, side: int | None = None) -> bytes:
+def exported_graph(module: nn.Module, side: int | None = None,
+                   on_export: Callable[[Path], None] | None = None) -> bytes:
     """The ONNX graph of ``module`` (a :class:`RimNet`, or a U-Net on ``side`` x ``side``
     inputs), from the cache or exported now and cached (an unwritable cache is skipped with
-    a warning)."""
+    a warning); ``on_export`` is called with the cache path before an export (seconds)."""
     strips = isinstance(module, RimNet)
     if not strips and side is None:
         raise ValueError("exported_graph: a U-Net's graph needs its input side")
@@ -97,6 +99,8 @@ def exported_graph(module: nn.Module, side: int | None = None) -> bytes:
     path = cache_dir() / f"{kind}-{export_key(module)}.onnx"
     if path.is_file():
         return path.read_bytes()
+    if on_export is not None:
+        on_export(path)
     target = _StripsAtOnce(module) if strips else module
     example = torch.zeros(_STRIPS_EXAMPLE if strips else (2, 1, side, side))
     dynamic = {d: torch.export.Dim.DYNAMIC for d in ((0, 2, 3) if strips else (0,))}
@@ -138,15 +142,16 @@ class InOnnxRuntime(PassThrough):
     (``RimNet.columns_seen``).
     """
 
-    def __init__(self, module: nn.Module, side: int | None = None, threads: int = 1) -> None:
+    def __init__(self, module: nn.Module, side: int | None = None, threads: int = 1,
+                 on_export: Callable[[Path], None] | None = None) -> None:
         """Exports ``module`` (a U-Net for ``side`` x ``side`` inputs, or a rim network) or
-        loads its cached graph (:func:`exported_graph`), and opens a session of ``threads``
-        intra-op threads."""
+        loads its cached graph (:func:`exported_graph`, which calls ``on_export``), and opens
+        a session of ``threads`` intra-op threads."""
         super().__init__()
         self.module = module.eval()
         self.strips = isinstance(module, RimNet)
         self.side = side
-        self.session = _session(exported_graph(module, side), threads)
+        self.session = _session(exported_graph(module, side, on_export), threads)
         self.input_name = self.session.get_inputs()[0].name
 
     def forward(self, inputs: Tensor) -> Tensor | tuple[Tensor, Tensor]:
@@ -179,10 +184,12 @@ def onnx_runtime_available() -> str | None:
     return None
 
 
-def networks_in_onnx_runtime(model: CupNet, threads: int | None = None) -> CupNet:
-    """A copy of ``model`` whose networks ONNX Runtime runs (:class:`InOnnxRuntime`, each of
-    ``threads`` intra-op threads; None: ``torch.get_num_threads()``), the rest of
+def networks_in_onnx_runtime(model: CupNet, threads: int | None = None,
+                             on_export: Callable[[Path], None] | None = None) -> CupNet:
+    """A copy of ``model`` whose networks ONNX Runtime runs (:class:`InOnnxRuntime`, the
+    U-Nets on ``threads`` intra-op threads, None: ``torch.get_num_threads()``), the rest of
     :meth:`~cupnet.model.CupNet.detect` unchanged; ``model`` itself is left as it is.
+    ``on_export``: called with the cache path before each network that must be exported.
 
     For inference on a CPU. Fold the BatchNorms first (:func:`cupnet.fold.fold_batchnorm`),
     as ``cupnet predict`` does: the graph then has one operator fewer per layer. A
@@ -199,5 +206,5 @@ def networks_in_onnx_runtime(model: CupNet, threads: int | None = None) -> CupNe
         if net is not None:
             # The strips run one per core already (cupnet.parallel): one thread each.
             setattr(wrapped, name, InOnnxRuntime(net, sides.get(name), 1 if name not in sides
-                                                 else threads))
+                                                 else threads, on_export))
     return wrapped

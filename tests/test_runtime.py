@@ -104,14 +104,40 @@ def test_the_shipped_model_detects_the_same_cup(shipped: torch.nn.Module) -> Non
         torch.testing.assert_close(wrapped.refiner(odd), shipped.refiner(odd))
 
 
-def test_predict_runs_and_records_onnx_runtime(tmp_path: Path,
-                                               blind_checkpoint: Path) -> None:
+def predict_blank(tmp_path: Path, checkpoint: Path, *flags: str) -> dict:
+    """``cupnet predict`` on a blank image with ``flags``; its results.json."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
     blank = tmp_path / "blank.png"
-    cv2.imwrite(str(blank), np.zeros((128, 128), np.uint8))
+    assert cv2.imwrite(str(blank), np.zeros((128, 128), np.uint8))
     out = tmp_path / "out"
     assert main(["predict", str(blank), "--out", str(out), "--assume-defaults", "--quiet",
-                 "--checkpoint", str(blind_checkpoint), "--runtime", "onnx"]) == 0
-    assert json.loads((out / "results.json").read_text())["model"]["runtime"] == "onnx"
+                 "--checkpoint", str(checkpoint), *flags]) == 0
+    return json.loads((out / "results.json").read_text())
+
+
+def test_predict_runs_the_networks_in_onnx_runtime_by_default(
+        tmp_path: Path, blind_checkpoint: Path) -> None:
+    assert predict_blank(tmp_path, blind_checkpoint)["model"]["runtime"] == "onnx"
+
+
+def test_predict_falls_back_on_pytorch(tmp_path: Path, blind_checkpoint: Path,
+                                       monkeypatch: pytest.MonkeyPatch,
+                                       capsys: pytest.CaptureFixture) -> None:
+    """Where ONNX Runtime cannot run the networks, the default runs them in PyTorch and says
+    why; asked for by name, it stops the run naming the problem."""
+    def broken(*args: object, **kwargs: object) -> None:
+        raise RuntimeError("no kernel for this CPU")
+
+    monkeypatch.setattr("cupnet.runtime.networks_in_onnx_runtime", broken)
+    assert predict_blank(tmp_path, blind_checkpoint)["model"]["runtime"] == "torch"
+    assert ("ONNX Runtime cannot run the networks (no kernel for this CPU); they run in "
+            "PyTorch") in capsys.readouterr().err
+    assert main(["predict", str(tmp_path / "blank.png"), "--out", str(tmp_path / "again"),
+                 "--assume-defaults", "--quiet", "--checkpoint", str(blind_checkpoint),
+                 "--runtime", "onnx"]) == 2
+    assert "cannot load the model: no kernel for this CPU" in capsys.readouterr().err
+    assert predict_blank(tmp_path / "torch", blind_checkpoint,
+                         "--runtime", "torch")["model"]["runtime"] == "torch"
 
 
 def test_predict_refuses_onnx_runtime_on_another_device(tmp_path: Path,
