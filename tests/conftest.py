@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -9,6 +10,17 @@ import torch
 
 from cupnet.config import CupNetConfig
 from cupnet.model import CupNet, save_model
+
+
+@pytest.fixture(scope="session", autouse=True)
+def onnx_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """The session's own cache of exported networks (cupnet.runtime; predict runs its
+    networks in ONNX Runtime by default): the tests export each model once and write nothing
+    under the user's home."""
+    root = tmp_path_factory.mktemp("cupnet-cache")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("CUPNET_CACHE_DIR", str(root))
+        yield root
 
 
 @pytest.fixture

@@ -21,17 +21,6 @@ from data_synth import SynthConfig, synthesize
 
 
 @pytest.fixture(scope="module")
-def onnx_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """One export cache for the module's tests (each network is exported once)."""
-    return tmp_path_factory.mktemp("cache")
-
-
-@pytest.fixture(autouse=True)
-def _cache_in(onnx_cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setenv("CUPNET_CACHE_DIR", str(onnx_cache))
-
-
-@pytest.fixture(scope="module")
 def shipped() -> torch.nn.Module:
     return fold_batchnorm(load_model())
 
