@@ -41,7 +41,7 @@ if TYPE_CHECKING:
 # What can run the networks on a CPU (cupnet predict --runtime).
 RUNTIMES = ("torch", "onnx")
 # A rim network's example strips for the export: every dimension but the channel is
-# dynamic (the outline's strips differ from the rim's). A U-Net's graph has its input's side
+# dynamic (strips of any length and count). A U-Net's graph has its input's side
 # fixed (a dynamic one takes minutes to export) and its batch dynamic.
 _STRIPS_EXAMPLE = (2, 1, 64, 128)
 # Bumped when the export itself changes (its options, the wrapper below), to drop old graphs.
