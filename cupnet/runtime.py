@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import importlib.util
 import inspect
 import os
 import warnings
@@ -175,12 +176,14 @@ class InOnnxRuntime(PassThrough):
 
 
 def onnx_runtime_available() -> str | None:
-    """None where ONNX Runtime and the exporter's libraries import, else why not."""
+    """None where ONNX Runtime imports and the exporter's library is installed (found, not
+    imported: it takes about 2 s, and only an export needs it), else why not."""
     try:
         import onnxruntime  # noqa: F401
-        import onnxscript  # noqa: F401
     except ImportError as error:
         return f"ONNX Runtime is not installed ({error})"
+    if importlib.util.find_spec("onnxscript") is None:
+        return "onnxscript, which torch.onnx.export needs, is not installed"
     return None
 
 
