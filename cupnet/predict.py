@@ -139,7 +139,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(cupnet.offload)")
     parser.add_argument("--runtime", choices=("auto", *RUNTIMES), default="auto",
                         help="what runs the networks: onnx (ONNX Runtime, on the CPU: about "
-                             "15-30 %% faster an image than torch, the same poses to float "
+                             "15-35 %% faster an image than torch, the same poses to float "
                              "rounding; each network is exported once, about 30 s in all, "
                              "and cached; cupnet.runtime), torch, or auto (default: onnx on "
                              "the CPU where it loads, else torch)")
@@ -261,7 +261,7 @@ class NetworkDetector:
         from cupnet.offload import networks_on  # loads the model's libraries
 
         self.model = fold_batchnorm(load_model(checkpoint))
-        if device != "cpu":
+        if torch.device(device).type != "cpu":
             self.model, runtime = networks_on(self.model, device), "torch"
         elif runtime != "torch":
             self.model, runtime = _in_onnx_runtime(self.model, strict=runtime == "onnx")
@@ -459,13 +459,14 @@ def _check_args(args: argparse.Namespace) -> str | None:
         return "--batch-size must be >= 1"
     if args.threads < 1:
         return "--threads must be >= 1"
-    if args.runtime == "onnx" and args.landmarks is None:  # asked for by name: it must run
-        if args.device != "cpu":
-            return f"--runtime onnx runs the networks on the CPU, not on --device {args.device}"
-        missing = onnx_runtime_available()
-        if missing is not None:
-            return f"--runtime onnx: {missing}"
-    if args.device != "cpu" and args.landmarks is None:
+    if args.landmarks is None:
+        if args.runtime == "onnx":  # asked for by name: it must run
+            if args.device.split(":")[0] != "cpu":  # the device's type, as torch reads it
+                return (f"--runtime onnx runs the networks on the CPU, not on --device "
+                        f"{args.device}")
+            missing = onnx_runtime_available()
+            if missing is not None:
+                return f"--runtime onnx: {missing}"
         try:
             resolve_device(args.device)
         except ValueError as exc:

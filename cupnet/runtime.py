@@ -20,13 +20,14 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import importlib.metadata
 import importlib.util
 import inspect
 import os
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor, nn
@@ -71,17 +72,24 @@ def cache_dir() -> Path:
 
 def export_key(module: nn.Module) -> str:
     """A digest of what the exported graph of ``module`` depends on: its weights and
-    buffers, its class's source, and the versions of torch and onnxruntime."""
-    import onnxruntime
-
-    digest = hashlib.sha256(f"{_EXPORT_VERSION} {torch.__version__} "
-                            f"{onnxruntime.__version__}".encode())
-    classes = {type(m) for m in module.modules()}
-    for cls in sorted(classes, key=lambda c: f"{c.__module__}.{c.__qualname__}"):
+    buffers, the source files of the modules defining its layers' classes and their bases
+    (constants included; PyTorch's own are covered by its version), and the versions of
+    the libraries that build and run the graph."""
+    digest = hashlib.sha256(str(_EXPORT_VERSION).encode())
+    for library in ("torch", "onnxruntime", "onnxscript", "segmentation-models-pytorch",
+                    "timm", "cupnet"):
         try:
-            digest.update(inspect.getsource(cls).encode())
-        except (OSError, TypeError):  # a class without source (built in): its name
-            digest.update(cls.__qualname__.encode())
+            digest.update(f"{library} {importlib.metadata.version(library)}".encode())
+        except importlib.metadata.PackageNotFoundError:
+            digest.update(f"{library} absent".encode())
+    sources = {inspect.getmodule(base) for layer in module.modules()
+               for base in type(layer).__mro__}
+    files = sorted({Path(source.__file__) for source in sources
+                    if source is not None and getattr(source, "__file__", None)
+                    and source.__name__.split(".")[0] not in ("torch", "builtins")})
+    for file in files:
+        digest.update(file.name.encode())
+        digest.update(file.read_bytes())
     for name, value in module.state_dict().items():
         digest.update(name.encode())
         digest.update(value.detach().cpu().contiguous().numpy().tobytes())
@@ -89,16 +97,18 @@ def export_key(module: nn.Module) -> str:
 
 
 def exported_graph(module: nn.Module, side: int | None = None,
-                   on_export: Callable[[Path], None] | None = None) -> bytes:
+                   on_export: Callable[[Path], None] | None = None,
+                   fresh: bool = False) -> bytes:
     """The ONNX graph of ``module`` (a :class:`RimNet`, or a U-Net on ``side`` x ``side``
-    inputs), from the cache or exported now and cached (an unwritable cache is skipped with
-    a warning); ``on_export`` is called with the cache path before an export (seconds)."""
+    inputs), from the cache or (``fresh``: in any case) exported now and cached (an
+    unwritable cache is skipped with a warning); ``on_export`` is called with the cache
+    path before an export (seconds)."""
     strips = isinstance(module, RimNet)
     if not strips and side is None:
         raise ValueError("exported_graph: a U-Net's graph needs its input side")
     kind = "rim" if strips else f"unet{side}"
     path = cache_dir() / f"{kind}-{export_key(module)}.onnx"
-    if path.is_file():
+    if path.is_file() and not fresh:
         return path.read_bytes()
     if on_export is not None:
         on_export(path)
@@ -110,12 +120,13 @@ def exported_graph(module: nn.Module, side: int | None = None,
         program = torch.onnx.export(target.eval(), (example,), dynamo=True,
                                     dynamic_shapes=(dynamic,), verbose=False)
     graph = program.model_proto.SerializeToString()
+    temporary = path.with_suffix(f".{os.getpid()}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        temporary = path.with_suffix(f".{os.getpid()}.tmp")
         temporary.write_bytes(graph)
         temporary.replace(path)  # atomic: a concurrent run reads a whole graph or none
     except OSError as error:
+        temporary.unlink(missing_ok=True)
         warnings.warn(f"cannot cache the exported network in {path.parent} ({error}); it "
                       "is exported again next time (set CUPNET_CACHE_DIR)", stacklevel=2)
     return graph
@@ -138,9 +149,11 @@ class InOnnxRuntime(PassThrough):
     """``module`` (a U-Net or a :class:`RimNet`) run by ONNX Runtime on the CPU.
 
     Called with CPU float tensors, it gives what ``module`` gives in eval mode (to float
-    rounding), as CPU float32 tensors. A rim network takes CPU strips one at a time, as
-    :meth:`RimNet.forward` does. Attributes the wrapper lacks are the module's
-    (``RimNet.columns_seen``).
+    rounding). A rim network takes CPU strips one at a time, as :meth:`RimNet.forward`
+    does. Where ONNX Runtime fails on a call, that call and every later one run in PyTorch
+    (with a warning, and :attr:`failure` says why). Attributes the wrapper lacks are the
+    module's (``RimNet.columns_seen``). It holds an ONNX Runtime session, which cannot be
+    copied or pickled: copy, fold or save the PyTorch model, then wrap it.
     """
 
     def __init__(self, module: nn.Module, side: int | None = None, threads: int = 1,
@@ -152,25 +165,48 @@ class InOnnxRuntime(PassThrough):
         self.module = module.eval()
         self.strips = isinstance(module, RimNet)
         self.side = side
-        self.session = _session(exported_graph(module, side, on_export), threads)
+        try:
+            self.session = _session(exported_graph(module, side, on_export), threads)
+        except Exception:  # noqa: BLE001 - a cached graph that does not load: export anew
+            self.session = _session(exported_graph(module, side, on_export, fresh=True),
+                                    threads)
         self.input_name = self.session.get_inputs()[0].name
+        self.failure: str | None = None  # why the session failed once, if it did
 
     def forward(self, inputs: Tensor) -> Tensor | tuple[Tensor, Tensor]:
+        """A U-Net's crops or views ``(K, 1, s, s)`` -> logits ``(K, 1, s, s)``; a rim
+        network's strips ``(K, 1, S, n)`` -> offset logits ``(K, S, n)`` and ``log sigma``
+        ``(K, n)`` px; CPU tensors in the inputs' dtype."""
         if inputs.requires_grad:
             raise RuntimeError("a network run by ONNX Runtime has no gradients: use the "
                                "PyTorch model (cupnet.model.load_model) to train or "
                                "backpropagate")
-        if inputs.shape[0] == 0 or (not self.strips and inputs.shape[-2:] != (self.side,) * 2):
-            # nothing to run, or a side the graph was not made for (a config changed since)
+        if inputs.device.type != "cpu":
+            raise ValueError(f"ONNX Runtime runs on the CPU; got inputs on {inputs.device}")
+        if inputs.shape[0] == 0 or self.failure is not None:
             return self.module(inputs)
-        if self.strips:
-            return strips_one_by_one(self.run, inputs, self)
-        return self.run(inputs)
+        if not self.strips and inputs.shape[-2:] != (self.side,) * 2:
+            # a side the graph was not made for (the config changed since it was made)
+            warnings.warn(f"ONNX Runtime's graph takes {self.side} px inputs; PyTorch runs "
+                          f"these {tuple(inputs.shape[-2:])}", stacklevel=2)
+            return self.module(inputs)
+        try:
+            if self.strips:
+                return strips_one_by_one(self.run, inputs, self)
+            return self.run(inputs)
+        except Exception as error:  # noqa: BLE001 - whatever ONNX Runtime raises
+            # PyTorch gives the same outputs to float rounding: the run goes on there.
+            self.failure = str(error).strip().splitlines()[0] if str(error).strip() else (
+                type(error).__name__)
+            warnings.warn(f"ONNX Runtime failed ({self.failure}); this network runs in "
+                          "PyTorch from now on", stacklevel=2)
+            return self.module(inputs)
 
-    def run(self, inputs: Tensor) -> Tensor | tuple[Tensor, Tensor]:
-        """The graph on the whole batch ``inputs``; its outputs as tensors (one, or a tuple)."""
-        feed = inputs.detach().to("cpu", torch.float32).contiguous().numpy()
-        outputs = tuple(torch.from_numpy(x) for x in
+    def run(self, inputs: Tensor) -> Any:
+        """The graph on the whole CPU batch ``inputs``: its outputs as tensors in the inputs'
+        dtype (one, or a tuple)."""
+        feed = inputs.detach().to(torch.float32).contiguous().numpy()
+        outputs = tuple(torch.from_numpy(x).to(inputs.dtype) for x in
                         self.session.run(None, {self.input_name: feed}))
         return outputs if len(outputs) > 1 else outputs[0]
 

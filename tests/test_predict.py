@@ -466,6 +466,7 @@ def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
     stored = {"detect_threshold": 2.0, "verify_gate": 1.0, "check_doubt": 1.8,
               "outline_passes": 3, "thin_rim_gate": 0.3, "ambiguous_by_doubt": True,
               "round_field": True, "min_score": 0.8}
+    torch.manual_seed(0)  # the same weights each case: their networks are exported once
     model = CupNet(CupNetConfig(**stored))
     weights = save_model(model, tmp_path / "gated.safetensors")
     noise_png(tmp_path / "a.png")

@@ -53,14 +53,44 @@ def test_a_rim_network_gives_what_pytorch_gives(generator: torch.Generator) -> N
 
 
 def test_graphs_are_cached_by_weights(onnx_cache: Path) -> None:
+    """Exported once; the same weights load the cached graph, other weights export their
+    own, and a cached graph that does not load is exported again."""
     first, same, other = rim_net(1), rim_net(1), rim_net(2)
     assert export_key(first) == export_key(same) != export_key(other)
-    InOnnxRuntime(first)
-    cached = sorted(cache_dir().glob("rim-*.onnx"))
+    exports: list[Path] = []
+    InOnnxRuntime(first, on_export=exports.append)
     assert cache_dir() == onnx_cache / "onnx"
-    assert f"rim-{export_key(first)}.onnx" in [p.name for p in cached]
-    InOnnxRuntime(same)  # loaded, not exported again
-    assert sorted(cache_dir().glob("rim-*.onnx")) == cached
+    assert exports == [cache_dir() / f"rim-{export_key(first)}.onnx"]
+    assert exports[0].is_file()
+    InOnnxRuntime(same, on_export=exports.append)
+    assert len(exports) == 1  # loaded, not exported again
+    InOnnxRuntime(other, on_export=exports.append)
+    assert exports[1] == cache_dir() / f"rim-{export_key(other)}.onnx"
+    exports[1].write_bytes(b"not a graph")
+    strips = torch.rand(2, 1, 64, 128)
+    again = InOnnxRuntime(other, on_export=exports.append)
+    assert len(exports) == 3 and exports[2] == exports[1]
+    with torch.no_grad():
+        torch.testing.assert_close(again(strips), other(strips), atol=1e-4, rtol=1e-4)
+
+
+def test_a_failing_session_hands_over_to_pytorch(monkeypatch: pytest.MonkeyPatch) -> None:
+    rim = rim_net(0)
+    wrapped = InOnnxRuntime(rim)
+
+    class Broken:
+        def run(self, *args: object) -> None:
+            raise RuntimeError("[ONNXRuntimeError] : 6 : RUNTIME_EXCEPTION")
+
+    monkeypatch.setattr(wrapped, "session", Broken())
+    strips = torch.rand(3, 1, 64, 128)
+    with pytest.warns(UserWarning, match="ONNX Runtime failed"), torch.no_grad():
+        got = wrapped(strips)
+    assert wrapped.failure == "[ONNXRuntimeError] : 6 : RUNTIME_EXCEPTION"
+    with torch.no_grad():
+        expected = rim(strips)
+    for mine, theirs in zip(got, expected, strict=True):
+        torch.testing.assert_close(mine, theirs)
 
 
 def test_no_gradients_through_onnx_runtime() -> None:
