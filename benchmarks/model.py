@@ -155,35 +155,41 @@ def false_detections(model: CupNet, data: list[dict]) -> tuple[int, int]:
     return len(dets), sum(det.check for det in dets)
 
 
-def oblong_section(model: CupNet, args: argparse.Namespace) -> str:
+def oblong_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
     """The shipped model's accuracy on oblong images (their field of view as wide as their
-    short side), per shape and pooled over the shapes' cups: the ``model_oblong`` section."""
-    rows, maes, found, cups, false = [], [], [], [], []
-    for i, size in enumerate(args.oblong):
-        count = args.oblong_images // len(args.oblong) + (i < args.oblong_images % len(args.oblong))
-        res = accuracy(model, samples(args.eval_config, args.seed + 11 + i, count, [size]))
-        print("oblong", size, res)
-        maes.append([res[f"mae_{n}"] for n in NAMES])
-        found.append(res["detected"] * res["cups"])
-        cups.append(res["cups"])
-        false.append((res["false_positives"], res["false_positives_flagged"]))
-        rows.append([f"{size[0]}x{size[1]}", count, *maes[-1],
-                     f"{100 * res['detected']:.1f} % of {res['cups']}",
-                     "{} ({} flagged)".format(*false[-1])])
-    pooled = np.average(maes, axis=0, weights=found)  # each shape's MAE is over its found cups
-    rows.append(["all", args.oblong_images, *pooled,
-                 f"{100 * sum(found) / sum(cups):.1f} % of {sum(cups)}",
-                 "{} ({} flagged)".format(*np.sum(false, 0))])
+    short side), per shape and pooled over the shapes' cups, with the networks in each
+    runtime ``models`` holds (by name): the ``model_oblong`` section."""
+    rows = []
+    for runtime, model in models.items():
+        maes, found, cups, false = [], [], [], []
+        for i, size in enumerate(args.oblong):
+            count = (args.oblong_images // len(args.oblong)
+                     + (i < args.oblong_images % len(args.oblong)))
+            res = accuracy(model, samples(args.eval_config, args.seed + 11 + i, count, [size]))
+            print("oblong", runtime, size, res)
+            maes.append([res[f"mae_{n}"] for n in NAMES])
+            found.append(res["detected"] * res["cups"])
+            cups.append(res["cups"])
+            false.append((res["false_positives"], res["false_positives_flagged"]))
+            rows.append([runtime, f"{size[0]}x{size[1]}", count, *maes[-1],
+                         f"{100 * res['detected']:.1f} % of {res['cups']}",
+                         "{} ({} flagged)".format(*false[-1])])
+        pooled = np.average(maes, axis=0, weights=found)  # each shape's MAE: its found cups
+        rows.append([runtime, "all", args.oblong_images, *pooled,
+                     f"{100 * sum(found) / sum(cups):.1f} % of {sum(cups)}",
+                     "{} ({} flagged)".format(*np.sum(false, 0))])
     return ("## CupNet on oblong images\n\n"
-            f"`python benchmarks/model.py --parts oblong`: {args.oblong_images} fresh DRRs from "
-            f"`{args.eval_config}` (seeds {args.seed + 11} on), the shipped model, MAE over "
-            "detected true cups (deg, deg, mm, mm, mm), false positives as in the accuracy "
-            "table. The locator sees an oblong image through square windows of its short "
-            "side (`cupnet.crops.square_windows`); it was trained on square images only. Its "
-            "blobs centred outside an intensifier's round field are dropped "
+            f"`python benchmarks/model.py --parts oblong --runtimes {' '.join(models)}`: "
+            f"{args.oblong_images} fresh DRRs from `{args.eval_config}` (seeds "
+            f"{args.seed + 11} on), the shipped model with its networks in each runtime, MAE "
+            "over detected true cups (deg, deg, mm, mm, mm), false positives as in the "
+            "accuracy table. The locator sees an oblong image through square windows of its "
+            "short side (`cupnet.crops.square_windows`); it was trained on square images "
+            "only. Its blobs centred outside an intensifier's round field are dropped "
             "(`cupnet.field.round_field`).\n\n"
-            + markdown_table(["shape (W x H px)", "images", *[f"MAE {n}" for n in NAMES],
-                              "detected", "false positives"], rows))
+            + markdown_table(["runtime", "shape (W x H px)", "images",
+                              *[f"MAE {n}" for n in NAMES], "detected", "false positives"],
+                             rows))
 
 
 def speed_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
@@ -308,8 +314,9 @@ def main() -> None:
 
     model = loaded(args.checkpoint)
     models = {}
-    for runtime in args.runtimes:
-        suffix = ", ONNX Runtime" if runtime == "onnx" else ""
+    shipped_names = {runtime: ", ONNX Runtime" if runtime == "onnx" else ""
+                     for runtime in args.runtimes}
+    for runtime, suffix in shipped_names.items():
         models[f"shipped (end to end){suffix}"] = (model if runtime == "torch"
                                                    else loaded(args.checkpoint, None, runtime))
         models.update({f"shipped, --{preset}{suffix}": loaded(args.checkpoint, preset, runtime)
@@ -324,7 +331,8 @@ def main() -> None:
     if "accuracy" in args.parts:
         accuracy_section(models, args)
     if "oblong" in args.parts and args.oblong and args.oblong_images:
-        text = oblong_section(model, args)
+        text = oblong_section({runtime: models[f"shipped (end to end){suffix}"]
+                               for runtime, suffix in shipped_names.items()}, args)
         print(text)
         write_section("model_oblong", text)
 
