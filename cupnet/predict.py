@@ -35,6 +35,7 @@ import torch
 from tqdm import tqdm
 
 from cupnet import __version__
+from cupnet.errors import error_reason
 from cupnet.geometry import Geometry
 from cupnet.io.images import (
     PATIENT_SPACING_SOURCE,
@@ -237,9 +238,8 @@ def _in_onnx_runtime(model: CupNet, strict: bool) -> tuple[CupNet, str]:
     except Exception as exc:  # noqa: BLE001 - any failure to export or load falls back alike
         if strict:
             raise
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"cupnet predict: ONNX Runtime cannot run the networks ({reason}); they run "
-              "in PyTorch", file=sys.stderr)
+        print(f"cupnet predict: ONNX Runtime cannot run the networks ({error_reason(exc)}); "
+              "they run in PyTorch", file=sys.stderr)
         return model, "torch"
 
 
@@ -677,8 +677,8 @@ def _run(args: argparse.Namespace) -> int:
                     else NetworkDetector(args.checkpoint, args.save_masks, args.preset,
                                          _model_settings(args), args.device, args.runtime))
     except Exception as exc:  # any unreadable model or landmark file stops the run here
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: {reason}",
+        print(f"cupnet predict: error: cannot load {args.landmarks or 'the model'}: "
+              f"{error_reason(exc)}",
               file=sys.stderr)
         return 2
     args.out.mkdir(parents=True, exist_ok=True)

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor, nn
 
+from cupnet.errors import error_reason
 from cupnet.offload import NETWORKS, PassThrough
 from cupnet.rim import RimNet, strips_one_by_one
 
@@ -196,8 +197,7 @@ class InOnnxRuntime(PassThrough):
             return self.run(inputs)
         except Exception as error:  # noqa: BLE001 - whatever ONNX Runtime raises
             # PyTorch gives the same outputs to float rounding: the run goes on there.
-            self.failure = str(error).strip().splitlines()[0] if str(error).strip() else (
-                type(error).__name__)
+            self.failure = error_reason(error)
             warnings.warn(f"ONNX Runtime failed ({self.failure}); this network runs in "
                           "PyTorch from now on", stacklevel=2)
             return self.module(inputs)
