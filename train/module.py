@@ -553,10 +553,10 @@ class CupNetModule(L.LightningModule):
         detections = detector.detect(batch["image"], batch_geometry(batch["geometry"]),
                                      batch["cup_diameter"][:, 0].double(), return_masks=False)
         errors, found, total = [], 0, 0
-        truth_pose = batch["pose"].double().cpu().numpy()
+        truth_pose = batch["pose"].double().numpy()
         for b, dets in enumerate(detections):
-            e, f, t, _ = score_detections(dets, truth_pose[b], batch["ellipse"][b].cpu().numpy(),
-                                          batch["cup_valid"][b].cpu().numpy().astype(bool))
+            e, f, t, _ = score_detections(dets, truth_pose[b], batch["ellipse"][b].numpy(),
+                                          batch["cup_valid"][b].numpy().astype(bool))
             errors += e
             found += f
             total += t
