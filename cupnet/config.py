@@ -33,9 +33,9 @@ class CupNetConfig:
         detect_threshold: probability threshold of the locator's components.
         min_cup_area: smallest component (locator px) that counts as a cup.
         min_score: a detected cup whose locator component's mean probability
-            (:attr:`CupDetection.score`) is below this is dropped (None: none is): weak
-            blobs make most false cups, many of them with confident poses (item 24 of
-            docs/training.md).
+            (:attr:`CupDetection.score`) is below this is dropped before the cup stages (None:
+            none is): weak blobs make most false cups, many of them with confident poses
+            (item 24 of docs/training.md).
         refine_passes: stage-2 passes at inference (each re-frames on the last ellipse).
         locator_scale: the first pass frames the locator's blob enlarged by this factor and
             made round (axis ratio >= 0.8, no stretch), as in training's coarse frames.

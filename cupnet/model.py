@@ -531,7 +531,12 @@ class CupNet(nn.Module):
                       for image, found in zip(image_list, rough, strict=True)]
             image_list = [1 - image if turn else image
                           for image, turn in zip(image_list, bright, strict=True)]
-        cup_index = torch.isfinite(rough).all(-1).nonzero()
+        is_cup = torch.isfinite(rough).all(-1)
+        if self.config.min_score is not None:
+            # Weak blobs are dropped before the cup stages, not after: each cup is solved on
+            # its own, so the others' results are the same, and a weak blob costs no strips.
+            is_cup &= scores >= self.config.min_score
+        cup_index = is_cup.nonzero()
         frames = self.frames(self.first_pass_ellipses(rough[cup_index[:, 0], cup_index[:, 1]]))
         results: list[list[CupDetection]] = [[] for _ in range(batch)]
         if len(cup_index) == 0:
@@ -660,9 +665,7 @@ class CupNet(nn.Module):
                        and doubt >= self.config.check_doubt),
                 metal_bright=bright[i],
             ))
-        floor = self.config.min_score
-        return [distinct_cups([det for det in found if floor is None or det.score >= floor])
-                for found in results]
+        return [distinct_cups(cups) for cups in results]
 
     def _solved_picks(self, source: _Source, todo: Tensor, geometry: Geometry,
                       diameter: Tensor, cup_index: Tensor, batch: int

@@ -307,7 +307,10 @@ def test_a_weak_locator_blob_is_dropped_below_min_score():
     assert bright.score > 0.88 > dim.score
     assert np.abs(dim.ellipse[:2] - ellipse[1, :2].numpy()).max() < 2.0  # a cup, but weak
     (kept,) = found[0.88]
-    assert np.array_equal(kept.ellipse, bright.ellipse) and np.array_equal(kept.pose, bright.pose)
+    # The weak blob is dropped before the cup stages: the bright cup is solved in a batch of
+    # one, not two, so the same to rounding.
+    assert np.allclose(kept.ellipse, bright.ellipse, rtol=0, atol=1e-9)
+    assert np.allclose(kept.pose, bright.pose, rtol=0, atol=1e-9)
 
 
 def test_checkpoint_round_trip(tmp_path):
