@@ -100,6 +100,11 @@ class CupNetConfig:
             the plane may not be the dome's.
         outline_weight: the outline landmarks' weights are this over their ``sigma^2`` (the
             rim landmarks' are their residual's inverse variance).
+        outline_settled: a cup's dome-outline refinement stops once a pass moves its pose by
+            less than this fraction of the issue's target accuracy (1 deg, 1 deg, 1 mm, 1 mm,
+            8 mm) in every parameter. The passes are a fixed-point iteration whose last
+            steps often swing back and forth rather than settle: stopping at the first small
+            step is as accurate as going on, and sooner.
         outline_inner_rim_weight: in the dome-outline refinement, the rim landmarks over the
             dome's own shadow (:func:`cupnet.outline.over_dome`) count this much: the edge the
             network finds there is the shell's inner surface, inside the rim.
@@ -199,6 +204,7 @@ class CupNetConfig:
     outline_passes: int = 0
     outline_min_side: float = 0.3
     outline_weight: float = 0.5
+    outline_settled: float = 0.05
     outline_inner_rim_weight: float = 1.0
     outline_rim_resample: bool = False
     verify_gate: float | None = None

@@ -166,9 +166,8 @@ def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
                         for t in geometry.tensors(torch.float64)], -1)
 
 
-# Pose change (deg, deg, mm, mm, mm) below which a cup's dome-outline refinement is done: a
-# twentieth of the issue's target accuracy.
-_OUTLINE_SETTLED = (0.05, 0.05, 0.05, 0.05, 0.4)
+# The issue's target accuracy (deg, deg, mm, mm, mm): the unit of outline_settled.
+_TARGET_ACCURACY = (1.0, 1.0, 1.0, 1.0, 8.0)
 # Poses of one image this near (deg, deg, mm, mm, mm) are one pose to the outline refinement.
 _OUTLINE_TWINS = (0.5, 0.5, 0.5, 0.5, 4.0)
 # One cup's landmarks (N, 2), weights (N,), the solution of its source's batch, and its row.
@@ -1009,7 +1008,7 @@ class CupNet(nn.Module):
                         points: Tensor, weights: Tensor, residual: Tensor, geometry: Tensor,
                         diameter: Tensor) -> Tensor:
         """Solved poses refined with the dome's outline (at most ``outline_passes`` passes; a
-        cup leaves once a pass moves it by less than ``_OUTLINE_SETTLED``).
+        cup leaves once a pass moves it by less than ``outline_settled``).
 
         Each pass samples the fine rim stage's strips across the dome's half of the outline
         of the pose's sphere (:func:`cupnet.outline.sphere_outline`, ``rim_points``
@@ -1045,9 +1044,8 @@ class CupNet(nn.Module):
                                        rim_weights[rows], radius[rows], geometry[rows])
             step = pose_to_degrees(moved) - pose_to_degrees(pose[rows])
             pose[rows] = moved
-            # A cup whose pass moved it by under a twentieth of the issue's target accuracy
-            # is done: the passes after would move it less (about half the cups by pass 2).
-            active[rows] = ~(step.abs() < step.new_tensor(_OUTLINE_SETTLED)).all(-1)
+            settled = cfg.outline_settled * step.new_tensor(_TARGET_ACCURACY)
+            active[rows] = ~(step.abs() < settled).all(-1)
             if cfg.outline_rim_resample:
                 # A pass then depends on the pose alone: rows of one image that have come
                 # together (the verification's candidates often do) are refined once.

@@ -225,9 +225,14 @@ def test_refinement_beyond_the_anteversion_limit_keeps_the_rim_pose(shipped_on_d
     assert torch.equal(limited, start)
 
 
-def test_outline_refinement_stops_once_a_cup_settles(shipped_on_drr, monkeypatch):
-    """From the true pose and rim, a pass or two settle the cup: no more passes run."""
+@pytest.mark.parametrize("settled", [None, 0.0, 1e6])
+def test_outline_refinement_stops_once_a_cup_settles(shipped_on_drr, monkeypatch, settled):
+    """From the true pose and rim, a pass or two settle the cup (at the shipped
+    ``outline_settled``): no more passes run. With a zero tolerance every pass runs; with a
+    huge one, the first."""
     model, sample = shipped_on_drr
+    if settled is not None:
+        monkeypatch.setattr(model.config, "outline_settled", settled)
     truth = sample["pose"][:1].double()
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     diameter = sample["cup_diameter"][:1].double()
@@ -242,7 +247,7 @@ def test_outline_refinement_stops_once_a_cup_settles(shipped_on_drr, monkeypatch
                                      torch.ones(1, 128, dtype=torch.float64),
                                      torch.tensor([0.5], dtype=torch.float64),
                                      geometry_rows(geometry, 1), diameter)
-    assert 1 <= len(passes) <= 3
+    assert {None: 1 <= len(passes) <= 3, 0.0: len(passes) == 20, 1e6: len(passes) == 1}[settled]
     assert abs(float(pose[0, 4] - truth[0, 4])) < 4.0
 
 
