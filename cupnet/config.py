@@ -11,6 +11,10 @@ from dataclasses import dataclass, fields
 
 from cupnet.polarity import METAL_DISPLAYS
 
+# The target MAEs (theta, phi in degrees; k, l, h in mm): the unit of
+# ``outline_settled`` and of the training's normalised pose loss.
+TARGET_ACCURACY = (1.0, 1.0, 1.0, 1.0, 8.0)
+
 
 @dataclass
 class CupNetConfig:

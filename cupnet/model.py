@@ -39,7 +39,7 @@ from kornia.geometry.transform import warp_affine
 from torch import Tensor, nn
 from torch.nn.utils.rnn import pad_sequence
 
-from cupnet.config import CupNetConfig
+from cupnet.config import TARGET_ACCURACY, CupNetConfig
 from cupnet.crops import (
     ellipse_crop_affine,
     frame_ellipse,
@@ -166,8 +166,6 @@ def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
                         for t in geometry.tensors(torch.float64)], -1)
 
 
-# The target accuracy (deg, deg, mm, mm, mm): the unit of outline_settled.
-_TARGET_ACCURACY = (1.0, 1.0, 1.0, 1.0, 8.0)
 # Poses of one image this near (deg, deg, mm, mm, mm) are one pose to the outline refinement.
 _OUTLINE_TWINS = (0.5, 0.5, 0.5, 0.5, 4.0)
 # One cup's landmarks (N, 2), weights (N,), the solution of its source's batch, and its row.
@@ -1044,7 +1042,7 @@ class CupNet(nn.Module):
                                        rim_weights[rows], radius[rows], geometry[rows])
             step = pose_to_degrees(moved) - pose_to_degrees(pose[rows])
             pose[rows] = moved
-            settled = cfg.outline_settled * step.new_tensor(_TARGET_ACCURACY)
+            settled = cfg.outline_settled * step.new_tensor(TARGET_ACCURACY)
             active[rows] = ~(step.abs() < settled).all(-1)
             if cfg.outline_rim_resample:
                 # A pass then depends on the pose alone: rows of one image that have come

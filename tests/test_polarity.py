@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from cupnet.config import CupNetConfig
+from cupnet.config import TARGET_ACCURACY, CupNetConfig
 from cupnet.geometry import Geometry
 from cupnet.model import load_model
 from cupnet.polarity import metal_shows_bright
@@ -69,7 +69,7 @@ def drr_detections():
                                  return_masks=False)[0]
             poses[metal, shown] = np.array([cup.pose for cup in found])
             judged[metal, shown] = [cup.metal_bright for cup in found]
-    settled = model.config.outline_settled * np.array([1.0, 1.0, 1.0, 1.0, 8.0])
+    settled = model.config.outline_settled * np.array(TARGET_ACCURACY)
     return poses, judged, sample["pose"][:1].double().numpy(), settled
 
 

@@ -7,14 +7,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from cupnet.config import TARGET_ACCURACY
 from cupnet.ellipse import sampson_distance
 from cupnet.rim import RimLandmarks, laplace_nll, normal_crossings
 
 # The pose's components, in the order of every (..., 5) pose tensor.
 POSE_NAMES = ("theta", "phi", "k", "l", "h")
-# Pose error that counts as 1 in the normalised pose loss: the target MAEs
-# (theta, phi in degrees; k, l, h in mm).
-POSE_SCALE = (1.0, 1.0, 1.0, 1.0, 8.0)
+# Pose error that counts as 1 in the normalised pose loss: the target MAEs.
+POSE_SCALE = TARGET_ACCURACY
 
 
 def segmentation_loss(logits: Tensor, target: Tensor, eps: float = 1.0) -> Tensor:
