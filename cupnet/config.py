@@ -163,6 +163,11 @@ class CupNetConfig:
             support it: a grid pose refined onto a femoral head's outline or the shell's
             inner edge can explain the dome better than a right pose whose rim the image
             hides (true poses' rim doubt: 99th percentile 1.7-2.1 on the evaluation sets).
+        search_screen: the search measures the dome's outline (the costlier half of a grid
+            pose's doubt) only for the grid poses whose rim, as it lies or settled, ranks
+            among each cup's this many best (None: for all): the rest, far down on the
+            rim, do not win (at 24, the same poses on the benchmark, a fresh seed and the
+            oblong images).
         check_doubt: a detected cup whose reported pose the network doubts this much or
             more (the larger of :meth:`CupNet.pose_doubt`'s rim and outline parts) is
             flagged ``check`` (None: none is): the edges the network finds across its rim or
@@ -224,6 +229,7 @@ class CupNetConfig:
     search_part_gate: float | None = None
     search_keep_settled: int = 0
     search_rim_doubt: float | None = None
+    search_screen: int | None = None
     check_doubt: float | None = None
 
     def __post_init__(self) -> None:

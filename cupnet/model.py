@@ -816,11 +816,25 @@ class CupNet(nn.Module):
             1, len(orientations), 1)  # (T, G, 5)
         grid[..., :2] = orientations
         cups = index[todo].repeat_interleave(len(orientations))
-        on_rim, rims, dome = self._pose_edges(images, cups, grid.flatten(0, 1), rows[cups],
-                                              diameter[cups])
+        flat = grid.flatten(0, 1)
+        frame = Geometry.from_rows(rows[cups])
+        rims = ellipse_of_pose(flat, diameter[cups], frame)
+        on_rim = self.rim_landmarks(images, cups, rims, passes=1)
+        rim_doubts = [_rim_doubt(on_rim, rims, settled) for settled in (False, True)]
+        dome = torch.full_like(rim_doubts[0], math.inf)
+        screened = torch.ones_like(dome, dtype=torch.bool)
+        if cfg.search_screen is not None and cfg.search_screen < len(orientations):
+            # The dome's outline only for the poses whose rim, as it lies or settled, ranks
+            # among each cup's search_screen best: the others cannot win.
+            rank = torch.stack([doubt.reshape(len(todo), -1).argsort(-1).argsort(-1)
+                                for doubt in rim_doubts]).amin(0)
+            screened = (rank < cfg.search_screen).flatten()
+        dome[screened] = self._outline_doubt(images, cups[screened], flat[screened],
+                                             Geometry.from_rows(rows[cups[screened]]),
+                                             diameter[cups[screened]])
 
         def ranked(settled: bool) -> Tensor:  # (T, G) the grid's doubts, as pose_doubt's sums
-            return (_rim_doubt(on_rim, rims, settled) + dome).reshape(len(todo), -1)
+            return (rim_doubts[settled] + dome).reshape(len(todo), -1)
 
         best = ranked(False).topk(min(cfg.search_keep, len(orientations)), largest=False).indices
         extra = min(cfg.search_keep_settled, len(orientations) - best.shape[1])
@@ -996,11 +1010,16 @@ class CupNet(nn.Module):
         frame = Geometry.from_rows(geometry)
         rims = ellipse_of_pose(poses, diameter, frame)
         on_rim = self.rim_landmarks(images, index, rims, passes=1)
+        return on_rim, rims, self._outline_doubt(images, index, poses, frame, diameter)
+
+    def _outline_doubt(self, images: list[Tensor], index: Tensor, poses: Tensor,
+                       frame: Geometry, diameter: Tensor) -> Tensor:
+        """The outline part ``(K,)`` of :meth:`pose_doubt` of ``poses`` ``(K, 5)`` deg / mm in
+        the images ``index`` ``(K,)``; frame: fields ``(K,)``; diameter ``(K,)`` mm."""
         on_dome, keep = self._outline_landmarks(images, index, pose_to_radians(poses),
                                                 diameter.to(poses) / 2, frame)
-        dome = ((laplace_nll(on_dome.offset, on_dome.sigma) * keep).sum(-1)
+        return ((laplace_nll(on_dome.offset, on_dome.sigma) * keep).sum(-1)
                 / keep.sum(-1).clamp_min(1))
-        return on_rim, rims, dome
 
     def outline_refined(self, images: list[Tensor], index: Tensor, poses: Tensor,
                         points: Tensor, weights: Tensor, residual: Tensor, geometry: Tensor,

@@ -526,6 +526,26 @@ def test_search_finds_a_rim_no_source_came_near(shipped_on_drr, monkeypatch, tur
         assert (pose[:2] - truth[0, :2]).abs().max() > 10.0
 
 
+@pytest.mark.parametrize("screen", [None, 24])
+def test_search_screen_measures_the_outline_of_the_best_rims_only(shipped_on_drr, monkeypatch,
+                                                                   screen):
+    """The turned cup of the test above: with ``search_screen`` the grid's dome outline is
+    measured only for the poses whose rim, as it lies or settled, ranks among that many best
+    of the 72 (between one and two times that many), and the search still finds the true
+    pose."""
+    model, sample = shipped_on_drr
+    measured = []
+    outline_doubt = model._outline_doubt
+    monkeypatch.setattr(model, "_outline_doubt",
+                        lambda images, index, *rest: measured.append(len(index))
+                        or outline_doubt(images, index, *rest))
+    truth, pose, _, _ = _searched_turned_cup(model, sample, monkeypatch, True, search_gate=0.0,
+                                             search_rim_doubt=None, search_screen=screen)
+    grid = max(measured)  # the grid's call, the largest: the others doubt a few poses
+    assert grid == 72 if screen is None else screen <= grid <= 2 * screen
+    assert bool((pose[:2] - truth[0, :2]).abs().max() < 1.0)
+
+
 @pytest.fixture(scope="module")
 def thin_rim_drr():
     """A DRR of a nearly edge-on cup (anteversion 6 deg, rim 202 x 23 px), no anatomy."""
