@@ -825,7 +825,7 @@ class CupNet(nn.Module):
         screened = torch.ones_like(dome, dtype=torch.bool)
         if cfg.search_screen is not None and cfg.search_screen < len(orientations):
             # The dome's outline only for the poses whose rim, as it lies or settled, ranks
-            # among each cup's search_screen best: the others cannot win.
+            # among each cup's search_screen best: the rest, far down on the rim, do not win.
             rank = torch.stack([doubt.reshape(len(todo), -1).argsort(-1).argsort(-1)
                                 for doubt in rim_doubts]).amin(0)
             screened = (rank < cfg.search_screen).flatten()
