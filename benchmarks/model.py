@@ -1,15 +1,17 @@
 """CupNet speed and accuracy: segmentation + pose per 512x512 image, and pose MAE on fresh DRRs.
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
-...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh]``.
-Writes the ``model`` (speed), ``model_accuracy`` (accuracy, ablation), ``model_oblong``
-(oblong images) and ``model_fresh_seed`` (a seed no setting was chosen on) sections of
+...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh against]
+[--against JSON]``. Writes the ``model`` (speed), ``model_accuracy`` (accuracy, ablation),
+``model_oblong`` (oblong images), ``model_fresh_seed`` (a seed no setting was chosen on) and
+``model_against`` (other inference settings, timed in one process) sections of
 docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -217,6 +219,36 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace) -> s
                               "median phi", "detected", "false positives"], rows))
 
 
+def against_section(model: CupNet, other: CupNet, args: argparse.Namespace) -> str:
+    """The shipped model against itself with the inference settings ``args.against``, in one
+    process, alternating image by image on the speed set and 90 images of the accuracy set's
+    seeds: the ``model_against`` section. A change's speed is measured so, not across runs:
+    this shared machine's speed drifts by a third between them."""
+    sets = {"speed set (20 x 512 px)": samples(args.speed_config, args.seed + 1, 20),
+            "90 of the accuracy set's seeds": samples(args.eval_config, args.seed, 90, args.sizes)}
+    models = {"shipped": model, f"with {args.against}": other}
+    rows = []
+    for set_name, data in sets.items():
+        times: dict[str, list[float]] = {name: [] for name in models}
+        for net in models.values():
+            detect_sample(net, data[0])  # warm-up
+        for sample in data:
+            for name, net in models.items():
+                start = time.process_time()
+                detect_sample(net, sample)
+                times[name].append(time.process_time() - start)
+        rows += [[set_name, name, 1000 * np.mean(t), 1000 * np.median(t)]
+                 for name, t in times.items()]
+    return ("## CupNet against other inference settings, in one process\n\n"
+            f"`python benchmarks/model.py --parts against --runtimes {args.runtimes[0]} "
+            f"--against '{args.against}'` on "
+            f"{machine()}: the shipped model and the same weights with those settings, "
+            "alternating image by image, CPU time of `detect` (one thread"
+            f"{', networks in ONNX Runtime' if args.runtimes[0] == 'onnx' else ''}).\n\n"
+            + markdown_table(["images", "model", "mean CPU ms / image",
+                              "median CPU ms / image"], rows))
+
+
 def speed_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
     """Time ``models`` end to end on 20 synthetic 512x512 images; writes the ``model`` section."""
     speed_set = samples(args.speed_config, args.seed + 1, 20)
@@ -321,6 +353,11 @@ def main() -> None:
     parser.add_argument("--fresh-seed", type=int, default=20_262_123,
                         help="seed of the fresh set (no setting chosen on it)")
     parser.add_argument("--fresh-images", type=int, default=180)
+    parser.add_argument("--against", default='{"verify_gate": 1.0, "outline_settled": 0.05, '
+                        '"search_screen": null}',
+                        help="inference settings (JSON) to time the shipped model against, "
+                             "in one process (--parts against); default: the nineteenth "
+                             "session's")
     parser.add_argument("--gallery", default="docs/model_failures.png",
                         help="where to write the worst cases of the shipped model")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2],
@@ -329,7 +366,7 @@ def main() -> None:
                         help="what runs the networks (cupnet predict --runtime); the first "
                              "model of the first is the shipped one of the gallery")
     parser.add_argument("--parts", nargs="+", default=["speed", "accuracy", "oblong", "fresh"],
-                        choices=["speed", "accuracy", "oblong", "fresh"],
+                        choices=["speed", "accuracy", "oblong", "fresh", "against"],
                         help="the sections to measure; the others are left as they are "
                              "(speed alone: for a change that keeps every pose)")
     args = parser.parse_args()
@@ -368,6 +405,15 @@ def main() -> None:
         text = fresh_seed_section(shipped, args)
         print(text)
         write_section("model_fresh_seed", text)
+    if "against" in args.parts:
+        other = fold_batchnorm(load_model(args.checkpoint))
+        for key, value in json.loads(args.against).items():
+            setattr(other.config, key, value)
+        if args.runtimes[0] == "onnx":
+            other = networks_in_onnx_runtime(other, threads=1)
+        text = against_section(next(iter(shipped.values())), other, args)
+        print(text)
+        write_section("model_against", text)
 
 
 if __name__ == "__main__":
