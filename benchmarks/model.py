@@ -406,11 +406,9 @@ def main() -> None:
         print(text)
         write_section("model_fresh_seed", text)
     if "against" in args.parts:
-        other = fold_batchnorm(load_model(args.checkpoint))
+        other = loaded(args.checkpoint, None, args.runtimes[0])
         for key, value in json.loads(args.against).items():
             setattr(other.config, key, value)
-        if args.runtimes[0] == "onnx":
-            other = networks_in_onnx_runtime(other, threads=1)
         text = against_section(next(iter(shipped.values())), other, args)
         print(text)
         write_section("model_against", text)
