@@ -65,10 +65,11 @@ class CupNetConfig:
         thin_rim_margin: ... and their landmarks replace the first ones where their mean
             ``log sigma`` is lower by more than this: a thin ellipse across a femoral head's
             disc can win by chance over an open rim the head partly hides.
-        locator_retry_gamma: where the locator finds no cup in an image, it looks again at
-            the image raised to this power (None: it does not): a cup under thick anatomy, in
-            the dark part of an image with bright regions, has too little contrast left
-            after standardisation; a power below 1 stretches the dark range.
+        locator_retry_gamma: where the locator finds no cup in an image (no component of
+            score ``min_score`` or more), it looks again at the image raised to this power
+            (None: it does not): a cup under thick anatomy, in the dark part of an image
+            with bright regions, has too little contrast left after standardisation; a power
+            below 1 stretches the dark range.
         round_field: drop the locator's cups centred outside the image intensifier's round
             field where the image shows one (:func:`cupnet.field.round_field`: a flat
             surround holding its corners, edged by a circle): the locator, trained on

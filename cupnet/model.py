@@ -253,19 +253,28 @@ class CupNet(nn.Module):
 
     def rough_ellipses(self, images: list[Tensor]) -> tuple[Tensor, Tensor]:
         """Stage 1 at inference: :meth:`ellipses_from_locator` of :meth:`locate_windows`,
-        looked for again with ``locator_retry_gamma`` in the images where no cup was found;
-        with ``round_field``, those centred outside the image's round field are dropped."""
+        looked for again with ``locator_retry_gamma`` in the images where no cup was found
+        (no blob :meth:`kept_blobs` keeps); with ``round_field``, those centred outside the
+        image's round field are dropped."""
         # An image turned over (metal "bright") keeps its flat surround: no need to undo it.
         fields = [round_field(image) if self.config.round_field else None for image in images]
         rough, scores = self.ellipses_from_locator(*self.locate_windows(images), fields)
         gamma = self.config.locator_retry_gamma
-        empty = (~torch.isfinite(rough).all(-1).any(-1)).nonzero()[:, 0]
+        empty = (~self.kept_blobs(rough, scores).any(-1)).nonzero()[:, 0]
         if gamma is not None and len(empty):
             again = self.ellipses_from_locator(
                 *self.locate_windows([images[i] for i in empty], gamma),
                 [fields[i] for i in empty])
-            rough[empty], scores[empty] = again
+            # An image keeps its weak blobs where the retry finds no better.
+            found = self.kept_blobs(*again).any(-1)
+            rough[empty[found]], scores[empty[found]] = again[0][found], again[1][found]
         return rough, scores
+
+    def kept_blobs(self, rough: Tensor, scores: Tensor) -> Tensor:
+        """Which locator blobs are taken for cups ``(B, C)`` bool: found (rough ellipses
+        ``(B, C, 5)`` finite) and, with ``min_score``, their scores ``(B, C)`` that high."""
+        kept = torch.isfinite(rough).all(-1)
+        return kept if self.config.min_score is None else kept & (scores >= self.config.min_score)
 
     def ellipses_from_locator(self, logits: Tensor | list[Tensor], letterbox: Tensor,
                               fields: list[tuple[float, float, float] | None] | None = None
@@ -528,12 +537,9 @@ class CupNet(nn.Module):
                       for image, found in zip(image_list, rough, strict=True)]
             image_list = [1 - image if turn else image
                           for image, turn in zip(image_list, bright, strict=True)]
-        is_cup = torch.isfinite(rough).all(-1)
-        if self.config.min_score is not None:
-            # Weak blobs are dropped before the cup stages, not after: each cup is solved on
-            # its own, so the others' results are the same, and a weak blob costs no strips.
-            is_cup &= scores >= self.config.min_score
-        cup_index = is_cup.nonzero()
+        # Weak blobs are dropped before the cup stages, not after: each cup is solved on its
+        # own, so the others' results are the same, and a weak blob costs no strips.
+        cup_index = self.kept_blobs(rough, scores).nonzero()
         frames = self.frames(self.first_pass_ellipses(rough[cup_index[:, 0], cup_index[:, 1]]))
         results: list[list[CupDetection]] = [[] for _ in range(batch)]
         if len(cup_index) == 0:

@@ -373,6 +373,37 @@ def test_locator_looks_again_only_where_it_found_no_cup(retry):
     assert np.abs(found[1][0].ellipse[:2] - ellipse[0, :2].numpy()).max() < 1.0
 
 
+class FaintNet(CupNet):
+    """A CupNet whose locator (a stand-in) is unsure of every cup (its logits a twentieth)
+    unless the view is shown raised to a power."""
+
+    def __init__(self, config: CupNetConfig) -> None:
+        super().__init__(config)
+        self.locator, self.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
+
+    def locator_logits(self, views, gamma=None):
+        logits = super().locator_logits(views, gamma)
+        return logits if gamma is not None else logits / 20
+
+
+def test_an_image_with_only_a_weak_blob_is_looked_at_again():
+    model = FaintNet(CupNetConfig(**{**TINY.__dict__, "locator_retry_gamma": 0.4}))
+    image, _, ellipse = scene([[25.0, 20.0, 10.0, -5.0, 280.0]], 400, 400)
+    first, first_scores = model.rough_ellipses([image.float()])
+    assert np.abs(first[0, 0, :2].numpy() - ellipse[0, :2].numpy()).max() < 1.0
+    # With min_score above the first blob's score the image is looked at again, and the
+    # retry's sure blob of the same cup is kept.
+    model.config.min_score = float(first_scores[0, 0]) + 0.02
+    again, again_scores = model.rough_ellipses([image.float()])
+    assert again_scores[0, 0] >= model.config.min_score
+    assert np.abs(again[0, 0, :2].numpy() - ellipse[0, :2].numpy()).max() < 1.0
+    # Where the retry shows no cup above min_score either, the image keeps what it had.
+    model.config.min_score = 1.0
+    kept, kept_scores = model.rough_ellipses([image.float()])
+    torch.testing.assert_close(kept, first, rtol=0, atol=0, equal_nan=True)
+    assert torch.equal(kept_scores, first_scores)
+
+
 def test_locate_with_a_power_per_image():
     model = CupNet(TINY)
     model.locator = EdgeNet(gain=1.0)
