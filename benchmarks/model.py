@@ -30,6 +30,7 @@ from cupnet.evaluate import GROSS_DEG  # noqa: E402
 from cupnet.fold import fold_batchnorm  # noqa: E402
 from cupnet.geometry import Geometry  # noqa: E402
 from cupnet.model import DEFAULT_CHECKPOINT, CupNet, load_model  # noqa: E402
+from cupnet.offload import PassThrough  # noqa: E402
 from cupnet.runtime import RUNTIMES, networks_in_onnx_runtime  # noqa: E402
 from train.data import synth_config  # noqa: E402
 from train.losses import POSE_NAMES as NAMES  # noqa: E402
@@ -219,6 +220,36 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace) -> s
                               "median phi", "detected", "false positives"], rows))
 
 
+class StripCounter(PassThrough):
+    """A rim network that counts the strips it is asked for (``count``): the work of
+    :meth:`CupNet.detect` that does not drift with the machine's load (strips are about 60 %
+    of its time)."""
+
+    def __init__(self, module: torch.nn.Module) -> None:
+        super().__init__()
+        self.module = module
+        self.count = 0
+
+    def forward(self, strips: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        self.count += strips.shape[0]
+        return self.module(strips)
+
+
+def strips_of(model: CupNet, data: list[dict]) -> int:
+    """The strips ``model``'s rim networks are asked for to detect the cups of ``data``."""
+    names = [name for name in ("rim", "coarse_rim") if getattr(model, name) is not None]
+    counters = {name: StripCounter(getattr(model, name)) for name in names}
+    for name, counter in counters.items():
+        setattr(model, name, counter)
+    try:
+        for sample in data:
+            detect_sample(model, sample)
+    finally:
+        for name, counter in counters.items():
+            setattr(model, name, counter.module)
+    return sum(counter.count for counter in counters.values())
+
+
 def against_section(model: CupNet, other: CupNet, args: argparse.Namespace) -> str:
     """The shipped model against itself with the inference settings ``args.against``, in one
     process, alternating image by image on the speed set and 90 images of the accuracy set's
@@ -237,16 +268,19 @@ def against_section(model: CupNet, other: CupNet, args: argparse.Namespace) -> s
                 start = time.process_time()
                 detect_sample(net, sample)
                 times[name].append(time.process_time() - start)
-        rows += [[set_name, name, 1000 * np.mean(t), 1000 * np.median(t)]
-                 for name, t in times.items()]
+        strips = {name: strips_of(net, data) for name, net in models.items()}
+        rows += [[set_name, name, 1000 * np.mean(t), 1000 * np.median(t),
+                  strips[name] / len(data)] for name, t in times.items()]
     return ("## CupNet against other inference settings, in one process\n\n"
             f"`python benchmarks/model.py --parts against --runtimes {args.runtimes[0]} "
             f"--against '{args.against}'` on "
             f"{machine()}: the shipped model and the same weights with those settings, "
             "alternating image by image, CPU time of `detect` (one thread"
-            f"{', networks in ONNX Runtime' if args.runtimes[0] == 'onnx' else ''}).\n\n"
+            f"{', networks in ONNX Runtime' if args.runtimes[0] == 'onnx' else ''}), and the "
+            "rim-network strips asked for an image (a second, untimed run): the work, which "
+            "does not drift with the machine's load.\n\n"
             + markdown_table(["images", "model", "mean CPU ms / image",
-                              "median CPU ms / image"], rows))
+                              "median CPU ms / image", "strips / image"], rows))
 
 
 def speed_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
