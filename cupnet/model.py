@@ -823,9 +823,8 @@ class CupNet(nn.Module):
         grid[..., :2] = orientations
         cups = index[todo].repeat_interleave(len(orientations))
         flat = grid.flatten(0, 1)
-        frame = Geometry.from_rows(rows[cups])
-        rims = ellipse_of_pose(flat, diameter[cups], frame)
-        on_rim = self.rim_landmarks(images, cups, rims, passes=1)
+        on_rim, rims = self._rim_edges(images, cups, flat, Geometry.from_rows(rows[cups]),
+                                       diameter[cups])
         rim_doubts = [_rim_doubt(on_rim, rims, settled) for settled in (False, True)]
         dome = torch.full_like(rim_doubts[0], math.inf)
         screened = torch.ones_like(dome, dtype=torch.bool)
@@ -1005,18 +1004,19 @@ class CupNet(nn.Module):
             ``(K, 2)``: the rim's and the outline's; lower: the network finds the edge where
             the pose puts it (near it, for the rim, where ``settled``).
         """
-        on_rim, rims, dome = self._pose_edges(images, index, poses, geometry, diameter)
-        return torch.stack([_rim_doubt(on_rim, rims, settled), dome], -1)
-
-    def _pose_edges(self, images: list[Tensor], index: Tensor, poses: Tensor,
-                    geometry: Tensor, diameter: Tensor) -> tuple[RimLandmarks, Tensor, Tensor]:
-        """What :meth:`pose_doubt` measures, arguments as its: the fine rim network's
-        landmarks across each pose's rim (``(K, rim_points)`` columns), the rim ellipses
-        ``(K, 5)`` (cx, cy, a, b px, alpha deg) and the outline's part ``(K,)``."""
         frame = Geometry.from_rows(geometry)
+        on_rim, rims = self._rim_edges(images, index, poses, frame, diameter)
+        return torch.stack([_rim_doubt(on_rim, rims, settled),
+                            self._outline_doubt(images, index, poses, frame, diameter)], -1)
+
+    def _rim_edges(self, images: list[Tensor], index: Tensor, poses: Tensor, frame: Geometry,
+                   diameter: Tensor) -> tuple[RimLandmarks, Tensor]:
+        """What the rim part of :meth:`pose_doubt` measures, for ``poses`` ``(K, 5)`` deg / mm
+        in the images ``index`` ``(K,)``; frame: fields ``(K,)``; diameter ``(K,)`` mm: the
+        fine rim network's landmarks across each pose's rim (``(K, rim_points)`` columns)
+        and the rim ellipses ``(K, 5)`` (cx, cy, a, b px, alpha deg)."""
         rims = ellipse_of_pose(poses, diameter, frame)
-        on_rim = self.rim_landmarks(images, index, rims, passes=1)
-        return on_rim, rims, self._outline_doubt(images, index, poses, frame, diameter)
+        return self.rim_landmarks(images, index, rims, passes=1), rims
 
     def _outline_doubt(self, images: list[Tensor], index: Tensor, poses: Tensor,
                        frame: Geometry, diameter: Tensor) -> Tensor:
