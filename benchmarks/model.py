@@ -11,10 +11,12 @@ docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -256,19 +258,19 @@ class StripCounter(PassThrough):
         return self.module(strips)
 
 
-def strips_of(model: CupNet, data: list[dict]) -> int:
-    """The strips ``model``'s rim networks are asked for to detect the cups of ``data``."""
+@contextlib.contextmanager
+def counting_strips(model: CupNet) -> Iterator[list[StripCounter]]:
+    """``model`` with its rim networks counting the strips they are asked for, within the
+    block, which is given their counters; put back as they were after it."""
     names = [name for name in ("rim", "coarse_rim") if getattr(model, name) is not None]
     counters = {name: StripCounter(getattr(model, name)) for name in names}
     for name, counter in counters.items():
         setattr(model, name, counter)
     try:
-        for sample in data:
-            detect_sample(model, sample)
+        yield list(counters.values())
     finally:
         for name, counter in counters.items():
             setattr(model, name, counter.module)
-    return sum(counter.count for counter in counters.values())
 
 
 def against_section(model: CupNet, other: CupNet, args: argparse.Namespace) -> str:
@@ -284,21 +286,24 @@ def against_section(model: CupNet, other: CupNet, args: argparse.Namespace) -> s
         times: dict[str, list[float]] = {name: [] for name in models}
         for net in models.values():
             detect_sample(net, data[0])  # warm-up
-        for sample in data:
-            for name, net in models.items():
-                start = time.process_time()
-                detect_sample(net, sample)
-                times[name].append(time.process_time() - start)
-        strips = {name: strips_of(net, data) for name, net in models.items()}
+        with contextlib.ExitStack() as stack:
+            counters = {name: stack.enter_context(counting_strips(net))
+                        for name, net in models.items()}
+            for sample in data:
+                for name, net in models.items():
+                    start = time.process_time()
+                    detect_sample(net, sample)
+                    times[name].append(time.process_time() - start)
         rows += [[set_name, name, 1000 * np.mean(t), 1000 * np.median(t),
-                  strips[name] / len(data)] for name, t in times.items()]
+                  sum(counter.count for counter in counters[name]) / len(data)]
+                 for name, t in times.items()]
     return ("## CupNet against other inference settings, in one process\n\n"
             f"`python benchmarks/model.py --parts against --runtimes {args.runtimes[0]} "
             f"--against '{args.against}'` on "
             f"{machine()}: the shipped model and the same weights with those settings, "
             "alternating image by image, CPU time of `detect` (one thread"
             f"{', networks in ONNX Runtime' if args.runtimes[0] == 'onnx' else ''}), and the "
-            "rim-network strips asked for an image (a second, untimed run): the work, which "
+            "rim-network strips asked for an image, counted in the same run: the work, which "
             "does not drift with the machine's load.\n\n"
             + markdown_table(["images", "model", "mean CPU ms / image",
                               "median CPU ms / image", "strips / image"], rows))
