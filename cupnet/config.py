@@ -85,7 +85,10 @@ class CupNetConfig:
             keeps that pose only where none gives one within range (None: any anteversion).
             Set it a little above the largest anteversion of the training data: a pose
             beyond it is one the network was never shown, in practice the outline of a
-            nearly edge-on cup and its femoral head taken for an open rim.
+            nearly edge-on cup and its femoral head taken for an open rim, or a nearly
+            round rim along the sphere's outline. One reported all the same is verified
+            whatever its doubt, replaced by any candidate within range, and else flagged
+            ``check``.
         grown_rim_scale: where no other landmark source gives a cup a pose (within
             ``max_theta_deg``), :meth:`CupNet.detect` starts the coarse rim stage again from
             the refiner's ellipse enlarged to this many times the smallest rim the cup can
@@ -173,7 +176,7 @@ class CupNetConfig:
             more (the larger of :meth:`CupNet.pose_doubt`'s rim and outline parts) is
             flagged ``check`` (None: none is): the edges the network finds across its rim or
             dome outline lie off them, as they do for most gross failures (needs
-            ``outline_passes``).
+            ``outline_passes``). A cup reported beyond ``max_theta_deg`` is flagged too.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"

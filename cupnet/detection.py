@@ -36,8 +36,9 @@ class CupDetection:
             negative log-likelihoods of the edges it finds across the pose's rim and dome
             outline (:meth:`cupnet.model.CupNet.pose_doubt`; lower is better, true poses
             mostly below 1), or None where not measured (no rim stage, landmarks given).
-        check: ``doubt`` is at or above the model's ``check_doubt``: look at this cup's
-            overlay before trusting it (most gross failures are flagged; see README).
+        check: ``doubt`` is at or above the model's ``check_doubt``, or the pose lies beyond
+            its ``max_theta_deg``: look at this cup's overlay before trusting it (most gross
+            failures are flagged; see README).
         metal_bright: the model took the image to show metal bright and turned it over
             before placing the rims (``CupNetConfig.metal`` ``"bright"``, or ``"auto"``
             judging it so); False: used as given (metal dark); None where not judged

@@ -626,11 +626,8 @@ class CupNet(nn.Module):
             parts = self._solved_doubts(image_list, index, solved, poses, rows, diameter,
                                         ordered)
             if self.config.verify_gate is not None:
-                self.verified(image_list, index, picks, solved, poses, alt_poses, parts,
-                              every_source, start, geometry, diameter, cup_index, batch)
-                if self.config.search_gate is not None:
-                    self.searched(image_list, index, picks, solved, poses, alt_poses, parts,
-                                  geometry, diameter, cup_index, batch)
+                self.reconsidered(image_list, index, picks, solved, poses, alt_poses, parts,
+                                  every_source, start, geometry, diameter, cup_index, batch)
             doubts = dict(zip(solved, parts.amax(-1).tolist(), strict=True))
             # The rim the refined pose projects to, not the landmarks' fit: the two differ
             # where the outline moved the pose (a thin rim's fit is short), and the overlay
@@ -664,8 +661,9 @@ class CupNet(nn.Module):
                 score=float(scores[i, c]),
                 outline=None if outlines[k] is None else outlines[k].numpy(),
                 doubt=doubt,
-                check=(doubt is not None and self.config.check_doubt is not None
-                       and doubt >= self.config.check_doubt),
+                check=doubt is not None and (
+                    (self.config.check_doubt is not None and doubt >= self.config.check_doubt)
+                    or not bool(self.in_theta_range(poses[k]))),
                 metal_bright=bright[i],
             ))
         return [distinct_cups(cups) for cups in results]
@@ -713,6 +711,29 @@ class CupNet(nn.Module):
             pad_sequence([pick[1] for pick in picks], batch_first=True),
             torch.stack([pick[2].residual_px[pick[3]] for pick in picks]),
             rows[image], diameter[image])
+
+    def reconsidered(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
+                     solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
+                     parts: Tensor, sources: list[_Source], start: Tensor | None,
+                     geometry: Geometry, diameter: Tensor, cup_index: Tensor,
+                     batch: int) -> None:
+        """Doubtful cups :meth:`verified`, then those still doubtful :meth:`searched` (where
+        the config has a ``search_gate``), in place; arguments as :meth:`verified`'s.
+
+        A pose beyond ``max_theta_deg`` (no source gave one within it) is one the networks
+        were never shown, however well the rim and the dome's outline they find agree with
+        it (a nearly round rim along the sphere's outline explains both): it counts as
+        doubted past every gate, so any candidate within range replaces it. Where none
+        does, its ``parts`` are left as measured.
+        """
+        measured = parts.clone()
+        parts[~self.in_theta_range(torch.stack([poses[k] for k in solved]))] = math.inf
+        self.verified(images, index, picks, solved, poses, alt_poses, parts, sources, start,
+                      geometry, diameter, cup_index, batch)
+        if self.config.search_gate is not None:
+            self.searched(images, index, picks, solved, poses, alt_poses, parts, geometry,
+                          diameter, cup_index, batch)
+        parts.copy_(torch.where(parts.isinf(), measured, parts))
 
     def verified(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                  solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],

@@ -335,9 +335,10 @@ def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_dr
 
 
 def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
-    """:meth:`CupNet.verified` (and :meth:`CupNet.searched` where the config has a
-    ``search_gate``) on one cup solved from exact rim landmarks of the pose ``first``
-    ``(1, 5)``, the sources giving those of ``others``; its pose and pick after."""
+    """:meth:`CupNet.reconsidered` (:meth:`CupNet.verified`, and :meth:`CupNet.searched`
+    where the config has a ``search_gate``) on one cup solved from exact rim landmarks of the
+    pose ``first`` ``(1, 5)``, the sources giving those of ``others``; its pose and pick
+    after."""
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     diameter = sample["cup_diameter"][:1].double()
     landmarks = [rim_landmarks(pose, geometry, float(diameter), 128) for pose in [first, *others]]
@@ -352,11 +353,8 @@ def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
         images, index = [sample["image"]], torch.tensor([0])
         parts = model._solved_doubts(images, index, [0], poses, geometry_rows(geometry, 1),
                                      diameter)  # as detect does
-        model.verified(images, index, picks, [0], poses, alt_poses, parts, sources, None,
-                       geometry, diameter, cup_index, 1)
-        if model.config.search_gate is not None:
-            model.searched(images, index, picks, [0], poses, alt_poses, parts, geometry,
-                           diameter, cup_index, 1)
+        model.reconsidered(images, index, picks, [0], poses, alt_poses, parts, sources, None,
+                           geometry, diameter, cup_index, 1)
     return poses[0], picks[0], landmarks
 
 
@@ -377,6 +375,50 @@ def test_verification_keeps_the_pose_the_network_believes(shipped_on_drr, monkey
     assert torch.equal(pick[0], landmarks[1 if wrong_first else 0][0])
     assert torch.allclose(pose[:2], truth[0, :2], atol=0.5)  # deg
     assert ((pose[2:] - truth[0, 2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()  # mm
+
+
+@pytest.mark.parametrize("beyond", [True, False])
+def test_a_pose_beyond_the_anteversion_limit_gives_way_to_any_within(shipped_on_drr,
+                                                                       monkeypatch, beyond):
+    """A cup solved at an anteversion beyond ``max_theta_deg`` is solved again and takes the
+    source's pose within range though no doubt reaches the gate; a first pose within range,
+    20 deg off in inclination, stays where no doubt reaches it."""
+    model, sample = shipped_on_drr
+    monkeypatch.setattr(model.config, "verify_gate", math.inf)  # no cup doubtful by its doubt
+    monkeypatch.setattr(model.config, "verify_anteversions", ())
+    monkeypatch.setattr(model.config, "search_gate", None)
+    truth = sample["pose"][:1].double()
+    limit = model.config.max_theta_deg
+    assert limit is not None and float(truth[0, 0]) < limit
+    step = [limit + 10.0 - float(truth[0, 0]), 0.0] if beyond else [0.0, 20.0]
+    first = truth + torch.tensor([[*step, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    pose, pick, landmarks = _verify(model, sample, first, [truth])
+    assert torch.equal(pick[0], landmarks[1 if beyond else 0][0])
+    assert torch.allclose(pose[:2], (truth if beyond else first)[0, :2], atol=0.5)  # deg
+
+
+@pytest.mark.parametrize("limit_below_truth", [True, False])
+def test_a_pose_reported_beyond_the_anteversion_limit_is_flagged(shipped_on_drr, monkeypatch,
+                                                                  limit_below_truth):
+    """With no verification to replace it, a cup whose only poses lie beyond
+    ``max_theta_deg`` (the limit set under the DRR's true anteversion) keeps the true pose,
+    doubted little, and is flagged ``check``; under the shipped limit it is not. (The
+    landmark sources after the refiner, which look for other rims where none gives a pose
+    within range, are left out: one would give this cup a wrong one.)"""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][0].double()
+    monkeypatch.setattr(model.config, "verify_gate", None)
+    monkeypatch.setattr(model, "rim_alternatives", lambda: [])
+    monkeypatch.setattr(model.config, "grown_rim_scale", None)
+    if limit_below_truth:
+        monkeypatch.setattr(model.config, "max_theta_deg", float(truth[0]) - 5.0)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
+                         return_masks=False)[0]
+    assert len(found) == 1
+    assert abs(float(found[0].pose[0] - truth[0])) < 1.0
+    assert found[0].doubt is not None and found[0].doubt < model.config.check_doubt
+    assert found[0].check == limit_below_truth
 
 
 @pytest.mark.parametrize("turn_deg", [None, 15.0])
