@@ -93,7 +93,9 @@ class CupNetConfig:
             ``max_theta_deg``), :meth:`CupNet.detect` starts the coarse rim stage again from
             the refiner's ellipse enlarged to this many times the smallest rim the cup can
             make (magnification 1; never shrunk), then the fine stage from the coarse fit;
-            None: it does not (needs both rim stages).
+            None: it does not (needs both rim stages). Where that fails too, the grown
+            ellipse's own pose is a start for the verification and search (see
+            :meth:`CupNet.reconsidered`).
         reframe_min_scale: each refiner pass's fit is grown (never shrunk) to at least this
             fraction of the semi-major axis of the ellipse its crop was framed on before it
             frames the next pass or starts the rim stages (None: as it is): a fit much

@@ -49,7 +49,7 @@ from cupnet.crops import (
     to_image,
 )
 from cupnet.detection import CupDetection, distinct_cups
-from cupnet.ellipse import fit_ellipse
+from cupnet.ellipse import ellipse_points, fit_ellipse
 from cupnet.field import outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import ray_landmarks, soft_moments
@@ -613,32 +613,36 @@ class CupNet(nn.Module):
         outlines: list[Tensor | None] = [None] * len(picks)
         doubts: dict[int, float] = {}
         solved = [k for k, (_, _, solution, row) in enumerate(picks) if solution.valid[row]]
-        if self.config.outline_passes and self.rim is not None and solved:
+        if self.config.outline_passes and self.rim is not None:
             rows = geometry_rows(geometry, batch)
-            self._outline_refine_picks(image_list, index, picks, solved, poses, alt_poses, rows,
-                                       diameter)
-            # Ordered before the verification, which then doubts an ambiguous cup by its
-            # better pose and keeps both where that one is believed.
-            ordered: dict[int, Tensor] = {}
-            if self.config.ambiguous_by_doubt:
-                ordered = self._order_ambiguous(image_list, index, picks, solved, poses,
-                                                alt_poses, rows, diameter)
-            parts = self._solved_doubts(image_list, index, solved, poses, rows, diameter,
-                                        ordered)
+            parts = torch.empty(0, 2, dtype=torch.float64)
+            if solved:
+                self._outline_refine_picks(image_list, index, picks, solved, poses, alt_poses,
+                                           rows, diameter)
+                # Ordered before the verification, which then doubts an ambiguous cup by its
+                # better pose and keeps both where that one is believed.
+                ordered: dict[int, Tensor] = {}
+                if self.config.ambiguous_by_doubt:
+                    ordered = self._order_ambiguous(image_list, index, picks, solved, poses,
+                                                    alt_poses, rows, diameter)
+                parts = self._solved_doubts(image_list, index, solved, poses, rows, diameter,
+                                            ordered)
             if self.config.verify_gate is not None:
-                self.reconsidered(image_list, index, picks, solved, poses, alt_poses, parts,
-                                  every_source, start, geometry, diameter, cup_index, batch)
-            doubts = dict(zip(solved, parts.amax(-1).tolist(), strict=True))
-            # The rim the refined pose projects to, not the landmarks' fit: the two differ
-            # where the outline moved the pose (a thin rim's fit is short), and the overlay
-            # should show the pose's rim.
-            refined = torch.stack([poses[k] for k in solved])
-            cup_geometry = Geometry.from_rows(rows[index[solved]])
-            rims = ellipse_of_pose(refined, diameter[index[solved]], cup_geometry)
-            domes = sphere_outline(pose_to_radians(refined), diameter[index[solved]] / 2,
-                                   cup_geometry, 64, dome_only=True)[0]
-            for k, rim, dome in zip(solved, rims, domes, strict=True):
-                ellipses[k], outlines[k] = rim, dome
+                solved, parts = self.reconsidered(image_list, index, picks, solved, poses,
+                                                  alt_poses, parts, every_source, start,
+                                                  geometry, diameter, cup_index, batch)
+            if solved:
+                doubts = dict(zip(solved, parts.amax(-1).tolist(), strict=True))
+                # The rim the refined pose projects to, not the landmarks' fit: the two differ
+                # where the outline moved the pose (a thin rim's fit is short), and the overlay
+                # should show the pose's rim.
+                refined = torch.stack([poses[k] for k in solved])
+                cup_geometry = Geometry.from_rows(rows[index[solved]])
+                rims = ellipse_of_pose(refined, diameter[index[solved]], cup_geometry)
+                domes = sphere_outline(pose_to_radians(refined), diameter[index[solved]] / 2,
+                                       cup_geometry, 64, dome_only=True)[0]
+                for k, rim, dome in zip(solved, rims, domes, strict=True):
+                    ellipses[k], outlines[k] = rim, dome
         for k, (i, c) in enumerate(cup_index.tolist()):
             points, weights, solution, row = picks[k]
             mask = None
@@ -716,7 +720,7 @@ class CupNet(nn.Module):
                      solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
                      parts: Tensor, sources: list[_Source], start: Tensor | None,
                      geometry: Geometry, diameter: Tensor, cup_index: Tensor,
-                     batch: int) -> None:
+                     batch: int) -> tuple[list[int], Tensor]:
         """Doubtful cups :meth:`verified`, then those still doubtful :meth:`searched` (where
         the config has a ``search_gate``), in place; arguments as :meth:`verified`'s.
 
@@ -725,7 +729,30 @@ class CupNet(nn.Module):
         it (a nearly round rim along the sphere's outline explains both): it counts as
         doubted past every gate, so any candidate within range replaces it. Where none
         does, its ``parts`` are left as measured.
+
+        A cup no landmark source solved (its rim lost, the landmarks on a femoral head too
+        small for the cup) starts, where the model has ``start`` and a
+        ``grown_rim_scale``, from the pose of ``start``'s ellipse grown as for
+        :meth:`_grown_rim_source`, doubted past every gate as well; the candidate that
+        replaces that start solves the cup where its doubt sums to under ``verify_gate``
+        (a pose the verification would not doubt), else the cup stays unsolved.
+
+        Returns:
+            the solved cups (``solved`` and the cups solved here) and their ``parts``.
         """
+        def take(k: int, pick: _Pick) -> None:
+            picks[k], poses[k] = pick, pick[2].pose[pick[3]]
+            alt_poses[k] = pick[2].alt_pose[pick[3]]
+
+        starts = self._grown_start_picks(picks, solved, start, geometry, diameter,
+                                         cup_index, batch)
+        failed = {k: picks[k] for k in starts}
+        for k, pick in starts.items():
+            take(k, pick)
+        solved = solved + list(starts)
+        if not solved:
+            return solved, parts
+        parts = torch.cat([parts, parts.new_full((len(starts), 2), math.inf)])
         measured = parts.clone()
         parts[~self.in_theta_range(torch.stack([poses[k] for k in solved]))] = math.inf
         self.verified(images, index, picks, solved, poses, alt_poses, parts, sources, start,
@@ -733,7 +760,31 @@ class CupNet(nn.Module):
         if self.config.search_gate is not None:
             self.searched(images, index, picks, solved, poses, alt_poses, parts, geometry,
                           diameter, cup_index, batch)
-        parts.copy_(torch.where(parts.isinf(), measured, parts))
+        parts = torch.where(parts.isinf(), measured, parts)
+        kept = [j for j, k in enumerate(solved) if k not in starts or (
+            picks[k] is not starts[k] and float(parts[j].sum()) < self.config.verify_gate)]
+        for k in set(starts) - {solved[j] for j in kept}:
+            take(k, failed[k])
+        return [solved[j] for j in kept], parts[kept]
+
+    def _grown_start_picks(self, picks: list[_Pick], solved: list[int], start: Tensor | None,
+                           geometry: Geometry, diameter: Tensor, cup_index: Tensor,
+                           batch: int) -> dict[int, _Pick]:
+        """``cup -> pick`` of each cup not ``solved`` whose ``start`` ``(K, 5)`` ellipse,
+        grown as for :meth:`_grown_rim_source`, gives a pose (its points solved); none
+        without ``start`` or ``grown_rim_scale``."""
+        unsolved = [k for k in range(len(picks)) if k not in solved]
+        if start is None or self.config.grown_rim_scale is None or not unsolved:
+            return {}
+        todo = torch.tensor(unsolved, dtype=torch.long)
+        ellipse = self._grown(start[todo], cup_index[todo, 0], geometry, diameter, batch)
+        points = ellipse_points(ellipse, torch.linspace(0, 2 * math.pi, self.config.rim_points + 1,
+                                                        dtype=ellipse.dtype)[:-1])
+        weights = torch.ones(points.shape[:2], dtype=points.dtype)
+        solution = self.solve(points, weights, geometry, diameter, cup_index[todo], batch,
+                              refine=True)
+        return {k: (points[row], weights[row], solution, row)
+                for row, k in enumerate(unsolved) if solution.valid[row]}
 
     def verified(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                  solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
@@ -1190,12 +1241,20 @@ class CupNet(nn.Module):
         rim lies outside the coarse stage's reach from there."""
         def grown(todo: Tensor) -> tuple[Tensor, Tensor]:
             image = cup_index[todo, 0]
-            spacing = geometry_rows(geometry, len(images))[image, 1]
-            smallest = (diameter[image] / 2 / spacing).to(start)  # px
-            ellipse = grown_to(start[todo], self.config.grown_rim_scale * smallest)
+            ellipse = self._grown(start[todo], image, geometry, diameter, len(images))
             return self.coarse_framed_rim_landmarks(images, image, ellipse)[:2]
 
         return grown
+
+    def _grown(self, ellipses: Tensor, image: Tensor, geometry: Geometry, diameter: Tensor,
+               batch: int) -> Tensor:
+        """``ellipses`` ``(K, 5)`` in the images ``image`` ``(K,)`` enlarged (never shrunk) to
+        ``grown_rim_scale`` times the smallest rim each cup can make, its radius over the
+        pixel spacing (the magnification is at least 1); geometry, diameter ``(B,)`` per
+        image of ``batch``."""
+        spacing = geometry_rows(geometry, batch)[image, 1]
+        smallest = (diameter[image] / 2 / spacing).to(ellipses)  # px
+        return grown_to(ellipses, self.config.grown_rim_scale * smallest)
 
     def rim_alternatives(self) -> list[RimAlternative]:
         """The fine rim stage's other starts this model has: framed on the coarse stage's

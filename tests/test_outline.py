@@ -11,6 +11,7 @@ import torch
 from cup_cases import paper_poses, rim_landmarks
 
 from cupnet.config import SPEED_PRESETS
+from cupnet.ellipse import ellipse_points
 from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
 from cupnet.model import _doubtful, geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
@@ -419,6 +420,45 @@ def test_a_pose_reported_beyond_the_anteversion_limit_is_flagged(shipped_on_drr,
     assert abs(float(found[0].pose[0] - truth[0])) < 1.0
     assert found[0].doubt is not None and found[0].doubt < model.config.check_doubt
     assert found[0].check == limit_below_truth
+
+
+@pytest.mark.parametrize("believed", [True, False])
+def test_a_cup_no_source_solved_is_searched_from_a_grown_start(shipped_on_drr, monkeypatch,
+                                                                believed):
+    """A cup whose landmarks lie on a disc too small for it (the solver puts it below the
+    detector: no pose) starts from that disc grown to a size its rim can have, and the
+    verification and search find its true pose on the DRR; where no pose is believed
+    enough (the gate set below every doubt) it stays unsolved, its landmarks as they were."""
+    model, sample = shipped_on_drr
+    if not believed:
+        monkeypatch.setattr(model.config, "verify_gate", -100.0)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    truth = sample["pose"][:1].double()
+    rim = torch.tensor([[float(v) for v in sample["ellipse"][0]]], dtype=torch.float64)
+    head = rim.clone()
+    head[:, 2:4] *= 0.45  # a femoral head's outline inside the cup's
+    points = ellipse_points(head, torch.linspace(0, 2 * math.pi, 65, dtype=torch.float64)[:-1])
+    ones = torch.ones(1, 64, dtype=torch.float64)
+    cup_index = torch.zeros(1, 2, dtype=torch.long)
+    images, index = [sample["image"]], torch.tensor([0])
+    with torch.no_grad():
+        solution = model.solve(points, ones, geometry, diameter, cup_index, 1, refine=True)
+        assert not solution.valid[0]
+        picks = [(points[0], ones[0], solution, 0)]
+        poses, alt_poses = [solution.pose[0]], [solution.alt_pose[0]]
+        source = [lambda todo: (points[todo], ones[todo])]
+        solved, parts = model.reconsidered(images, index, picks, [], poses, alt_poses,
+                                           torch.empty(0, 2, dtype=torch.float64), source,
+                                           head, geometry, diameter, cup_index, 1)
+    assert solved == ([0] if believed else [])
+    assert parts.shape == (len(solved), 2)
+    if believed:
+        assert float(parts[0].sum()) < model.config.verify_gate
+        assert torch.allclose(poses[0][:2], truth[0, :2], atol=1.0)  # deg
+        assert ((poses[0][2:] - truth[0, 2:]).abs() < torch.tensor([1.0, 1.0, 10.0])).all()
+    else:
+        assert picks[0][2] is solution and torch.isnan(poses[0]).all()
 
 
 @pytest.mark.parametrize("turn_deg", [None, 15.0])
