@@ -559,7 +559,8 @@ class CupNet(nn.Module):
         # refiner took for a disc); (5) the coarse stage from a start grown to a size the
         # rim can have (see _grown_rim_source). Sources 1, 2, 4 and 5 where the model has
         # them. Where none gives a pose within range: the first pose found, else the
-        # refiner's failure (its ellipse is the one the mask shows).
+        # refiner's failure (its ellipse is the one the mask shows); the verification
+        # (reconsidered) looks at both again.
         index = cup_index[:, 0]
 
         def refiner(todo: Tensor) -> tuple[Tensor, Tensor]:
