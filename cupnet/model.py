@@ -49,7 +49,7 @@ from cupnet.crops import (
     to_image,
 )
 from cupnet.detection import CupDetection, distinct_cups
-from cupnet.ellipse import ellipse_points, fit_ellipse
+from cupnet.ellipse import fit_ellipse
 from cupnet.field import outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import ray_landmarks, soft_moments
@@ -779,8 +779,7 @@ class CupNet(nn.Module):
             return {}
         todo = torch.tensor(unsolved, dtype=torch.long)
         ellipse = self._grown(start[todo], cup_index[todo, 0], geometry, diameter, batch)
-        points = ellipse_points(ellipse, torch.linspace(0, 2 * math.pi, self.config.rim_points + 1,
-                                                        dtype=ellipse.dtype)[:-1])
+        points = rim_frame(ellipse, self.config.rim_points)[0]
         weights = torch.ones(points.shape[:2], dtype=points.dtype)
         solution = self.solve(points, weights, geometry, diameter, cup_index[todo], batch,
                               refine=True)
