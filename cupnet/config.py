@@ -171,8 +171,8 @@ class CupNetConfig:
             hides (true poses' rim doubt: 99th percentile 1.7-2.1 on the evaluation sets).
         search_screen: the search measures the dome's outline (the costlier half of a grid
             pose's doubt) only for the grid poses whose rim, as it lies or settled, ranks
-            among each cup's this many best (None: for all): the rest, far down on the
-            rim, do not win (at 24, the same poses on the benchmark, a fresh seed and the
+            among each cup's this many best (None: for all; at least ``search_keep +
+            search_keep_settled``): the rest, far down on the rim, do not win (at 24, the same poses on the benchmark, a fresh seed and the
             oblong images).
         check_doubt: a detected cup whose reported pose the network doubts this much or
             more (the larger of :meth:`CupNet.pose_doubt`'s rim and outline parts) is
@@ -242,6 +242,12 @@ class CupNetConfig:
         if self.metal not in METAL_DISPLAYS:
             raise ValueError(f"unknown metal display {self.metal!r}; choose from "
                              f"{', '.join(METAL_DISPLAYS)}")
+        kept = self.search_keep + self.search_keep_settled
+        if self.search_screen is not None and self.search_screen < kept:
+            # The grid poses past the screen have no outline doubt to rank them by.
+            raise ValueError(f"search_screen ({self.search_screen}) must be at least "
+                             f"search_keep + search_keep_settled ({kept}), the grid poses "
+                             "the search keeps")
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:

@@ -468,3 +468,17 @@ def test_speed_presets_change_inference_settings_only(preset: str) -> None:
 def test_unknown_speed_preset_is_named_with_the_choices() -> None:
     with pytest.raises(ValueError, match="unknown speed preset 'warp'.*fast, fastest"):
         apply_speed_preset(CupNetConfig(), "warp")
+
+
+@pytest.mark.parametrize(("screen", "fails"), [(None, False), (6, False), (5, True)])
+def test_search_screen_below_the_poses_kept_is_refused(screen: int | None, fails: bool) -> None:
+    """The search keeps search_keep + search_keep_settled grid poses (4 + 2 here), ranked by
+    a doubt whose outline half only the screened poses have: a smaller screen is an error
+    naming both settings."""
+    settings = {"search_keep": 4, "search_keep_settled": 2, "search_screen": screen}
+    if fails:
+        with pytest.raises(ValueError, match=r"search_screen \(5\).*search_keep \+ "
+                                             r"search_keep_settled \(6\)"):
+            CupNetConfig(**settings)
+    else:
+        assert CupNetConfig(**settings).search_screen == screen
