@@ -172,13 +172,17 @@ class CupNetConfig:
         search_screen: the search measures the dome's outline (the costlier half of a grid
             pose's doubt) only for the grid poses whose rim, as it lies or settled, ranks
             among each cup's this many best (None: for all; at least ``search_keep +
-            search_keep_settled``): the rest, far down on the rim, do not win (at 24, the same poses on the benchmark, a fresh seed and the
-            oblong images).
+            search_keep_settled``): the rest, far down on the rim, do not win (at 24, the
+            same poses on the benchmark, a fresh seed and the oblong images).
         check_doubt: a detected cup whose reported pose the network doubts this much or
             more (the larger of :meth:`CupNet.pose_doubt`'s rim and outline parts) is
             flagged ``check`` (None: none is): the edges the network finds across its rim or
             dome outline lie off them, as they do for most gross failures (needs
             ``outline_passes``). A cup reported beyond ``max_theta_deg`` is flagged too.
+        second_look: an image with a cup flagged ``check`` or failed is detected again with
+            the locator on its mirror image, and such a cup takes the second look's
+            unflagged detection of the same place where that one is doubted less
+            (:meth:`CupNet._looked_again`; needs ``check_doubt``).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -237,6 +241,7 @@ class CupNetConfig:
     search_rim_doubt: float | None = None
     search_screen: int | None = None
     check_doubt: float | None = None
+    second_look: bool = False
 
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:
@@ -266,13 +271,14 @@ class CupNetConfig:
 # Faster operating points of a trained model: inference settings only, the weights unchanged
 # (figures in docs/benchmarks.md, "CupNet accuracy" and "CupNet speed").
 SPEED_PRESETS: dict[str, dict[str, object]] = {
-    # no verification, so no search either, of doubtful cups (items 12 and 16 of
-    # docs/training.md)
-    "fast": {"verify_gate": None},
+    # no verification, so no search either, of doubtful cups, nor a second look at flagged
+    # ones (items 12, 16 and 32 of docs/training.md)
+    "fast": {"verify_gate": None, "second_look": False},
     # ... nor the dome's outline (so no doubt, no check flag and no ordering of ambiguous
     # pairs, which all measure the pose against the outline) nor the thin-rim hypotheses:
     # segmentation, the rim stages and the solver alone
-    "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None},
+    "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
+                "second_look": False},
 }
 
 

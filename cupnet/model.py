@@ -513,14 +513,44 @@ class CupNet(nn.Module):
             self.eval()
         try:
             with memoised_strips():
-                return self._detect(images, geometry, cup_diameter, return_masks)
+                found = self._detect(images, geometry, cup_diameter, return_masks)
+                if self.config.second_look:
+                    self._looked_again(found, images, geometry, cup_diameter, return_masks)
+                return found
         finally:
             if was_training:
                 self.train()
 
+    def _looked_again(self, found: list[list[CupDetection]], images: Tensor | list,
+                      geometry: Geometry, cup_diameter: Tensor | float,
+                      return_masks: bool) -> None:
+        """The images of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
+        error detected again with the locator on their mirror images; a flagged or failed
+        cup takes the second look's detection of the same place (:func:`_looked_again_cups`)
+        where that one is not flagged. In place.
+
+        The locator is not mirror-symmetric, so its blob, and with it every crop, strip and
+        landmark source after it, comes out a little different: a second, nearly independent
+        attempt. A flagged cup's first attempt mostly took a wrong contour (a femoral head,
+        a thin rim at the wrong angle) from which no source or search recovered; from
+        another framing they often do, and the rim network then believes the pose.
+        """
+        again = [i for i, cups in enumerate(found)
+                 if any(cup.check or cup.status.startswith("error") for cup in cups)]
+        if not again:
+            return
+        image_list = _as_image_list(images, self.dtype)
+        rows = geometry_rows(geometry, len(image_list))
+        diameter = torch.as_tensor(cup_diameter, dtype=torch.float64).expand(len(image_list))
+        second = self._detect([image_list[i] for i in again], Geometry.from_rows(rows[again]),
+                              diameter[again], return_masks, mirrored=True)
+        for i, cups in zip(again, second, strict=True):
+            found[i] = _looked_again_cups(found[i], cups)
+
     def _detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
-                return_masks: bool) -> list[list[CupDetection]]:
-        """:meth:`detect` in eval mode."""
+                return_masks: bool, mirrored: bool = False) -> list[list[CupDetection]]:
+        """:meth:`detect` in eval mode; ``mirrored``: the locator looks at the images'
+        mirror images (left to right), its blobs mirrored back."""
         image_list = _as_image_list(images, self.dtype)
         batch = len(image_list)
         diameter = torch.as_tensor(cup_diameter, dtype=torch.float64)
@@ -530,7 +560,12 @@ class CupNet(nn.Module):
                              f"{tuple(diameter.shape)}")
         if self.config.metal == "bright":
             image_list = [1 - image for image in image_list]
-        rough, scores = self.rough_ellipses(image_list)
+        if mirrored:
+            rough, scores = self.rough_ellipses([image.flip(-1) for image in image_list])
+            widths = torch.tensor([image.shape[-1] for image in image_list]).to(rough)
+            rough = mirrored_ellipses(rough, widths[:, None])
+        else:
+            rough, scores = self.rough_ellipses(image_list)
         bright = [self.config.metal == "bright"] * batch  # each image's display, as judged
         if self.config.metal == "auto":  # the cups found, not found again: none lost
             bright = [bool(metal_shows_bright(image, found))
@@ -1392,6 +1427,39 @@ def _distinct(candidates: list[tuple[int, _Pick]]) -> list[tuple[int, _Pick]]:
                    for j, other in kept):
             kept.append((k, pick))
     return kept
+
+
+def mirrored_ellipses(ellipses: Tensor, width: Tensor) -> Tensor:
+    """Ellipses ``(..., 5)`` (cx, cy, a, b, alpha_deg) px of an image mirrored left to right,
+    in the image itself, ``width`` px (broadcast over ``(...)``): pixel centres at integers,
+    so ``cx -> width - 1 - cx``, and the axis angle turns to ``180 - alpha`` (mod 180)."""
+    out = ellipses.clone()
+    out[..., 0] = width - 1 - ellipses[..., 0]
+    out[..., 4] = (180.0 - ellipses[..., 4]) % 180.0
+    return out
+
+
+def _looked_again_cups(first: list[CupDetection], second: list[CupDetection]
+                       ) -> list[CupDetection]:
+    """One image's cups ``first`` with each flagged (``check``) or failed one replaced by the
+    least doubted unflagged cup of ``second`` at the same place (each centre within the
+    other's major semi-axis) that is doubted less; the others as they are."""
+    out = []
+    for cup in first:
+        if cup.check or cup.status.startswith("error"):
+            shape = np.asarray(cup.ellipse, np.float64)
+            better = [other for other in second if other.doubt is not None and not other.check
+                      and (cup.doubt is None or other.doubt < cup.doubt)
+                      and _same_place(shape, np.asarray(other.ellipse, np.float64))]
+            cup = min(better, key=lambda other: other.doubt, default=cup)
+        out.append(cup)
+    return out
+
+
+def _same_place(one: np.ndarray, other: np.ndarray) -> bool:
+    """Whether ellipses ``(5,)`` px ``one`` and ``other`` mark one place: each centre within
+    the other's major semi-axis (False where either is NaN)."""
+    return bool(np.hypot(*(one[:2] - other[:2])) <= min(one[2], other[2]))
 
 
 def grown_to(ellipses: Tensor, major: Tensor) -> Tensor:

@@ -21,11 +21,12 @@ from cupnet.crops import (
     to_image,
     to_view,
 )
-from cupnet.ellipse import fit_ellipse
+from cupnet.detection import CupDetection
+from cupnet.ellipse import ellipse_points, fit_ellipse
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage, ray_landmarks, soft_moments
-from cupnet.model import CupNet, load_model, save_model
+from cupnet.model import CupNet, _looked_again_cups, load_model, mirrored_ellipses, save_model
 from cupnet.pose import ellipse_of_pose
 from data_synth import SynthConfig, synthesize
 
@@ -482,3 +483,43 @@ def test_search_screen_below_the_poses_kept_is_refused(screen: int | None, fails
             CupNetConfig(**settings)
     else:
         assert CupNetConfig(**settings).search_screen == screen
+
+
+def test_mirrored_ellipses_are_the_mirror_images_of_their_points():
+    """An ellipse of a mirrored image, mirrored back: its points are the mirror images
+    ``(W - 1 - u, v)`` of the mirrored one's (as sets: the parametrisation runs the other
+    way), and mirroring twice gives the ellipse again."""
+    ellipses = torch.tensor([[100.0, 60.0, 40.0, 12.0, 30.0], [300.5, 200.0, 50.0, 50.0, 0.0],
+                             [20.0, 400.0, 70.0, 3.0, 179.0]], dtype=torch.float64)
+    width = torch.tensor([[512.0], [640.0], [512.0]], dtype=torch.float64)
+    mirrored = mirrored_ellipses(ellipses, width[:, 0])
+    t = torch.linspace(0, 2 * math.pi, 721, dtype=torch.float64)[:-1]
+    reflected = ellipse_points(ellipses, t) * torch.tensor([-1.0, 1.0], dtype=torch.float64)
+    reflected[..., 0] += width - 1
+    gap = torch.cdist(ellipse_points(mirrored, t), reflected).amin(-1)
+    assert float(gap.max()) < 0.2  # px, the spacing of 720 points on the largest ellipse
+    assert torch.allclose(mirrored_ellipses(mirrored, width[:, 0]), ellipses)
+
+
+def _cup(u: float, doubt: float | None, check: bool, status: str = "ok") -> CupDetection:
+    return CupDetection(pose=np.zeros(5), alt_pose=None, ambiguous=False,
+                        ellipse=np.array([u, 200.0, 40.0, 20.0, 0.0]), landmarks=np.zeros((0, 2)),
+                        weights=np.zeros(0), residual_px=0.0, status=status, doubt=doubt,
+                        check=check)
+
+
+def test_a_flagged_cup_takes_the_second_looks_believed_detection_of_its_place():
+    """Hand cases: a flagged cup takes the least doubted unflagged cup of the second look
+    whose centre lies within its major semi-axis and is doubted less; a failed cup (no
+    doubt) takes any such; an unflagged cup, a flagged one with nothing better at its place
+    (further away, flagged, or doubted more) keep theirs."""
+    first = [_cup(100, 2.5, True), _cup(300, 0.4, False), _cup(500, None, False, "error: x"),
+             _cup(700, 2.2, True)]
+    far, believed, best = _cup(145, 0.3, False), _cup(130, 1.0, False), _cup(90, 0.7, False)
+    second = [far, believed, best, _cup(110, 0.1, True), _cup(300, 0.1, False),
+              _cup(505, 1.9, True), _cup(510, 1.2, False), _cup(690, 2.4, False)]
+    kept = _looked_again_cups(first, second)
+    assert kept[0] is best  # 130 and 90 within 40 px; 145 not; the flagged 0.1 not
+    assert kept[1] is first[1]  # not flagged: kept, though 0.1 lies at its place
+    assert kept[2] is second[6]  # failed: the unflagged one at its place
+    assert kept[3] is first[3]  # the one at its place is doubted more

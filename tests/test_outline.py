@@ -335,6 +335,42 @@ def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_dr
     assert not found[0].check
 
 
+@pytest.mark.parametrize(("turned", "second_look"), [(True, True), (True, False),
+                                                     (False, True)])
+def test_a_flagged_cup_is_looked_at_again_with_the_locator_mirrored(shipped_on_drr, monkeypatch,
+                                                                    turned, second_look):
+    """The DRR's cup made to come out 20 deg off in inclination on the first look (the
+    outline refinement made to return it, no verification to undo it), so flagged: with
+    ``second_look`` the image is detected again with the locator on its mirror image, whose
+    blob, mirrored back, frames the cup again; that look's pose (not turned) is believed
+    and replaces the flagged one. Without it the flagged pose stays; an unflagged cup gets
+    no second look."""
+    model, sample = shipped_on_drr
+    monkeypatch.setattr(model.config, "verify_gate", None)
+    monkeypatch.setattr(model.config, "second_look", second_look)
+    looks: list[bool] = []
+    detect_once = model._detect
+
+    def tracked(*args, mirrored: bool = False):
+        looks.append(mirrored)
+        return detect_once(*args, mirrored=mirrored)
+
+    monkeypatch.setattr(model, "_detect", tracked)
+    refine = model.outline_refined
+    turn = torch.tensor([0.0, 20.0 if turned else 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    monkeypatch.setattr(model, "outline_refined",
+                        lambda *args: refine(*args) + (0.0 if looks[-1] else turn))
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
+                         return_masks=False)[0]
+    assert looks == [False, True] if turned and second_look else [False]
+    assert len(found) == 1
+    error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
+    wrong = turned and not second_look
+    assert float(error[1]) == pytest.approx(20.0 if wrong else 0.0, abs=1.0)
+    assert found[0].check == wrong
+
+
 def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
     """:meth:`CupNet.reconsidered` (:meth:`CupNet.verified`, and :meth:`CupNet.searched`
     where the config has a ``search_gate``) on one cup solved from exact rim landmarks of the
