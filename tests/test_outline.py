@@ -371,6 +371,38 @@ def test_a_flagged_cup_is_looked_at_again_with_the_locator_mirrored(shipped_on_d
     assert found[0].check == wrong
 
 
+def test_the_second_look_takes_each_looked_at_images_own_geometry(shipped_on_drr,
+                                                                   monkeypatch):
+    """A batch of a blank image (other geometry, no cup) and the DRR whose first look is
+    turned as above: only the DRR is looked at again, with its own geometry and cup size,
+    and its cup comes out right."""
+    model, sample = shipped_on_drr
+    monkeypatch.setattr(model.config, "verify_gate", None)
+    monkeypatch.setattr(model.config, "second_look", True)
+    looked: list[int] = []
+    detect_once = model._detect
+
+    def tracked(images, *args, mirrored: bool = False):
+        looked.append(len(images) if mirrored else 0)
+        return detect_once(images, *args, mirrored=mirrored)
+
+    monkeypatch.setattr(model, "_detect", tracked)
+    refine = model.outline_refined
+    turn = torch.tensor([0.0, 20.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    monkeypatch.setattr(model, "outline_refined",
+                        lambda *args: refine(*args) + (0.0 if looked[-1] else turn))
+    sdd, spacing, u0, v0 = (float(v) for v in sample["geometry"])
+    geometry = Geometry(torch.tensor([sdd + 200.0, sdd]), torch.tensor([spacing * 1.5, spacing]),
+                        torch.tensor([u0, u0]), torch.tensor([v0, v0]))
+    images = torch.stack([torch.full_like(sample["image"], 0.5), sample["image"]])
+    diameter = torch.tensor([40.0, float(sample["cup_diameter"][0])])
+    blank, found = model.detect(images, geometry, diameter, return_masks=False)
+    assert looked == [0, 1] and blank == [] and len(found) == 1
+    error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
+    assert (error[:2] < 1.0).all() and (error[2:4] < 1.0).all() and error[4] < 8.0
+    assert not found[0].check
+
+
 def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
     """:meth:`CupNet.reconsidered` (:meth:`CupNet.verified`, and :meth:`CupNet.searched`
     where the config has a ``search_gate``) on one cup solved from exact rim landmarks of the
