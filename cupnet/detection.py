@@ -82,6 +82,29 @@ def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1
     return [det for det in detections if any(det is k for k in kept)]
 
 
+def second_look_cups(first: list[CupDetection], second: list[CupDetection]
+                     ) -> list[CupDetection]:
+    """One image's cups ``first`` with each flagged (``check``) or failed one replaced by the
+    least doubted unflagged cup of ``second`` at the same place (each centre within the
+    other's major semi-axis) that is doubted less; the others as they are."""
+    out = []
+    for cup in first:
+        if cup.check or cup.status.startswith("error"):
+            shape = np.asarray(cup.ellipse, np.float64)
+            better = [other for other in second if other.doubt is not None and not other.check
+                      and (cup.doubt is None or other.doubt < cup.doubt)
+                      and _same_place(shape, np.asarray(other.ellipse, np.float64))]
+            cup = min(better, key=lambda other: other.doubt, default=cup)
+        out.append(cup)
+    return out
+
+
+def _same_place(one: np.ndarray, other: np.ndarray) -> bool:
+    """Whether ellipses ``(5,)`` px ``one`` and ``other`` mark one place: each centre within
+    the other's major semi-axis (False where either is NaN)."""
+    return bool(np.hypot(*(one[:2] - other[:2])) <= min(one[2], other[2]))
+
+
 def _same_ellipse(one: np.ndarray, other: np.ndarray, tolerance: float) -> bool:
     """Whether ``(cx, cy, a, b)`` px ``one`` and ``other`` agree within ``tolerance`` of the
     larger ``a`` (False where either is NaN)."""

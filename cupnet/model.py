@@ -48,7 +48,7 @@ from cupnet.crops import (
     square_windows,
     to_image,
 )
-from cupnet.detection import CupDetection, distinct_cups
+from cupnet.detection import CupDetection, distinct_cups, second_look_cups
 from cupnet.ellipse import fit_ellipse
 from cupnet.field import outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
@@ -158,6 +158,17 @@ def _as_image_list(images: Tensor | list, dtype: torch.dtype) -> list[Tensor]:
             raise ValueError(f"image {i}: contains NaN or infinite values")
         out.append(t)
     return out
+
+
+def _per_image(cup_diameter: Tensor | float, batch: int) -> Tensor:
+    """``(B,)`` float64 cup diameters (mm) of a batch from a scalar or ``(B,)``; another
+    shape is a ValueError naming it."""
+    diameter = torch.as_tensor(cup_diameter, dtype=torch.float64)
+    diameter = diameter.expand(batch) if diameter.ndim == 0 else diameter
+    if diameter.shape != (batch,):
+        raise ValueError(f"cup_diameter must be a scalar or ({batch},), got "
+                         f"{tuple(diameter.shape)}")
+    return diameter
 
 
 def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
@@ -526,7 +537,7 @@ class CupNet(nn.Module):
                       return_masks: bool) -> None:
         """The images of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
         error detected again with the locator on their mirror images; a flagged or failed
-        cup takes the second look's detection of the same place (:func:`_looked_again_cups`)
+        cup takes the second look's detection of the same place (:func:`second_look_cups`)
         where that one is not flagged. In place.
 
         The locator is not mirror-symmetric, so its blob, and with it every crop, strip and
@@ -541,11 +552,11 @@ class CupNet(nn.Module):
             return
         image_list = _as_image_list(images, self.dtype)
         rows = geometry_rows(geometry, len(image_list))
-        diameter = torch.as_tensor(cup_diameter, dtype=torch.float64).expand(len(image_list))
+        diameter = _per_image(cup_diameter, len(image_list))
         second = self._detect([image_list[i] for i in again], Geometry.from_rows(rows[again]),
                               diameter[again], return_masks, mirrored=True)
         for i, cups in zip(again, second, strict=True):
-            found[i] = _looked_again_cups(found[i], cups)
+            found[i] = second_look_cups(found[i], cups)
 
     def _detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
                 return_masks: bool, mirrored: bool = False) -> list[list[CupDetection]]:
@@ -553,11 +564,7 @@ class CupNet(nn.Module):
         mirror images (left to right), its blobs mirrored back."""
         image_list = _as_image_list(images, self.dtype)
         batch = len(image_list)
-        diameter = torch.as_tensor(cup_diameter, dtype=torch.float64)
-        diameter = diameter.expand(batch) if diameter.ndim == 0 else diameter
-        if diameter.shape != (batch,):
-            raise ValueError(f"cup_diameter must be a scalar or ({batch},), got "
-                             f"{tuple(diameter.shape)}")
+        diameter = _per_image(cup_diameter, batch)
         if self.config.metal == "bright":
             image_list = [1 - image for image in image_list]
         if mirrored:
@@ -1437,29 +1444,6 @@ def mirrored_ellipses(ellipses: Tensor, width: Tensor) -> Tensor:
     out[..., 0] = width - 1 - ellipses[..., 0]
     out[..., 4] = (180.0 - ellipses[..., 4]) % 180.0
     return out
-
-
-def _looked_again_cups(first: list[CupDetection], second: list[CupDetection]
-                       ) -> list[CupDetection]:
-    """One image's cups ``first`` with each flagged (``check``) or failed one replaced by the
-    least doubted unflagged cup of ``second`` at the same place (each centre within the
-    other's major semi-axis) that is doubted less; the others as they are."""
-    out = []
-    for cup in first:
-        if cup.check or cup.status.startswith("error"):
-            shape = np.asarray(cup.ellipse, np.float64)
-            better = [other for other in second if other.doubt is not None and not other.check
-                      and (cup.doubt is None or other.doubt < cup.doubt)
-                      and _same_place(shape, np.asarray(other.ellipse, np.float64))]
-            cup = min(better, key=lambda other: other.doubt, default=cup)
-        out.append(cup)
-    return out
-
-
-def _same_place(one: np.ndarray, other: np.ndarray) -> bool:
-    """Whether ellipses ``(5,)`` px ``one`` and ``other`` mark one place: each centre within
-    the other's major semi-axis (False where either is NaN)."""
-    return bool(np.hypot(*(one[:2] - other[:2])) <= min(one[2], other[2]))
 
 
 def grown_to(ellipses: Tensor, major: Tensor) -> Tensor:

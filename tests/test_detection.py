@@ -1,16 +1,18 @@
-"""cupnet.detection: one image's detections less the repeats of one cup."""
+"""cupnet.detection: one image's detections less the repeats of one cup, and its flagged
+cups replaced by a second look's."""
 
 import numpy as np
 
-from cupnet.detection import CupDetection, distinct_cups
+from cupnet.detection import CupDetection, distinct_cups, second_look_cups
 
 
-def detection(ellipse: list[float], status: str = "ok", doubt: float | None = 0.5
-              ) -> CupDetection:
+def detection(ellipse: list[float], status: str = "ok", doubt: float | None = 0.5,
+              check: bool = False) -> CupDetection:
     pose = np.full(5, np.nan) if status.startswith("error") else np.array([20, 40, 0, 0, 900.0])
     return CupDetection(pose=pose, alt_pose=None, ambiguous=False,
                         ellipse=np.asarray(ellipse, np.float64), landmarks=np.zeros((0, 2)),
-                        weights=np.zeros(0), residual_px=0.1, status=status, doubt=doubt)
+                        weights=np.zeros(0), residual_px=0.1, status=status, doubt=doubt,
+                        check=check)
 
 
 def test_one_cup_found_twice_is_kept_once_by_its_better_detection():
@@ -36,3 +38,24 @@ def test_cups_apart_in_place_or_size_are_both_kept():
     found = [detection(e) for e in (cup, moved, smaller, nan, nan)]
     assert distinct_cups(found) == found
     assert distinct_cups([]) == []
+
+
+def test_a_flagged_cup_takes_the_second_looks_believed_detection_of_its_place():
+    """A flagged cup takes the least doubted unflagged cup of the second look whose centre
+    lies within its major semi-axis (and its own within that one's) and is doubted less; a
+    failed cup (no doubt) takes any such; an unflagged cup, and a flagged one with nothing
+    better at its place (further away, flagged, or doubted more), keep theirs."""
+    def cup(u: float, doubt: float | None, check: bool = False, status: str = "ok"
+            ) -> CupDetection:
+        return detection([u, 200.0, 40.0, 20.0, 0.0], status, doubt, check)
+
+    first = [cup(100, 2.5, True), cup(300, 0.4), cup(500, None, status="error: x"),
+             cup(700, 2.2, True)]
+    far, believed, best = cup(145, 0.3), cup(130, 1.0), cup(90, 0.7)
+    second = [far, believed, best, cup(110, 0.1, True), cup(300, 0.1), cup(505, 1.9, True),
+              cup(510, 1.2), cup(690, 2.4)]
+    kept = second_look_cups(first, second)
+    assert kept[0] is best  # 130 and 90 lie within 40 px; 145 not; the flagged 0.1 not
+    assert kept[1] is first[1]  # not flagged: kept, though 0.1 lies at its place
+    assert kept[2] is second[6]  # failed: the unflagged one at its place
+    assert kept[3] is first[3]  # the one at its place is doubted more

@@ -21,12 +21,11 @@ from cupnet.crops import (
     to_image,
     to_view,
 )
-from cupnet.detection import CupDetection
 from cupnet.ellipse import ellipse_points, fit_ellipse
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
 from cupnet.landmarks import ellipse_coverage, ray_landmarks, soft_moments
-from cupnet.model import CupNet, _looked_again_cups, load_model, mirrored_ellipses, save_model
+from cupnet.model import CupNet, load_model, mirrored_ellipses, save_model
 from cupnet.pose import ellipse_of_pose
 from data_synth import SynthConfig, synthesize
 
@@ -501,25 +500,9 @@ def test_mirrored_ellipses_are_the_mirror_images_of_their_points():
     assert torch.allclose(mirrored_ellipses(mirrored, width[:, 0]), ellipses)
 
 
-def _cup(u: float, doubt: float | None, check: bool, status: str = "ok") -> CupDetection:
-    return CupDetection(pose=np.zeros(5), alt_pose=None, ambiguous=False,
-                        ellipse=np.array([u, 200.0, 40.0, 20.0, 0.0]), landmarks=np.zeros((0, 2)),
-                        weights=np.zeros(0), residual_px=0.0, status=status, doubt=doubt,
-                        check=check)
 
-
-def test_a_flagged_cup_takes_the_second_looks_believed_detection_of_its_place():
-    """Hand cases: a flagged cup takes the least doubted unflagged cup of the second look
-    whose centre lies within its major semi-axis and is doubted less; a failed cup (no
-    doubt) takes any such; an unflagged cup, a flagged one with nothing better at its place
-    (further away, flagged, or doubted more) keep theirs."""
-    first = [_cup(100, 2.5, True), _cup(300, 0.4, False), _cup(500, None, False, "error: x"),
-             _cup(700, 2.2, True)]
-    far, believed, best = _cup(145, 0.3, False), _cup(130, 1.0, False), _cup(90, 0.7, False)
-    second = [far, believed, best, _cup(110, 0.1, True), _cup(300, 0.1, False),
-              _cup(505, 1.9, True), _cup(510, 1.2, False), _cup(690, 2.4, False)]
-    kept = _looked_again_cups(first, second)
-    assert kept[0] is best  # 130 and 90 within 40 px; 145 not; the flagged 0.1 not
-    assert kept[1] is first[1]  # not flagged: kept, though 0.1 lies at its place
-    assert kept[2] is second[6]  # failed: the unflagged one at its place
-    assert kept[3] is first[3]  # the one at its place is doubted more
+def test_detect_names_a_cup_diameter_of_the_wrong_shape():
+    """One diameter, or one per image: three for two images is an error naming both."""
+    with pytest.raises(ValueError, match=r"cup_diameter must be a scalar or \(2,\), got \(3,\)"):
+        CupNet(TINY).detect(torch.rand(2, 1, 256, 256), Geometry(1000.0, 0.3, 128.0, 128.0),
+                            torch.full((3,), 50.0))
