@@ -335,6 +335,29 @@ def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_dr
     assert not found[0].check
 
 
+def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = True
+                       ) -> list[int]:
+    """``model`` without verification, with or without ``second_look``, its outline
+    refinement made to return poses 20 deg off in inclination (where ``turned``) on the first
+    look only. Returns the record of its looks: per :meth:`CupNet._detect` call, the number
+    of images of a mirrored look, 0 for a first look."""
+    monkeypatch.setattr(model.config, "verify_gate", None)
+    monkeypatch.setattr(model.config, "second_look", second_look)
+    looks: list[int] = []
+    detect_once = model._detect
+
+    def tracked(images, *args, mirrored: bool = False):
+        looks.append(len(images) if mirrored else 0)
+        return detect_once(images, *args, mirrored=mirrored)
+
+    monkeypatch.setattr(model, "_detect", tracked)
+    refine = model.outline_refined
+    turn = torch.tensor([0.0, 20.0 if turned else 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    monkeypatch.setattr(model, "outline_refined",
+                        lambda *args: refine(*args) + (0.0 if looks[-1] else turn))
+    return looks
+
+
 @pytest.mark.parametrize(("turned", "second_look"), [(True, True), (True, False),
                                                      (False, True)])
 def test_a_flagged_cup_is_looked_at_again_with_the_locator_mirrored(shipped_on_drr, monkeypatch,
@@ -346,24 +369,11 @@ def test_a_flagged_cup_is_looked_at_again_with_the_locator_mirrored(shipped_on_d
     and replaces the flagged one. Without it the flagged pose stays; an unflagged cup gets
     no second look."""
     model, sample = shipped_on_drr
-    monkeypatch.setattr(model.config, "verify_gate", None)
-    monkeypatch.setattr(model.config, "second_look", second_look)
-    looks: list[bool] = []
-    detect_once = model._detect
-
-    def tracked(*args, mirrored: bool = False):
-        looks.append(mirrored)
-        return detect_once(*args, mirrored=mirrored)
-
-    monkeypatch.setattr(model, "_detect", tracked)
-    refine = model.outline_refined
-    turn = torch.tensor([0.0, 20.0 if turned else 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
-    monkeypatch.setattr(model, "outline_refined",
-                        lambda *args: refine(*args) + (0.0 if looks[-1] else turn))
+    looks = _first_look_turned(model, monkeypatch, second_look, turned)
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
-    assert looks == [False, True] if turned and second_look else [False]
+    assert looks == [0, 1] if turned and second_look else [0]
     assert len(found) == 1
     error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
     wrong = turned and not second_look
@@ -377,27 +387,14 @@ def test_the_second_look_takes_each_looked_at_images_own_geometry(shipped_on_drr
     turned as above: only the DRR is looked at again, with its own geometry and cup size,
     and its cup comes out right."""
     model, sample = shipped_on_drr
-    monkeypatch.setattr(model.config, "verify_gate", None)
-    monkeypatch.setattr(model.config, "second_look", True)
-    looked: list[int] = []
-    detect_once = model._detect
-
-    def tracked(images, *args, mirrored: bool = False):
-        looked.append(len(images) if mirrored else 0)
-        return detect_once(images, *args, mirrored=mirrored)
-
-    monkeypatch.setattr(model, "_detect", tracked)
-    refine = model.outline_refined
-    turn = torch.tensor([0.0, 20.0, 0.0, 0.0, 0.0], dtype=torch.float64)
-    monkeypatch.setattr(model, "outline_refined",
-                        lambda *args: refine(*args) + (0.0 if looked[-1] else turn))
+    looks = _first_look_turned(model, monkeypatch, second_look=True)
     sdd, spacing, u0, v0 = (float(v) for v in sample["geometry"])
     geometry = Geometry(torch.tensor([sdd + 200.0, sdd]), torch.tensor([spacing * 1.5, spacing]),
                         torch.tensor([u0, u0]), torch.tensor([v0, v0]))
     images = torch.stack([torch.full_like(sample["image"], 0.5), sample["image"]])
     diameter = torch.tensor([40.0, float(sample["cup_diameter"][0])])
     blank, found = model.detect(images, geometry, diameter, return_masks=False)
-    assert looked == [0, 1] and blank == [] and len(found) == 1
+    assert looks == [0, 1] and blank == [] and len(found) == 1
     error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
     assert (error[:2] < 1.0).all() and (error[2:4] < 1.0).all() and error[4] < 8.0
     assert not found[0].check
