@@ -160,7 +160,7 @@ def _as_image_list(images: Tensor | list, dtype: torch.dtype) -> list[Tensor]:
     return out
 
 
-def _per_image(cup_diameter: Tensor | float, batch: int) -> Tensor:
+def _cup_diameters(cup_diameter: Tensor | float, batch: int) -> Tensor:
     """``(B,)`` float64 cup diameters (mm) of a batch from a scalar or ``(B,)``; another
     shape is a ValueError naming it."""
     diameter = torch.as_tensor(cup_diameter, dtype=torch.float64)
@@ -537,8 +537,8 @@ class CupNet(nn.Module):
                       return_masks: bool) -> None:
         """The images of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
         error detected again with the locator on their mirror images; a flagged or failed
-        cup takes the second look's detection of the same place (:func:`second_look_cups`)
-        where that one is not flagged. In place.
+        cup takes the second look's detection of the same place where that one is not
+        flagged and is doubted less (:func:`cupnet.detection.second_look_cups`). In place.
 
         The locator is not mirror-symmetric, so its blob, and with it every crop, strip and
         landmark source after it, comes out a little different: a second, nearly independent
@@ -552,7 +552,7 @@ class CupNet(nn.Module):
             return
         image_list = _as_image_list(images, self.dtype)
         rows = geometry_rows(geometry, len(image_list))
-        diameter = _per_image(cup_diameter, len(image_list))
+        diameter = _cup_diameters(cup_diameter, len(image_list))
         second = self._detect([image_list[i] for i in again], Geometry.from_rows(rows[again]),
                               diameter[again], return_masks, mirrored=True)
         for i, cups in zip(again, second, strict=True):
@@ -564,7 +564,7 @@ class CupNet(nn.Module):
         mirror images (left to right), its blobs mirrored back."""
         image_list = _as_image_list(images, self.dtype)
         batch = len(image_list)
-        diameter = _per_image(cup_diameter, batch)
+        diameter = _cup_diameters(cup_diameter, batch)
         if self.config.metal == "bright":
             image_list = [1 - image for image in image_list]
         if mirrored:
