@@ -183,6 +183,9 @@ class CupNetConfig:
             the locator on its mirror image, and such a cup takes the second look's
             unflagged detection of the same place where that one is doubted less
             (:meth:`CupNet._looked_again`; needs ``check_doubt``).
+        third_look_gamma: ... and an image with a cup still flagged or failed after that is
+            detected again with the locator on the image raised to this power, the same rule
+            taking its detections (None: no third look).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -242,6 +245,7 @@ class CupNetConfig:
     search_screen: int | None = None
     check_doubt: float | None = None
     second_look: bool = False
+    third_look_gamma: float | None = None
 
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:
@@ -277,9 +281,9 @@ SPEED_PRESETS: dict[str, dict[str, object]] = {
     "fast": {"verify_gate": None},
     # ... nor the dome's outline (so no doubt, no check flag and no ordering of ambiguous
     # pairs, which all measure the pose against the outline) nor the thin-rim hypotheses,
-    # nor a second look: segmentation, the rim stages and the solver alone
+    # nor a second or third look: segmentation, the rim stages and the solver alone
     "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
-                "second_look": False},
+                "second_look": False, "third_look_gamma": None},
 }
 
 

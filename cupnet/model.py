@@ -262,14 +262,16 @@ class CupNet(nn.Module):
             merged.append(grid)
         return merged, torch.stack([affine[0] for affine, _ in windows]).to(images[0])
 
-    def rough_ellipses(self, images: list[Tensor]) -> tuple[Tensor, Tensor]:
-        """Stage 1 at inference: :meth:`ellipses_from_locator` of :meth:`locate_windows`,
-        looked for again with ``locator_retry_gamma`` in the images where no cup was found
-        (no blob :meth:`kept_blobs` keeps); with ``round_field``, those centred outside the
-        image's round field are dropped."""
+    def rough_ellipses(self, images: list[Tensor], gamma: float | None = None
+                       ) -> tuple[Tensor, Tensor]:
+        """Stage 1 at inference: :meth:`ellipses_from_locator` of :meth:`locate_windows`
+        (on the images raised to the power ``gamma``, None: as they are), looked for again
+        with ``locator_retry_gamma`` in the images where no cup was found (no blob
+        :meth:`kept_blobs` keeps); with ``round_field``, those centred outside the image's
+        round field are dropped."""
         # An image turned over (metal "bright") keeps its flat surround: no need to undo it.
         fields = [round_field(image) if self.config.round_field else None for image in images]
-        rough, scores = self.ellipses_from_locator(*self.locate_windows(images), fields)
+        rough, scores = self.ellipses_from_locator(*self.locate_windows(images, gamma), fields)
         gamma = self.config.locator_retry_gamma
         empty = (~self.kept_blobs(rough, scores).any(-1)).nonzero()[:, 0]
         if gamma is not None and len(empty):
@@ -526,25 +528,31 @@ class CupNet(nn.Module):
             with memoised_strips():
                 found = self._detect(images, geometry, cup_diameter, return_masks)
                 if self.config.second_look:
-                    self._looked_again(found, images, geometry, cup_diameter, return_masks)
+                    self._looked_again(found, images, geometry, cup_diameter, return_masks,
+                                       mirrored=True)
+                if self.config.third_look_gamma is not None:
+                    self._looked_again(found, images, geometry, cup_diameter, return_masks,
+                                       gamma=self.config.third_look_gamma)
                 return found
         finally:
             if was_training:
                 self.train()
 
     def _looked_again(self, found: list[list[CupDetection]], images: Tensor | list,
-                      geometry: Geometry, cup_diameter: Tensor | float,
-                      return_masks: bool) -> None:
+                      geometry: Geometry, cup_diameter: Tensor | float, return_masks: bool,
+                      mirrored: bool = False, gamma: float | None = None) -> None:
         """The images of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
-        error detected again with the locator on their mirror images; a flagged or failed
-        cup takes the second look's detection of the same place where that one is not
-        flagged and is doubted less (:func:`cupnet.detection.second_look_cups`). In place.
+        error detected again with the locator on their mirror images (``mirrored``) or on
+        the images raised to the power ``gamma``; a flagged or failed cup takes the new
+        look's detection of the same place where that one is not flagged and is doubted
+        less (:func:`cupnet.detection.second_look_cups`). In place.
 
-        The locator is not mirror-symmetric, so its blob, and with it every crop, strip and
-        landmark source after it, comes out a little different: a second, nearly independent
-        attempt. A flagged cup's first attempt mostly took a wrong contour (a femoral head,
-        a thin rim at the wrong angle) from which no source or search recovered; from
-        another framing they often do, and the rim network then believes the pose.
+        The locator is neither mirror-symmetric nor blind to contrast, so its blob, and
+        with it every crop, strip and landmark source after it, comes out a little
+        different: another, nearly independent attempt. A flagged cup's first attempt
+        mostly took a wrong contour (a femoral head, a thin rim at the wrong angle) from
+        which no source or search recovered; from another framing they often do, and the
+        rim network then believes the pose.
         """
         again = [i for i, cups in enumerate(found)
                  if any(cup.check or cup.status.startswith("error") for cup in cups)]
@@ -554,25 +562,28 @@ class CupNet(nn.Module):
         rows = geometry_rows(geometry, len(image_list))
         diameter = _cup_diameters(cup_diameter, len(image_list))
         second = self._detect([image_list[i] for i in again], Geometry.from_rows(rows[again]),
-                              diameter[again], return_masks, mirrored=True)
+                              diameter[again], return_masks, mirrored, gamma)
         for i, cups in zip(again, second, strict=True):
             found[i] = second_look_cups(found[i], cups)
 
     def _detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
-                return_masks: bool, mirrored: bool = False) -> list[list[CupDetection]]:
+                return_masks: bool, mirrored: bool = False, gamma: float | None = None
+                ) -> list[list[CupDetection]]:
         """:meth:`detect` in eval mode; ``mirrored``: the locator looks at the images'
-        mirror images (left to right), its blobs mirrored back."""
+        mirror images (left to right), its blobs mirrored back; ``gamma``: at the images
+        raised to this power (see :meth:`rough_ellipses`)."""
         image_list = _as_image_list(images, self.dtype)
         batch = len(image_list)
         diameter = _cup_diameters(cup_diameter, batch)
         if self.config.metal == "bright":
             image_list = [1 - image for image in image_list]
         if mirrored:
-            rough, scores = self.rough_ellipses([image.flip(-1) for image in image_list])
+            rough, scores = self.rough_ellipses([image.flip(-1) for image in image_list],
+                                                gamma)
             widths = torch.tensor([image.shape[-1] for image in image_list]).to(rough)
             rough = mirrored_ellipses(rough, widths[:, None])
         else:
-            rough, scores = self.rough_ellipses(image_list)
+            rough, scores = self.rough_ellipses(image_list, gamma)
         bright = [self.config.metal == "bright"] * batch  # each image's display, as judged
         if self.config.metal == "auto":  # the cups found, not found again: none lost
             bright = [bool(metal_shows_bright(image, found))

@@ -335,48 +335,50 @@ def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_dr
     assert not found[0].check
 
 
-def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = True
-                       ) -> list[int]:
-    """``model`` without verification, with or without ``second_look``, its outline
-    refinement made to return poses 20 deg off in inclination (where ``turned``) on the first
-    look only. Returns the record of its looks: per :meth:`CupNet._detect` call, the number
-    of images of a mirrored look, 0 for a first look."""
+def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = True,
+                       third_look_gamma: float | None = None) -> list[tuple[str, int]]:
+    """``model`` without verification, with or without ``second_look`` and with
+    ``third_look_gamma``, its outline refinement made to return poses 20 deg off in
+    inclination (where ``turned``) on the first look only. Returns the record of its looks:
+    per :meth:`CupNet._detect` call, ``("first" | "mirrored" | "gamma", images)``."""
     monkeypatch.setattr(model.config, "verify_gate", None)
     monkeypatch.setattr(model.config, "second_look", second_look)
-    looks: list[int] = []
+    monkeypatch.setattr(model.config, "third_look_gamma", third_look_gamma)
+    looks: list[tuple[str, int]] = []
     detect_once = model._detect
 
-    def tracked(images, *args, mirrored: bool = False):
-        looks.append(len(images) if mirrored else 0)
-        return detect_once(images, *args, mirrored=mirrored)
+    def tracked(images, geometry, diameter, masks, mirrored=False, gamma=None):
+        looks.append(("mirrored" if mirrored else "gamma" if gamma else "first", len(images)))
+        return detect_once(images, geometry, diameter, masks, mirrored, gamma)
 
     monkeypatch.setattr(model, "_detect", tracked)
     refine = model.outline_refined
     turn = torch.tensor([0.0, 20.0 if turned else 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
     monkeypatch.setattr(model, "outline_refined",
-                        lambda *args: refine(*args) + (0.0 if looks[-1] else turn))
+                        lambda *args: refine(*args) + (turn if looks[-1][0] == "first" else 0.0))
     return looks
 
 
-@pytest.mark.parametrize(("turned", "second_look"), [(True, True), (True, False),
-                                                     (False, True)])
-def test_a_flagged_cup_is_looked_at_again_with_the_locator_mirrored(shipped_on_drr, monkeypatch,
-                                                                    turned, second_look):
+@pytest.mark.parametrize(("turned", "second_look", "third_look_gamma", "expected"), [
+    (True, True, None, ["first", "mirrored"]), (True, False, None, ["first"]),
+    (False, True, 0.7, ["first"]), (True, False, 0.7, ["first", "gamma"])])
+def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, turned, second_look,
+                                          third_look_gamma, expected):
     """The DRR's cup made to come out 20 deg off in inclination on the first look (the
     outline refinement made to return it, no verification to undo it), so flagged: with
     ``second_look`` the image is detected again with the locator on its mirror image, whose
-    blob, mirrored back, frames the cup again; that look's pose (not turned) is believed
-    and replaces the flagged one. Without it the flagged pose stays; an unflagged cup gets
-    no second look."""
+    blob, mirrored back, frames the cup again, and with ``third_look_gamma`` on the image
+    raised to that power; that look's pose (not turned) is believed and replaces the flagged
+    one. Without either the flagged pose stays; an unflagged cup is not looked at again."""
     model, sample = shipped_on_drr
-    looks = _first_look_turned(model, monkeypatch, second_look, turned)
+    looks = _first_look_turned(model, monkeypatch, second_look, turned, third_look_gamma)
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
-    assert looks == [0, 1] if turned and second_look else [0]
+    assert [kind for kind, _ in looks] == expected
     assert len(found) == 1
     error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
-    wrong = turned and not second_look
+    wrong = len(expected) == 1 and turned
     assert float(error[1]) == pytest.approx(20.0 if wrong else 0.0, abs=1.0)
     assert found[0].check == wrong
 
@@ -394,7 +396,7 @@ def test_the_second_look_takes_each_looked_at_images_own_geometry(shipped_on_drr
     images = torch.stack([torch.full_like(sample["image"], 0.5), sample["image"]])
     diameter = torch.tensor([40.0, float(sample["cup_diameter"][0])])
     blank, found = model.detect(images, geometry, diameter, return_masks=False)
-    assert looks == [0, 1] and blank == [] and len(found) == 1
+    assert looks == [("first", 2), ("mirrored", 1)] and blank == [] and len(found) == 1
     error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
     assert (error[:2] < 1.0).all() and (error[2:4] < 1.0).all() and error[4] < 8.0
     assert not found[0].check
