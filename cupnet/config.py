@@ -276,8 +276,9 @@ class CupNetConfig:
 # (figures in docs/benchmarks.md, "CupNet accuracy" and "CupNet speed").
 SPEED_PRESETS: dict[str, dict[str, object]] = {
     # no verification, so no search either, of doubtful cups (items 12 and 16 of
-    # docs/training.md); the second look at flagged ones stays (item 32: on the selection
-    # seeds theta 0.94 -> 0.77 deg, 548 -> 552 of 561 cups found, for an eighth more time)
+    # docs/training.md); the second and third looks at flagged ones stay (items 32 and 33:
+    # on the selection seeds theta 0.94 -> 0.76 deg, 548 -> 553 of 561 cups found, for an
+    # eighth more time)
     "fast": {"verify_gate": None},
     # ... nor the dome's outline (so no doubt, no check flag and no ordering of ambiguous
     # pairs, which all measure the pose against the outline) nor the thin-rim hypotheses,
