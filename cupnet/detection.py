@@ -82,14 +82,20 @@ def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1
     return [det for det in detections if any(det is k for k in kept)]
 
 
+def wants_another_look(cup: CupDetection) -> bool:
+    """Whether ``cup`` is flagged ``check`` or failed (an ``error`` status): the cups the
+    model's second and third looks may replace."""
+    return cup.check or cup.status.startswith("error")
+
+
 def second_look_cups(first: list[CupDetection], second: list[CupDetection]
                      ) -> list[CupDetection]:
-    """One image's cups ``first`` with each flagged (``check``) or failed one replaced by the
-    least doubted unflagged cup of ``second`` at the same place (each centre within the
+    """One image's cups ``first`` with each one that :func:`wants_another_look` replaced by
+    the least doubted unflagged cup of ``second`` at the same place (each centre within the
     other's major semi-axis) that is doubted less; the others as they are."""
     out = []
     for cup in first:
-        if cup.check or cup.status.startswith("error"):
+        if wants_another_look(cup):
             shape = np.asarray(cup.ellipse, np.float64)
             better = [other for other in second if other.doubt is not None and not other.check
                       and (cup.doubt is None or other.doubt < cup.doubt)

@@ -48,7 +48,12 @@ from cupnet.crops import (
     square_windows,
     to_image,
 )
-from cupnet.detection import CupDetection, distinct_cups, second_look_cups
+from cupnet.detection import (
+    CupDetection,
+    distinct_cups,
+    second_look_cups,
+    wants_another_look,
+)
 from cupnet.ellipse import fit_ellipse
 from cupnet.field import outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
@@ -554,8 +559,7 @@ class CupNet(nn.Module):
         which no source or search recovered; from another framing they often do, and the
         rim network then believes the pose.
         """
-        again = [i for i, cups in enumerate(found)
-                 if any(cup.check or cup.status.startswith("error") for cup in cups)]
+        again = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))]
         if not again:
             return
         image_list = _as_image_list(images, self.dtype)
