@@ -581,13 +581,11 @@ class CupNet(nn.Module):
         diameter = _cup_diameters(cup_diameter, batch)
         if self.config.metal == "bright":
             image_list = [1 - image for image in image_list]
+        rough, scores = self.rough_ellipses(
+            [image.flip(-1) for image in image_list] if mirrored else image_list, gamma)
         if mirrored:
-            rough, scores = self.rough_ellipses([image.flip(-1) for image in image_list],
-                                                gamma)
             widths = torch.tensor([image.shape[-1] for image in image_list]).to(rough)
             rough = mirrored_ellipses(rough, widths[:, None])
-        else:
-            rough, scores = self.rough_ellipses(image_list, gamma)
         bright = [self.config.metal == "bright"] * batch  # each image's display, as judged
         if self.config.metal == "auto":  # the cups found, not found again: none lost
             bright = [bool(metal_shows_bright(image, found))
