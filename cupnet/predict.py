@@ -111,7 +111,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="flag a cup check=1 where the model's doubt of its pose reaches "
                              "this (default: the model's check_doubt, 1.8 for the shipped "
                              "one; lower flags more cups, more of them right, and looks "
-                             "at more of them again with the locator mirrored)")
+                             "at more of them again)")
     parser.add_argument("--metal", choices=METAL_DISPLAYS,
                         help="how the images show metal (default: the model's setting, "
                              "auto for the shipped one: judged per image from the cups the "

@@ -500,7 +500,6 @@ def test_mirrored_ellipses_are_the_mirror_images_of_their_points():
     assert torch.allclose(mirrored_ellipses(mirrored, width[:, 0]), ellipses)
 
 
-
 def test_detect_names_a_cup_diameter_of_the_wrong_shape():
     """One diameter, or one per image: three for two images is an error naming both."""
     with pytest.raises(ValueError, match=r"cup_diameter must be a scalar or \(2,\), got \(3,\)"):
