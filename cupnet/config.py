@@ -186,6 +186,10 @@ class CupNetConfig:
         third_look_gamma: ... and an image with a cup still flagged or failed after that is
             detected again with the locator on the image raised to this power, the same rule
             taking its detections (None: no third look).
+        fourth_look_turned: ... and once more with the locator on the image turned over
+            (``1 - image``), so the polarity check judges its display afresh: a cup
+            whose metal the first looks took to show dark where it shows bright (or the
+            other way) is framed and segmented in the display the networks learnt.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -246,6 +250,7 @@ class CupNetConfig:
     check_doubt: float | None = None
     second_look: bool = False
     third_look_gamma: float | None = None
+    fourth_look_turned: bool = False
 
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:
@@ -282,9 +287,9 @@ SPEED_PRESETS: dict[str, dict[str, object]] = {
     "fast": {"verify_gate": None},
     # ... nor the dome's outline (so no doubt, no check flag and no ordering of ambiguous
     # pairs, which all measure the pose against the outline) nor the thin-rim hypotheses,
-    # nor a second or third look: segmentation, the rim stages and the solver alone
+    # nor the later looks: segmentation, the rim stages and the solver alone
     "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
-                "second_look": False, "third_look_gamma": None},
+                "second_look": False, "third_look_gamma": None, "fourth_look_turned": False},
 }
 
 

@@ -103,6 +103,25 @@ class RimAlternative(NamedTuple):
     after_refiner: bool
 
 
+class LocatorView(NamedTuple):
+    """How the locator looks at the images in one of :meth:`CupNet.detect`'s looks (the
+    default: the first look, the images as they are).
+
+    Attributes:
+        mirrored: at their mirror images (left to right), its blobs mirrored back.
+        gamma: at the images raised to this power (None: as they are).
+        turned: at the images turned over (``1 - image``), so the display the config or
+            the polarity check takes is the other one.
+    """
+
+    mirrored: bool = False
+    gamma: float | None = None
+    turned: bool = False
+
+
+FIRST_LOOK = LocatorView()
+
+
 @dataclass
 class CupNetOutput:
     """Differentiable outputs of :meth:`CupNet.forward` for ``K`` cups of ``B`` images.
@@ -532,32 +551,41 @@ class CupNet(nn.Module):
         try:
             with memoised_strips():
                 found = self._detect(images, geometry, cup_diameter, return_masks)
-                if self.config.second_look:
+                for view in self.later_looks():
                     self._looked_again(found, images, geometry, cup_diameter, return_masks,
-                                       mirrored=True)
-                if self.config.third_look_gamma is not None:
-                    self._looked_again(found, images, geometry, cup_diameter, return_masks,
-                                       gamma=self.config.third_look_gamma)
+                                       view)
                 return found
         finally:
             if was_training:
                 self.train()
 
+    def later_looks(self) -> list[LocatorView]:
+        """The views of :meth:`detect`'s later looks at images with a flagged or failed cup,
+        in order: mirrored (``second_look``), at ``third_look_gamma``, turned over
+        (``fourth_look_turned``), those the config asks for."""
+        views = [LocatorView(mirrored=True)] if self.config.second_look else []
+        if self.config.third_look_gamma is not None:
+            views.append(LocatorView(gamma=self.config.third_look_gamma))
+        if self.config.fourth_look_turned:
+            views.append(LocatorView(turned=True))
+        return views
+
     def _looked_again(self, found: list[list[CupDetection]], images: Tensor | list,
                       geometry: Geometry, cup_diameter: Tensor | float, return_masks: bool,
-                      mirrored: bool = False, gamma: float | None = None) -> None:
+                      view: LocatorView) -> None:
         """The images of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
-        error detected again with the locator on their mirror images (``mirrored``) or on
-        the images raised to the power ``gamma``; a flagged or failed cup takes the new
-        look's detection of the same place where that one is not flagged and is doubted
-        less (:func:`cupnet.detection.second_look_cups`). In place.
+        error detected again with the locator looking at them as ``view`` says; a flagged
+        or failed cup takes the new look's detection of the same place where that one is
+        not flagged and is doubted less (:func:`cupnet.detection.second_look_cups`). In
+        place.
 
         The locator is neither mirror-symmetric nor blind to contrast, so its blob, and
         with it every crop, strip and landmark source after it, comes out a little
         different: another, nearly independent attempt. A flagged cup's first attempt
         mostly took a wrong contour (a femoral head, a thin rim at the wrong angle) from
         which no source or search recovered; from another framing they often do, and the
-        rim network then believes the pose.
+        rim network then believes the pose. Turned over, the image is also judged to show
+        its metal the other way, where the first look may have judged it wrong.
         """
         again = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))]
         if not again:
@@ -566,32 +594,34 @@ class CupNet(nn.Module):
         rows = geometry_rows(geometry, len(image_list))
         diameter = _cup_diameters(cup_diameter, len(image_list))
         second = self._detect([image_list[i] for i in again], Geometry.from_rows(rows[again]),
-                              diameter[again], return_masks, mirrored, gamma)
+                              diameter[again], return_masks, view)
         for i, cups in zip(again, second, strict=True):
             found[i] = second_look_cups(found[i], cups)
 
     def _detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
-                return_masks: bool, mirrored: bool = False, gamma: float | None = None
+                return_masks: bool, view: LocatorView = FIRST_LOOK
                 ) -> list[list[CupDetection]]:
-        """:meth:`detect` in eval mode; ``mirrored``: the locator looks at the images'
-        mirror images (left to right), its blobs mirrored back; ``gamma``: at the images
-        raised to this power (see :meth:`rough_ellipses`)."""
+        """:meth:`detect` in eval mode, the locator looking at the images as ``view`` says
+        (the gamma through :meth:`rough_ellipses`)."""
         image_list = _as_image_list(images, self.dtype)
         batch = len(image_list)
         diameter = _cup_diameters(cup_diameter, batch)
-        if self.config.metal == "bright":
+        turned = (self.config.metal == "bright") != view.turned
+        if turned:
             image_list = [1 - image for image in image_list]
         rough, scores = self.rough_ellipses(
-            [image.flip(-1) for image in image_list] if mirrored else image_list, gamma)
-        if mirrored:
+            [image.flip(-1) for image in image_list] if view.mirrored else image_list,
+            view.gamma)
+        if view.mirrored:
             widths = torch.tensor([image.shape[-1] for image in image_list]).to(rough)
             rough = mirrored_ellipses(rough, widths[:, None])
-        bright = [self.config.metal == "bright"] * batch  # each image's display, as judged
+        bright = [turned] * batch  # each image's display, as judged
         if self.config.metal == "auto":  # the cups found, not found again: none lost
-            bright = [bool(metal_shows_bright(image, found))
+            judged = [bool(metal_shows_bright(image, found))
                       for image, found in zip(image_list, rough, strict=True)]
             image_list = [1 - image if turn else image
-                          for image, turn in zip(image_list, bright, strict=True)]
+                          for image, turn in zip(image_list, judged, strict=True)]
+            bright = [turn != turned for turn in judged]
         # Weak blobs are dropped before the cup stages, not after: each cup is solved on its
         # own, so the others' results are the same, and a weak blob costs no strips.
         cup_index = self.kept_blobs(rough, scores).nonzero()

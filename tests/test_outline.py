@@ -13,7 +13,7 @@ from cup_cases import paper_poses, rim_landmarks
 from cupnet.config import SPEED_PRESETS
 from cupnet.ellipse import ellipse_points
 from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
-from cupnet.model import _doubtful, geometry_rows, load_model
+from cupnet.model import FIRST_LOOK, _doubtful, geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.pose import PoseSolution, ellipse_of_pose, refine_pose, refine_pose_with_outline
 from data_synth import SynthConfig, synthesize
@@ -336,20 +336,25 @@ def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_dr
 
 
 def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = True,
-                       third_look_gamma: float | None = None) -> list[tuple[str, int]]:
-    """``model`` without verification, with or without ``second_look`` and with
-    ``third_look_gamma``, its outline refinement made to return poses 20 deg off in
-    inclination (where ``turned``) on the first look only. Returns the record of its looks:
-    per :meth:`CupNet._detect` call, ``("first" | "mirrored" | "gamma", images)``."""
+                       third_look_gamma: float | None = None,
+                       fourth_look_turned: bool = False) -> list[tuple[str, int]]:
+    """``model`` without verification, with or without ``second_look``, with
+    ``third_look_gamma`` and with or without ``fourth_look_turned``, its outline refinement
+    made to return poses 20 deg off in inclination (where ``turned``) on the first look
+    only. Returns the record of its looks: per :meth:`CupNet._detect` call, ``("first" |
+    "mirrored" | "gamma" | "turned", images)``."""
     monkeypatch.setattr(model.config, "verify_gate", None)
     monkeypatch.setattr(model.config, "second_look", second_look)
     monkeypatch.setattr(model.config, "third_look_gamma", third_look_gamma)
+    monkeypatch.setattr(model.config, "fourth_look_turned", fourth_look_turned)
     looks: list[tuple[str, int]] = []
     detect_once = model._detect
 
-    def tracked(images, geometry, diameter, masks, mirrored=False, gamma=None):
-        looks.append(("mirrored" if mirrored else "gamma" if gamma else "first", len(images)))
-        return detect_once(images, geometry, diameter, masks, mirrored, gamma)
+    def tracked(images, geometry, diameter, masks, view=FIRST_LOOK):
+        kind = ("mirrored" if view.mirrored else "gamma" if view.gamma else
+                "turned" if view.turned else "first")
+        looks.append((kind, len(images)))
+        return detect_once(images, geometry, diameter, masks, view)
 
     monkeypatch.setattr(model, "_detect", tracked)
     refine = model.outline_refined
@@ -359,21 +364,29 @@ def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = Tru
     return looks
 
 
-@pytest.mark.parametrize(("turned", "second_look", "third_look_gamma", "expected"), [
-    (True, True, None, ["first", "mirrored"]), (True, False, None, ["first"]),
-    (False, True, 0.7, ["first"]), (True, False, 0.7, ["first", "gamma"])])
+@pytest.mark.parametrize(("turned", "second_look", "third_look_gamma", "fourth_look_turned",
+                          "expected"), [
+    (True, True, None, False, ["first", "mirrored"]), (True, False, None, False, ["first"]),
+    (False, True, 0.7, True, ["first"]), (True, False, 0.7, False, ["first", "gamma"]),
+    (True, False, None, True, ["first", "turned"])])
+@pytest.mark.parametrize("shown_bright", [False, True])
 def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, turned, second_look,
-                                          third_look_gamma, expected):
+                                          third_look_gamma, fourth_look_turned, expected,
+                                          shown_bright):
     """The DRR's cup made to come out 20 deg off in inclination on the first look (the
     outline refinement made to return it, no verification to undo it), so flagged: with
     ``second_look`` the image is detected again with the locator on its mirror image, whose
-    blob, mirrored back, frames the cup again, and with ``third_look_gamma`` on the image
-    raised to that power; that look's pose (not turned) is believed and replaces the flagged
-    one. Without either the flagged pose stays; an unflagged cup is not looked at again."""
+    blob, mirrored back, frames the cup again, with ``third_look_gamma`` on the image raised
+    to that power, and with ``fourth_look_turned`` on the image turned over; that look's
+    pose (not turned) is believed and replaces the flagged one. Without any the flagged pose
+    stays; an unflagged cup is not looked at again. The DRR shows its metal dark; shown
+    bright (turned over), each look, the turned one too, says so."""
     model, sample = shipped_on_drr
-    looks = _first_look_turned(model, monkeypatch, second_look, turned, third_look_gamma)
+    looks = _first_look_turned(model, monkeypatch, second_look, turned, third_look_gamma,
+                               fourth_look_turned)
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
-    found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
+    image = 1 - sample["image"] if shown_bright else sample["image"]
+    found = model.detect(image[None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
     assert [kind for kind, _ in looks] == expected
     assert len(found) == 1
@@ -381,6 +394,7 @@ def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, turned, s
     wrong = len(expected) == 1 and turned
     assert float(error[1]) == pytest.approx(20.0 if wrong else 0.0, abs=1.0)
     assert found[0].check == wrong
+    assert found[0].metal_bright == shown_bright
 
 
 def test_the_second_look_takes_each_looked_at_images_own_geometry(shipped_on_drr,
