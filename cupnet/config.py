@@ -190,6 +190,9 @@ class CupNetConfig:
             (``1 - image``), so the polarity check judges its display afresh: a cup
             whose metal the first looks took to show dark where it shows bright (or the
             other way) is framed and segmented in the display the networks learnt.
+        turned_look_doubt: ... where the network doubts it less than this, too (None:
+            wherever it is not flagged, as the other looks'): turned over, a blob on no cup
+            can be judged a cup in the other display and believed only just.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -251,6 +254,7 @@ class CupNetConfig:
     second_look: bool = False
     third_look_gamma: float | None = None
     fourth_look_turned: bool = False
+    turned_look_doubt: float | None = None
 
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:

@@ -84,21 +84,23 @@ def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1
 
 def wants_another_look(cup: CupDetection) -> bool:
     """Whether ``cup`` is flagged ``check`` or failed (an ``error`` status): the cups the
-    model's second and third looks may replace."""
+    model's later looks may replace."""
     return cup.check or cup.status.startswith("error")
 
 
-def second_look_cups(first: list[CupDetection], second: list[CupDetection]
-                     ) -> list[CupDetection]:
+def second_look_cups(first: list[CupDetection], second: list[CupDetection],
+                     below: float | None = None) -> list[CupDetection]:
     """One image's cups ``first`` with each one that :func:`wants_another_look` replaced by
     the least doubted unflagged cup of ``second`` at the same place (each centre within the
-    other's major semi-axis) that is doubted less; the others as they are."""
+    other's major semi-axis) that is doubted less, and less than ``below`` (None: any
+    unflagged doubt); the others as they are."""
     out = []
     for cup in first:
         if wants_another_look(cup):
             shape = np.asarray(cup.ellipse, np.float64)
             better = [other for other in second if other.doubt is not None and not other.check
                       and (cup.doubt is None or other.doubt < cup.doubt)
+                      and (below is None or other.doubt < below)
                       and _same_place(shape, np.asarray(other.ellipse, np.float64))]
             cup = min(better, key=lambda other: other.doubt, default=cup)
         out.append(cup)

@@ -551,33 +551,36 @@ class CupNet(nn.Module):
         try:
             with memoised_strips():
                 found = self._detect(images, geometry, cup_diameter, return_masks)
-                for view in self.later_looks():
+                for view, below in self.later_looks():
                     self._looked_again(found, images, geometry, cup_diameter, return_masks,
-                                       view)
+                                       view, below)
                 return found
         finally:
             if was_training:
                 self.train()
 
-    def later_looks(self) -> list[LocatorView]:
-        """The views of :meth:`detect`'s later looks at images with a flagged or failed cup,
-        in order: mirrored (``second_look``), at ``third_look_gamma``, turned over
-        (``fourth_look_turned``), those the config asks for."""
-        views = [LocatorView(mirrored=True)] if self.config.second_look else []
+    def later_looks(self) -> list[tuple[LocatorView, float | None]]:
+        """:meth:`detect`'s later looks at images with a flagged or failed cup, in order,
+        those the config asks for: mirrored (``second_look``), at ``third_look_gamma``,
+        turned over (``fourth_look_turned``); each view with the doubt its detections must
+        stay under to replace one (None: any unflagged doubt)."""
+        looks: list[tuple[LocatorView, float | None]] = []
+        if self.config.second_look:
+            looks.append((LocatorView(mirrored=True), None))
         if self.config.third_look_gamma is not None:
-            views.append(LocatorView(gamma=self.config.third_look_gamma))
+            looks.append((LocatorView(gamma=self.config.third_look_gamma), None))
         if self.config.fourth_look_turned:
-            views.append(LocatorView(turned=True))
-        return views
+            looks.append((LocatorView(turned=True), self.config.turned_look_doubt))
+        return looks
 
     def _looked_again(self, found: list[list[CupDetection]], images: Tensor | list,
                       geometry: Geometry, cup_diameter: Tensor | float, return_masks: bool,
-                      view: LocatorView) -> None:
+                      view: LocatorView, below: float | None = None) -> None:
         """The images of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
         error detected again with the locator looking at them as ``view`` says; a flagged
         or failed cup takes the new look's detection of the same place where that one is
-        not flagged and is doubted less (:func:`cupnet.detection.second_look_cups`). In
-        place.
+        not flagged and is doubted less, and less than ``below`` where given
+        (:func:`cupnet.detection.second_look_cups`). In place.
 
         The locator is neither mirror-symmetric nor blind to contrast, so its blob, and
         with it every crop, strip and landmark source after it, comes out a little
@@ -596,7 +599,7 @@ class CupNet(nn.Module):
         second = self._detect([image_list[i] for i in again], Geometry.from_rows(rows[again]),
                               diameter[again], return_masks, view)
         for i, cups in zip(again, second, strict=True):
-            found[i] = second_look_cups(found[i], cups)
+            found[i] = second_look_cups(found[i], cups, below)
 
     def _detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
                 return_masks: bool, view: LocatorView = FIRST_LOOK

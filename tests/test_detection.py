@@ -59,3 +59,6 @@ def test_a_flagged_cup_takes_the_second_looks_believed_detection_of_its_place():
     assert kept[1] is first[1]  # not flagged: kept, though 0.1 lies at its place
     assert kept[2] is second[6]  # failed: the unflagged one at its place
     assert kept[3] is first[3]  # the one at its place is doubted more
+    # Under a bar of 0.8 only the detections doubted less than 0.8 may replace.
+    barred = second_look_cups(first, second, below=0.8)
+    assert barred == [best, *first[1:]]  # the failed cup keeps its error: 1.2 >= 0.8
