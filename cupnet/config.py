@@ -189,7 +189,9 @@ class CupNetConfig:
         fourth_look_turned: ... and once more with the locator on the image turned over
             (``1 - image``), so the polarity check judges its display afresh: a cup
             whose metal the first looks took to show dark where it shows bright (or the
-            other way) is framed and segmented in the display the networks learnt.
+            other way) is framed and segmented in the display the networks learnt. This
+            look also looks at the images where no cup was found, and keeps the cups it
+            finds there that it would let replace one.
         turned_look_doubt: ... where the network doubts it less than this, too (None:
             wherever it is not flagged, as the other looks'): turned over, a blob on no cup
             can be judged a cup in the other display and believed only just.
@@ -285,9 +287,9 @@ class CupNetConfig:
 # (figures in docs/benchmarks.md, "CupNet accuracy" and "CupNet speed").
 SPEED_PRESETS: dict[str, dict[str, object]] = {
     # no verification, so no search either, of doubtful cups (items 12 and 16 of
-    # docs/training.md); the second and third looks at flagged ones stay (items 32 and 33:
-    # on the selection seeds theta 0.94 -> 0.76 deg, 548 -> 553 of 561 cups found, for an
-    # eighth more time)
+    # docs/training.md); the later looks at flagged ones stay (items 32-34: on the
+    # selection seeds theta 0.94 -> 0.69 deg, 548 -> 553 of 561 cups found, for an eighth
+    # more time)
     "fast": {"verify_gate": None},
     # ... nor the dome's outline (so no doubt, no check flag and no ordering of ambiguous
     # pairs, which all measure the pose against the outline) nor the thin-rim hypotheses,

@@ -91,16 +91,20 @@ def wants_another_look(cup: CupDetection) -> bool:
 def second_look_cups(first: list[CupDetection], second: list[CupDetection],
                      below: float | None = None) -> list[CupDetection]:
     """One image's cups ``first`` with each one that :func:`wants_another_look` replaced by
-    the least doubted unflagged cup of ``second`` at the same place (each centre within the
-    other's major semi-axis) that is doubted less, and less than ``below`` (None: any
-    unflagged doubt); the others as they are."""
+    the least doubted cup of ``second`` at the same place (each centre within the other's
+    major semi-axis) that is believed (not flagged, doubted less than ``below``, None: any
+    doubt) and doubted less; the others as they are. Where ``first`` is empty (no cup
+    found), the believed cups of ``second``."""
+    believed = [other for other in second if other.doubt is not None and not other.check
+                and (below is None or other.doubt < below)]
+    if not first:
+        return believed
     out = []
     for cup in first:
         if wants_another_look(cup):
             shape = np.asarray(cup.ellipse, np.float64)
-            better = [other for other in second if other.doubt is not None and not other.check
-                      and (cup.doubt is None or other.doubt < cup.doubt)
-                      and (below is None or other.doubt < below)
+            better = [other for other in believed
+                      if (cup.doubt is None or other.doubt < cup.doubt)
                       and _same_place(shape, np.asarray(other.ellipse, np.float64))]
             cup = min(better, key=lambda other: other.doubt, default=cup)
         out.append(cup)

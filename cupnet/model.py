@@ -103,23 +103,30 @@ class RimAlternative(NamedTuple):
     after_refiner: bool
 
 
-class LocatorView(NamedTuple):
-    """How the locator looks at the images in one of :meth:`CupNet.detect`'s looks (the
-    default: the first look, the images as they are).
+class Look(NamedTuple):
+    """One of :meth:`CupNet.detect`'s looks at images (the default: the first, the images
+    as they are): how the locator sees them and, for a later look, what it may change.
 
     Attributes:
-        mirrored: at their mirror images (left to right), its blobs mirrored back.
-        gamma: at the images raised to this power (None: as they are).
-        turned: at the images turned over (``1 - image``), so the display the config or
+        mirrored: the locator sees their mirror images (left to right), its blobs mirrored
+            back ...
+        gamma: ... the images raised to this power (None: as they are) ...
+        turned: ... the images turned over (``1 - image``), so the display the config or
             the polarity check takes is the other one.
+        below: a later look's detection replaces a flagged or failed cup only where doubted
+            less than this (None: wherever not flagged).
+        empty_images: a later look looks at the images where no cup was found too, and
+            adds the cups it finds there that it would let replace one.
     """
 
     mirrored: bool = False
     gamma: float | None = None
     turned: bool = False
+    below: float | None = None
+    empty_images: bool = False
 
 
-FIRST_LOOK = LocatorView()
+FIRST_LOOK = Look()
 
 
 @dataclass
@@ -551,35 +558,34 @@ class CupNet(nn.Module):
         try:
             with memoised_strips():
                 found = self._detect(images, geometry, cup_diameter, return_masks)
-                for view, below in self.later_looks():
+                for look in self.later_looks():
                     self._looked_again(found, images, geometry, cup_diameter, return_masks,
-                                       view, below)
+                                       look)
                 return found
         finally:
             if was_training:
                 self.train()
 
-    def later_looks(self) -> list[tuple[LocatorView, float | None]]:
+    def later_looks(self) -> list[Look]:
         """:meth:`detect`'s later looks at images with a flagged or failed cup, in order,
         those the config asks for: mirrored (``second_look``), at ``third_look_gamma``,
-        turned over (``fourth_look_turned``); each view with the doubt its detections must
-        stay under to replace one (None: any unflagged doubt)."""
-        looks: list[tuple[LocatorView, float | None]] = []
-        if self.config.second_look:
-            looks.append((LocatorView(mirrored=True), None))
+        turned over (``fourth_look_turned``, at images with no cup found too)."""
+        looks = [Look(mirrored=True)] if self.config.second_look else []
         if self.config.third_look_gamma is not None:
-            looks.append((LocatorView(gamma=self.config.third_look_gamma), None))
+            looks.append(Look(gamma=self.config.third_look_gamma))
         if self.config.fourth_look_turned:
-            looks.append((LocatorView(turned=True), self.config.turned_look_doubt))
+            looks.append(Look(turned=True, below=self.config.turned_look_doubt,
+                              empty_images=True))
         return looks
 
     def _looked_again(self, found: list[list[CupDetection]], images: Tensor | list,
                       geometry: Geometry, cup_diameter: Tensor | float, return_masks: bool,
-                      view: LocatorView, below: float | None = None) -> None:
+                      look: Look) -> None:
         """The images of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
-        error detected again with the locator looking at them as ``view`` says; a flagged
-        or failed cup takes the new look's detection of the same place where that one is
-        not flagged and is doubted less, and less than ``below`` where given
+        error (and with ``look.empty_images`` those with no cup) detected again as ``look``
+        says; a flagged or failed cup takes the new look's detection of the same place
+        where that one is not flagged and is doubted less, and less than ``look.below``
+        where given; an image with no cup takes the new look's cups that pass those bars
         (:func:`cupnet.detection.second_look_cups`). In place.
 
         The locator is neither mirror-symmetric nor blind to contrast, so its blob, and
@@ -590,32 +596,33 @@ class CupNet(nn.Module):
         rim network then believes the pose. Turned over, the image is also judged to show
         its metal the other way, where the first look may have judged it wrong.
         """
-        again = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))]
+        again = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))
+                 or (look.empty_images and not cups)]
         if not again:
             return
         image_list = _as_image_list(images, self.dtype)
         rows = geometry_rows(geometry, len(image_list))
         diameter = _cup_diameters(cup_diameter, len(image_list))
         second = self._detect([image_list[i] for i in again], Geometry.from_rows(rows[again]),
-                              diameter[again], return_masks, view)
+                              diameter[again], return_masks, look)
         for i, cups in zip(again, second, strict=True):
-            found[i] = second_look_cups(found[i], cups, below)
+            found[i] = second_look_cups(found[i], cups, look.below)
 
     def _detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
-                return_masks: bool, view: LocatorView = FIRST_LOOK
+                return_masks: bool, look: Look = FIRST_LOOK
                 ) -> list[list[CupDetection]]:
-        """:meth:`detect` in eval mode, the locator looking at the images as ``view`` says
+        """:meth:`detect` in eval mode, the locator looking at the images as ``look`` says
         (the gamma through :meth:`rough_ellipses`)."""
         image_list = _as_image_list(images, self.dtype)
         batch = len(image_list)
         diameter = _cup_diameters(cup_diameter, batch)
-        turned = (self.config.metal == "bright") != view.turned
+        turned = (self.config.metal == "bright") != look.turned
         if turned:
             image_list = [1 - image for image in image_list]
         rough, scores = self.rough_ellipses(
-            [image.flip(-1) for image in image_list] if view.mirrored else image_list,
-            view.gamma)
-        if view.mirrored:
+            [image.flip(-1) for image in image_list] if look.mirrored else image_list,
+            look.gamma)
+        if look.mirrored:
             widths = torch.tensor([image.shape[-1] for image in image_list]).to(rough)
             rough = mirrored_ellipses(rough, widths[:, None])
         bright = [turned] * batch  # each image's display, as judged

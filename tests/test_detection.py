@@ -62,3 +62,7 @@ def test_a_flagged_cup_takes_the_second_looks_believed_detection_of_its_place():
     # Under a bar of 0.8 only the detections doubted less than 0.8 may replace.
     barred = second_look_cups(first, second, below=0.8)
     assert barred == [best, *first[1:]]  # the failed cup keeps its error: 1.2 >= 0.8
+    # An image with no cup found takes the believed ones, in their order.
+    assert second_look_cups([], second) == [far, believed, best, second[4], second[6],
+                                            second[7]]
+    assert second_look_cups([], second, below=0.8) == [far, best, second[4]]

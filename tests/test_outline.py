@@ -350,11 +350,11 @@ def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = Tru
     looks: list[tuple[str, int]] = []
     detect_once = model._detect
 
-    def tracked(images, geometry, diameter, masks, view=FIRST_LOOK):
-        kind = ("mirrored" if view.mirrored else "gamma" if view.gamma else
-                "turned" if view.turned else "first")
+    def tracked(images, geometry, diameter, masks, look=FIRST_LOOK):
+        kind = ("mirrored" if look.mirrored else "gamma" if look.gamma else
+                "turned" if look.turned else "first")
         looks.append((kind, len(images)))
-        return detect_once(images, geometry, diameter, masks, view)
+        return detect_once(images, geometry, diameter, masks, look)
 
     monkeypatch.setattr(model, "_detect", tracked)
     refine = model.outline_refined
@@ -414,6 +414,39 @@ def test_the_second_look_takes_each_looked_at_images_own_geometry(shipped_on_drr
     error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
     assert (error[:2] < 1.0).all() and (error[2:4] < 1.0).all() and error[4] < 8.0
     assert not found[0].check
+
+
+@pytest.mark.parametrize("fourth_look_turned", [True, False])
+def test_an_image_with_no_cup_found_is_looked_at_turned_over(shipped_on_drr, monkeypatch,
+                                                             fourth_look_turned):
+    """In a batch of a blank image and the DRR, the DRR's cup hidden from the first look
+    (its locator blobs taken away): the turned look, which also looks at images with no cup
+    found, finds it, believed, and adds it with the image's own display; the blank image
+    is looked at too and stays without a cup. The mirrored look looks at neither. Without
+    the turned look the cup stays unfound."""
+    model, sample = shipped_on_drr
+    looks = _first_look_turned(model, monkeypatch, second_look=True, turned=False,
+                               fourth_look_turned=fourth_look_turned)
+    rough_ellipses = model.rough_ellipses
+
+    def hidden_at_first(images, gamma=None):
+        rough, scores = rough_ellipses(images, gamma)
+        return (torch.full_like(rough, math.nan) if looks[-1][0] == "first" else rough), scores
+
+    monkeypatch.setattr(model, "rough_ellipses", hidden_at_first)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    images = torch.stack([torch.full_like(sample["image"], 0.5), sample["image"]])
+    blank, found = model.detect(images, geometry, float(sample["cup_diameter"][0]),
+                                return_masks=False)
+    assert blank == []
+    if not fourth_look_turned:
+        assert looks == [("first", 2)] and found == []
+        return
+    assert looks == [("first", 2), ("turned", 2)] and len(found) == 1
+    error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
+    assert (error[:2] < 1.0).all() and (error[2:4] < 1.0).all() and error[4] < 8.0
+    assert found[0].doubt < model.config.turned_look_doubt and not found[0].check
+    assert found[0].metal_bright is False
 
 
 def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
