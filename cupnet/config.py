@@ -191,7 +191,7 @@ class CupNetConfig:
             whose metal the first looks took to show dark where it shows bright (or the
             other way) is framed and segmented in the display the networks learnt. This
             look also looks at the images where no cup was found, and keeps the cups it
-            finds there that it would let replace one.
+            finds there that it would let replace one; it verifies no cup.
         turned_look_doubt: ... where the network doubts it less than this, too (None:
             wherever it is not flagged, as the other looks'): turned over, a blob on no cup
             can be judged a cup in the other display and believed only just.

@@ -117,6 +117,7 @@ class Look(NamedTuple):
             less than this (None: wherever not flagged).
         empty_images: a later look looks at the images where no cup was found too, and
             adds the cups it finds there that it would let replace one.
+        verified: the verification and search of doubtful cups run in this look.
     """
 
     mirrored: bool = False
@@ -124,6 +125,7 @@ class Look(NamedTuple):
     turned: bool = False
     below: float | None = None
     empty_images: bool = False
+    verified: bool = True
 
 
 FIRST_LOOK = Look()
@@ -569,13 +571,16 @@ class CupNet(nn.Module):
     def later_looks(self) -> list[Look]:
         """:meth:`detect`'s later looks at images with a flagged or failed cup, in order,
         those the config asks for: mirrored (``second_look``), at ``third_look_gamma``,
-        turned over (``fourth_look_turned``, at images with no cup found too)."""
+        turned over (``fourth_look_turned``, at images with no cup found too, without the
+        verification: the cups it doubts enough to verify would not pass its bar, and on
+        an image without a cup it would verify blobs on anatomy, at ten times the first
+        look's time)."""
         looks = [Look(mirrored=True)] if self.config.second_look else []
         if self.config.third_look_gamma is not None:
             looks.append(Look(gamma=self.config.third_look_gamma))
         if self.config.fourth_look_turned:
             looks.append(Look(turned=True, below=self.config.turned_look_doubt,
-                              empty_images=True))
+                              empty_images=True, verified=False))
         return looks
 
     def _looked_again(self, found: list[list[CupDetection]], images: Tensor | list,
@@ -723,7 +728,7 @@ class CupNet(nn.Module):
                                                     alt_poses, rows, diameter)
                 parts = self._solved_doubts(image_list, index, solved, poses, rows, diameter,
                                             ordered)
-            if self.config.verify_gate is not None:
+            if self.config.verify_gate is not None and look.verified:
                 solved, parts = self.reconsidered(image_list, index, picks, solved, poses,
                                                   alt_poses, parts, every_source, start,
                                                   geometry, diameter, cup_index, batch)

@@ -449,6 +449,25 @@ def test_an_image_with_no_cup_found_is_looked_at_turned_over(shipped_on_drr, mon
     assert found[0].metal_bright is False
 
 
+def test_the_turned_look_verifies_no_cup(shipped_on_drr, monkeypatch):
+    """The shipped model's turned look runs without the verification (its bar keeps only
+    cups doubted less than any it would verify); the first look runs it."""
+    model, sample = shipped_on_drr
+    turned = [look for look in model.later_looks() if look.turned]
+    assert len(turned) == 1 and not turned[0].verified
+    assert turned[0].below < model.config.verify_gate
+    calls = []
+    reconsidered = model.reconsidered
+    monkeypatch.setattr(model, "reconsidered", lambda *args: calls.append(1) or reconsidered(*args))
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = float(sample["cup_diameter"][0])
+    for look, verified in ((FIRST_LOOK, 1), (turned[0], 0)):
+        with torch.inference_mode():
+            found = model._detect(sample["image"][None], geometry, diameter, False, look)[0]
+        assert len(calls) == verified and len(found) == 1
+        calls.clear()
+
+
 def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
     """:meth:`CupNet.reconsidered` (:meth:`CupNet.verified`, and :meth:`CupNet.searched`
     where the config has a ``search_gate``) on one cup solved from exact rim landmarks of the
