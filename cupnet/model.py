@@ -51,7 +51,7 @@ from cupnet.crops import (
 from cupnet.detection import (
     CupDetection,
     distinct_cups,
-    second_look_cups,
+    later_look_cups,
     wants_another_look,
 )
 from cupnet.ellipse import fit_ellipse
@@ -573,7 +573,7 @@ class CupNet(nn.Module):
         those the config asks for: mirrored (``second_look``), at ``third_look_gamma``,
         turned over (``fourth_look_turned``, at images with no cup found too, without the
         verification: the cups it doubts enough to verify would not pass its bar, and on
-        an image without a cup it would verify blobs on anatomy, at ten times the first
+        an image without a cup it would verify blobs on anatomy, at 13 times the first
         look's time)."""
         looks = [Look(mirrored=True)] if self.config.second_look else []
         if self.config.third_look_gamma is not None:
@@ -591,7 +591,7 @@ class CupNet(nn.Module):
         says; a flagged or failed cup takes the new look's detection of the same place
         where that one is not flagged and is doubted less, and less than ``look.below``
         where given; an image with no cup takes the new look's cups that pass those bars
-        (:func:`cupnet.detection.second_look_cups`). In place.
+        (:func:`cupnet.detection.later_look_cups`). In place.
 
         The locator is neither mirror-symmetric nor blind to contrast, so its blob, and
         with it every crop, strip and landmark source after it, comes out a little
@@ -611,7 +611,7 @@ class CupNet(nn.Module):
         second = self._detect([image_list[i] for i in again], Geometry.from_rows(rows[again]),
                               diameter[again], return_masks, look)
         for i, cups in zip(again, second, strict=True):
-            found[i] = second_look_cups(found[i], cups, look.below)
+            found[i] = later_look_cups(found[i], cups, look.below)
 
     def _detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
                 return_masks: bool, look: Look = FIRST_LOOK

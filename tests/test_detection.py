@@ -3,7 +3,7 @@ cups replaced by a second look's."""
 
 import numpy as np
 
-from cupnet.detection import CupDetection, distinct_cups, second_look_cups
+from cupnet.detection import CupDetection, distinct_cups, later_look_cups
 
 
 def detection(ellipse: list[float], status: str = "ok", doubt: float | None = 0.5,
@@ -54,15 +54,15 @@ def test_a_flagged_cup_takes_the_second_looks_believed_detection_of_its_place():
     far, believed, best = cup(145, 0.3), cup(130, 1.0), cup(90, 0.7)
     second = [far, believed, best, cup(110, 0.1, True), cup(300, 0.1), cup(505, 1.9, True),
               cup(510, 1.2), cup(690, 2.4)]
-    kept = second_look_cups(first, second)
+    kept = later_look_cups(first, second)
     assert kept[0] is best  # 130 and 90 lie within 40 px; 145 not; the flagged 0.1 not
     assert kept[1] is first[1]  # not flagged: kept, though 0.1 lies at its place
     assert kept[2] is second[6]  # failed: the unflagged one at its place
     assert kept[3] is first[3]  # the one at its place is doubted more
     # Under a bar of 0.8 only the detections doubted less than 0.8 may replace.
-    barred = second_look_cups(first, second, below=0.8)
+    barred = later_look_cups(first, second, below=0.8)
     assert barred == [best, *first[1:]]  # the failed cup keeps its error: 1.2 >= 0.8
     # An image with no cup found takes the believed ones, in their order.
-    assert second_look_cups([], second) == [far, believed, best, second[4], second[6],
+    assert later_look_cups([], second) == [far, believed, best, second[4], second[6],
                                             second[7]]
-    assert second_look_cups([], second, below=0.8) == [far, best, second[4]]
+    assert later_look_cups([], second, below=0.8) == [far, best, second[4]]
