@@ -1,5 +1,5 @@
 """cupnet.detection: one image's detections less the repeats of one cup, and its flagged
-cups replaced by a second look's."""
+cups replaced by a later look's."""
 
 import numpy as np
 
@@ -40,8 +40,8 @@ def test_cups_apart_in_place_or_size_are_both_kept():
     assert distinct_cups([]) == []
 
 
-def test_a_flagged_cup_takes_the_second_looks_believed_detection_of_its_place():
-    """A flagged cup takes the least doubted unflagged cup of the second look whose centre
+def test_a_flagged_cup_takes_a_later_looks_believed_detection_of_its_place():
+    """A flagged cup takes the least doubted unflagged cup of a later look whose centre
     lies within its major semi-axis (and its own within that one's) and is doubted less; a
     failed cup (no doubt) takes any such; an unflagged cup, and a flagged one with nothing
     better at its place (further away, flagged, or doubted more), keep theirs."""
