@@ -572,9 +572,9 @@ class CupNet(nn.Module):
         """:meth:`detect`'s later looks at images with a flagged or failed cup, in order,
         those the config asks for: mirrored (``second_look``), at ``third_look_gamma``,
         turned over (``fourth_look_turned``, at images with no cup found too, without the
-        verification: the cups it doubts enough to verify would not pass its bar, and on
-        an image without a cup it would verify blobs on anatomy, at 13 times the first
-        look's time)."""
+        verification: in the shipped JSON the cups it doubts enough to verify would not
+        pass its bar, and on an image without a cup it would verify blobs on anatomy, at
+        13 times the first look's time)."""
         looks = [Look(mirrored=True)] if self.config.second_look else []
         if self.config.third_look_gamma is not None:
             looks.append(Look(gamma=self.config.third_look_gamma))
@@ -598,8 +598,8 @@ class CupNet(nn.Module):
         different: another, nearly independent attempt. A flagged cup's first attempt
         mostly took a wrong contour (a femoral head, a thin rim at the wrong angle) from
         which no source or search recovered; from another framing they often do, and the
-        rim network then believes the pose. Turned over, the image is also judged to show
-        its metal the other way, where the first look may have judged it wrong.
+        rim network then believes the pose. Turned over, the image's display is judged
+        afresh from the new blobs, where the first look may have judged it wrong.
         """
         again = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))
                  or (look.empty_images and not cups)]
