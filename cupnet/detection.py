@@ -89,7 +89,7 @@ def wants_another_look(cup: CupDetection) -> bool:
 
 
 def later_look_cups(first: list[CupDetection], second: list[CupDetection],
-                     below: float | None = None) -> list[CupDetection]:
+                    below: float | None = None) -> list[CupDetection]:
     """One image's cups ``first`` with each one that :func:`wants_another_look` replaced by
     the least doubted cup of ``second`` at the same place (each centre within the other's
     major semi-axis) that is believed (not flagged, doubted less than ``below``, None: any

@@ -305,11 +305,11 @@ class CupNet(nn.Module):
         # An image turned over (metal "bright") keeps its flat surround: no need to undo it.
         fields = [round_field(image) if self.config.round_field else None for image in images]
         rough, scores = self.ellipses_from_locator(*self.locate_windows(images, gamma), fields)
-        gamma = self.config.locator_retry_gamma
+        retry = self.config.locator_retry_gamma
         empty = (~self.kept_blobs(rough, scores).any(-1)).nonzero()[:, 0]
-        if gamma is not None and len(empty):
+        if retry is not None and len(empty):
             again = self.ellipses_from_locator(
-                *self.locate_windows([images[i] for i in empty], gamma),
+                *self.locate_windows([images[i] for i in empty], retry),
                 [fields[i] for i in empty])
             # An image keeps its weak blobs where the retry finds no better.
             found = self.kept_blobs(*again).any(-1)
@@ -558,10 +558,13 @@ class CupNet(nn.Module):
         if was_training:
             self.eval()
         try:
+            # Checked and converted once: every look takes these, or a subset of them.
+            image_list = _as_image_list(images, self.dtype)
+            diameter = _cup_diameters(cup_diameter, len(image_list))
             with memoised_strips():
-                found = self._detect(images, geometry, cup_diameter, return_masks)
+                found = self._detect(image_list, geometry, diameter, return_masks)
                 for look in self.later_looks():
-                    self._looked_again(found, images, geometry, cup_diameter, return_masks,
+                    self._looked_again(found, image_list, geometry, diameter, return_masks,
                                        look)
                 return found
         finally:
@@ -583,10 +586,11 @@ class CupNet(nn.Module):
                               empty_images=True, verified=False))
         return looks
 
-    def _looked_again(self, found: list[list[CupDetection]], images: Tensor | list,
-                      geometry: Geometry, cup_diameter: Tensor | float, return_masks: bool,
+    def _looked_again(self, found: list[list[CupDetection]], images: list[Tensor],
+                      geometry: Geometry, diameter: Tensor, return_masks: bool,
                       look: Look) -> None:
-        """The images of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
+        """The ``images`` ``(1, H, W)`` (with their ``geometry`` and cup ``diameter`` ``(B,)``
+        mm) of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
         error (and with ``look.empty_images`` those with no cup) detected again as ``look``
         says; a flagged or failed cup takes the new look's detection of the same place
         where that one is not flagged and is doubted less, and less than ``look.below``
@@ -605,22 +609,19 @@ class CupNet(nn.Module):
                  or (look.empty_images and not cups)]
         if not again:
             return
-        image_list = _as_image_list(images, self.dtype)
-        rows = geometry_rows(geometry, len(image_list))
-        diameter = _cup_diameters(cup_diameter, len(image_list))
-        second = self._detect([image_list[i] for i in again], Geometry.from_rows(rows[again]),
+        rows = geometry_rows(geometry, len(images))
+        second = self._detect([images[i] for i in again], Geometry.from_rows(rows[again]),
                               diameter[again], return_masks, look)
         for i, cups in zip(again, second, strict=True):
             found[i] = later_look_cups(found[i], cups, look.below)
 
-    def _detect(self, images: Tensor | list, geometry: Geometry, cup_diameter: Tensor | float,
+    def _detect(self, image_list: list[Tensor], geometry: Geometry, diameter: Tensor,
                 return_masks: bool, look: Look = FIRST_LOOK
                 ) -> list[list[CupDetection]]:
-        """:meth:`detect` in eval mode, the locator looking at the images as ``look`` says
-        (the gamma through :meth:`rough_ellipses`)."""
-        image_list = _as_image_list(images, self.dtype)
+        """:meth:`detect` in eval mode on ``image_list`` ``(1, H, W)`` of the model's dtype
+        and cup ``diameter`` ``(B,)`` mm (as :meth:`detect` checked them), the locator
+        looking at the images as ``look`` says (the gamma through :meth:`rough_ellipses`)."""
         batch = len(image_list)
-        diameter = _cup_diameters(cup_diameter, batch)
         turned = (self.config.metal == "bright") != look.turned
         if turned:
             image_list = [1 - image for image in image_list]

@@ -460,10 +460,10 @@ def test_the_turned_look_verifies_no_cup(shipped_on_drr, monkeypatch):
     reconsidered = model.reconsidered
     monkeypatch.setattr(model, "reconsidered", lambda *args: calls.append(1) or reconsidered(*args))
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
-    diameter = float(sample["cup_diameter"][0])
+    diameter = sample["cup_diameter"][:1].double()
     for look, verified in ((FIRST_LOOK, 1), (turned[0], 0)):
         with torch.inference_mode():
-            found = model._detect(sample["image"][None], geometry, diameter, False, look)[0]
+            found = model._detect([sample["image"]], geometry, diameter, False, look)[0]
         assert len(calls) == verified and len(found) == 1
         calls.clear()
 
