@@ -117,7 +117,8 @@ class Look(NamedTuple):
             less than this (None: wherever not flagged).
         empty_images: a later look looks at the images where no cup was found too, and
             adds the cups it finds there that it would let replace one.
-        verified: the verification and search of doubtful cups run in this look.
+        verified: the verification of doubtful cups runs in this look ...
+        searched: ... and the search of those it leaves doubtful.
     """
 
     mirrored: bool = False
@@ -126,6 +127,7 @@ class Look(NamedTuple):
     below: float | None = None
     empty_images: bool = False
     verified: bool = True
+    searched: bool = True
 
 
 FIRST_LOOK = Look()
@@ -577,13 +579,17 @@ class CupNet(nn.Module):
         turned over (``fourth_look_turned``, at images with no cup found too, without the
         verification: in the shipped JSON the cups it doubts enough to verify would not
         pass its bar, and on an image without a cup it would verify blobs on anatomy, at
-        13 times the first look's time)."""
-        looks = [Look(mirrored=True)] if self.config.second_look else []
+        13 times the first look's time).
+
+        None searches the cups its verification leaves doubtful: on the selection seeds
+        the later looks' search changed no cup's pose, and it took a sixth of the
+        default's time on the speed set (docs/training.md, item 35)."""
+        looks = [Look(mirrored=True, searched=False)] if self.config.second_look else []
         if self.config.third_look_gamma is not None:
-            looks.append(Look(gamma=self.config.third_look_gamma))
+            looks.append(Look(gamma=self.config.third_look_gamma, searched=False))
         if self.config.fourth_look_turned:
             looks.append(Look(turned=True, below=self.config.turned_look_doubt,
-                              empty_images=True, verified=False))
+                              empty_images=True, verified=False, searched=False))
         return looks
 
     def _looked_again(self, found: list[list[CupDetection]], images: list[Tensor],
@@ -732,7 +738,8 @@ class CupNet(nn.Module):
             if self.config.verify_gate is not None and look.verified:
                 solved, parts = self.reconsidered(image_list, index, picks, solved, poses,
                                                   alt_poses, parts, every_source, start,
-                                                  geometry, diameter, cup_index, batch)
+                                                  geometry, diameter, cup_index, batch,
+                                                  look.searched)
             if solved:
                 doubts = dict(zip(solved, parts.amax(-1).tolist(), strict=True))
                 # The rim the refined pose projects to, not the landmarks' fit: the two differ
@@ -822,9 +829,10 @@ class CupNet(nn.Module):
                      solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
                      parts: Tensor, sources: list[_Source], start: Tensor | None,
                      geometry: Geometry, diameter: Tensor, cup_index: Tensor,
-                     batch: int) -> tuple[list[int], Tensor]:
+                     batch: int, search: bool = True) -> tuple[list[int], Tensor]:
         """Doubtful cups :meth:`verified`, then those still doubtful :meth:`searched` (where
-        the config has a ``search_gate``), in place; arguments as :meth:`verified`'s.
+        ``search`` and the config has a ``search_gate``), in place; the other arguments as
+        :meth:`verified`'s.
 
         A pose beyond ``max_theta_deg`` (no source gave one within it) is one the networks
         were never shown, however well the rim and the dome's outline they find agree with
@@ -859,7 +867,7 @@ class CupNet(nn.Module):
         parts[~self.in_theta_range(torch.stack([poses[k] for k in solved]))] = math.inf
         self.verified(images, index, picks, solved, poses, alt_poses, parts, sources, start,
                       geometry, diameter, cup_index, batch)
-        if self.config.search_gate is not None:
+        if search and self.config.search_gate is not None:
             self.searched(images, index, picks, solved, poses, alt_poses, parts, geometry,
                           diameter, cup_index, batch)
         parts = torch.where(parts.isinf(), measured, parts)

@@ -449,22 +449,29 @@ def test_an_image_with_no_cup_found_is_looked_at_turned_over(shipped_on_drr, mon
     assert found[0].metal_bright is False
 
 
-def test_the_turned_look_verifies_no_cup(shipped_on_drr, monkeypatch):
-    """The shipped model's turned look runs without the verification (its bar keeps only
-    cups doubted less than any it would verify); the first look runs it."""
+def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_drr,
+                                                                      monkeypatch):
+    """The shipped model's first look verifies its cups and searches those left doubtful;
+    the mirrored and gamma looks verify but do not search, and the turned look does neither
+    (its bar keeps only cups doubted less than any it would verify)."""
     model, sample = shipped_on_drr
-    turned = [look for look in model.later_looks() if look.turned]
-    assert len(turned) == 1 and not turned[0].verified
-    assert turned[0].below < model.config.verify_gate
-    calls = []
-    reconsidered = model.reconsidered
-    monkeypatch.setattr(model, "reconsidered", lambda *args: calls.append(1) or reconsidered(*args))
+    looks = model.later_looks()
+    assert [(look.mirrored, look.gamma is not None, look.turned) for look in looks] == [
+        (True, False, False), (False, True, False), (False, False, True)]
+    assert looks[-1].below < model.config.verify_gate
+    calls: list[str] = []
+    for name in ("reconsidered", "searched"):
+        method = getattr(model, name)
+        monkeypatch.setattr(model, name, lambda *args, name=name, method=method:
+                            calls.append(name) or method(*args))
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     diameter = sample["cup_diameter"][:1].double()
-    for look, verified in ((FIRST_LOOK, 1), (turned[0], 0)):
+    for look, expected in zip([FIRST_LOOK, *looks], [["reconsidered", "searched"],
+                                                     ["reconsidered"], ["reconsidered"], []],
+                              strict=True):
         with torch.inference_mode():
             found = model._detect([sample["image"]], geometry, diameter, False, look)[0]
-        assert len(calls) == verified and len(found) == 1
+        assert calls == expected and len(found) == 1, look
         calls.clear()
 
 
