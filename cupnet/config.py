@@ -149,8 +149,8 @@ class CupNetConfig:
             ``outline_passes``.
         search_gate: a cup still doubted this much or more after the verification (the sum
             of the doubt's parts) is searched over its rim's orientation
-            (:meth:`CupNet.searched`; None: no cup; needs ``verify_gate`` and
-            ``outline_rim_resample``) ...
+            (:meth:`CupNet.searched`, in the first look only; None: no cup; needs
+            ``verify_gate`` and ``outline_rim_resample``) ...
         search_part_gate: ... and so is a cup either of whose doubt's two parts (rim,
             outline) reaches this (None: the sum alone counts; a rim the network finds
             nowhere near the pose, with a dome outline that fits, sums to little). The
@@ -182,10 +182,11 @@ class CupNetConfig:
         second_look: an image with a cup flagged ``check`` or failed is detected again with
             the locator on its mirror image, and such a cup takes the second look's
             unflagged detection of the same place where that one is doubted less
-            (:meth:`CupNet._looked_again`; needs ``check_doubt``).
+            (:meth:`CupNet._looked_again`; needs ``check_doubt``). This look verifies its
+            doubtful cups but searches none (:meth:`CupNet.later_looks`).
         third_look_gamma: ... and an image with a cup still flagged or failed after that is
             detected again with the locator on the image raised to this power, the same rule
-            taking its detections (None: no third look).
+            taking its detections, verified but not searched (None: no third look).
         fourth_look_turned: ... and once more with the locator on the image turned over
             (``1 - image``), so the polarity check judges its display afresh: a cup
             whose metal the first looks took to show dark where it shows bright (or the
