@@ -347,3 +347,41 @@ def test_a_narrower_rim_network_is_taught_by_a_wider_one(tmp_path):
     assert distill[-1] < 0.7 * distill[0]
     with pytest.raises(ValueError, match="rim_teacher"):
         CupNetModule(model=narrow, rim_teacher=str(weights))
+
+
+def _make_recipe(target: str) -> list[list[str]]:
+    """The ``python -m train fit`` arguments of each stage of a Makefile target."""
+    lines = (ROOT / "Makefile").read_text().splitlines()
+    train = next(line.split(":=", 1)[1].split() for line in lines if line.startswith("TRAIN :="))
+    body = lines[lines.index(next(x for x in lines if x.startswith(f"{target}:"))) + 1:]
+    stages = []
+    for line in body:
+        if not line.startswith("\t"):
+            break
+        words = line.split()
+        if words[0] == "$(TRAIN)":
+            stages.append(train[train.index("fit"):] + words[1:])
+    return stages
+
+
+def test_hour_recipe_chains_its_stages_within_the_hour(capsys, monkeypatch):
+    """``make train-hour``: each stage parses, starts from the weights the one before
+    exported, and the stages' time caps sum to at most 60 minutes."""
+    import yaml
+
+    monkeypatch.chdir(ROOT)  # the Makefile's paths are relative to the checkout
+    stages = _make_recipe("train-hour")
+    assert len(stages) == 4
+    configs, minutes = [], 0.0
+    for argv in stages:
+        with pytest.raises(SystemExit):
+            main([*argv, "--print_config"])
+        config = yaml.safe_load(capsys.readouterr().out)
+        days, hours, mins, secs = map(int, config["trainer"]["max_time"].split(":"))
+        minutes += days * 1440 + hours * 60 + mins + secs / 60
+        configs.append(config)
+    assert minutes <= 60
+    assert configs[0]["model"]["init_weights"] is None
+    for before, after in zip(configs[:-1], configs[1:], strict=True):
+        assert after["model"]["init_weights"] == before["model"]["export_path"]
+    assert configs[-1]["model"]["export_path"] == "runs/hour_locator/cupnet.safetensors"
