@@ -5,7 +5,8 @@ Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ab
 [--against JSON]``. Writes the ``model`` (speed), ``model_accuracy`` (accuracy, ablation),
 ``model_oblong`` (oblong images), ``model_fresh_seed`` (seeds no setting was chosen on) and
 ``model_against`` (other inference settings, timed in one process) sections of
-docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases).
+docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases); for another
+``--checkpoint``, benchmarks.md and model_failures.png beside it instead.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from benchmarks.report import machine, markdown_table, write_section  # noqa: E402
+from benchmarks.report import DOC, HEADER, machine, markdown_table, write_section  # noqa: E402
 from cupnet.config import SPEED_PRESETS, apply_speed_preset  # noqa: E402
 from cupnet.detection import CupDetection  # noqa: E402
 from cupnet.evaluate import GROSS_DEG  # noqa: E402
@@ -38,6 +39,28 @@ from train.data import synth_config  # noqa: E402
 from train.losses import POSE_NAMES as NAMES  # noqa: E402
 from train.losses import POSE_SCALE as TARGETS  # noqa: E402  (the issue's target MAEs)
 from train.module import cup_errors  # noqa: E402
+
+
+def output_paths(checkpoint: str, doc: str | None = None,
+                 gallery: str | None = None) -> tuple[Path, Path, str]:
+    """Where the sections and the failure gallery go, and the header a new file starts with:
+    the project's docs/ for the shipped checkpoint, else beside ``checkpoint``, so another
+    model's figures never overwrite the shipped model's; ``doc`` and ``gallery`` override."""
+    path = Path(checkpoint).resolve()
+    if path == DEFAULT_CHECKPOINT.resolve():
+        folder, header = DOC.parent, HEADER
+    else:
+        folder = path.parent
+        header = (f"# Benchmarks of {checkpoint}\n\nWritten by `python benchmarks/model.py "
+                  f"--checkpoint {checkpoint}`; \"the shipped model\" in its sections is this "
+                  "checkpoint, with the inference settings of the JSON beside it.\n")
+    return (Path(doc) if doc else folder / DOC.name,
+            Path(gallery) if gallery else folder / "model_failures.png", header)
+
+
+def write(name: str, body: str, args: argparse.Namespace) -> None:
+    """Write section ``name`` to the file :func:`output_paths` chose for ``args``."""
+    write_section(name, body, args.doc, args.header)
 
 
 def samples(config: str, seed: int, count: int,
@@ -326,20 +349,20 @@ def speed_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
     speed = markdown_table(["model, pipeline", "mean ms / image", "median ms / image",
                             "images / s", "CPU ms / image"], rows)
     print(speed)
-    write_section("model", "## CupNet speed\n\n"
-                  f"`python benchmarks/model.py` on {machine()}; checkpoint "
-                  f"`{Path(args.checkpoint).name}`, as it is and with its speed presets "
-                  f"({', '.join(f'`--{p}`' for p in args.presets) or 'none'}, as `cupnet "
-                  "predict` takes them); 20 synthetic 512x512 images, "
-                  "`CupNet.detect` end to end (locator, 2 refiner passes, rim stages, pose "
-                  "with ML refinement; BatchNorm folded, as `cupnet predict` runs it), "
-                  "machine load at the start: "
-                  f"{os.getloadavg()[0]:.1f} (other agents share the CPU). No GPU was lent, so "
-                  "the H100 throughput is not measured. With 2 threads the rim networks' "
-                  "strips run one per core (`cupnet.parallel`), with the same results as on "
-                  "one. 'ONNX Runtime': the networks run by ONNX Runtime "
-                  "(`cupnet predict --runtime onnx`, `cupnet.runtime`; its U-Nets on one "
-                  "thread), the geometry as in PyTorch's rows.\n\n" + speed)
+    write("model", "## CupNet speed\n\n"
+          f"`python benchmarks/model.py` on {machine()}; checkpoint "
+          f"`{Path(args.checkpoint).name}`, as it is and with its speed presets "
+          f"({', '.join(f'`--{p}`' for p in args.presets) or 'none'}, as `cupnet "
+          "predict` takes them); 20 synthetic 512x512 images, "
+          "`CupNet.detect` end to end (locator, 2 refiner passes, rim stages, pose "
+          "with ML refinement; BatchNorm folded, as `cupnet predict` runs it), "
+          "machine load at the start: "
+          f"{os.getloadavg()[0]:.1f} (other agents share the CPU). No GPU was lent, so "
+          "the H100 throughput is not measured. With 2 threads the rim networks' "
+          "strips run one per core (`cupnet.parallel`), with the same results as on "
+          "one. 'ONNX Runtime': the networks run by ONNX Runtime "
+          "(`cupnet predict --runtime onnx`, `cupnet.runtime`; its U-Nets on one "
+          "thread), the geometry as in PyTorch's rows.\n\n" + speed, args)
 
 
 def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
@@ -355,7 +378,7 @@ def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> Non
         cases: list = []
         res = accuracy(net, eval_set, cases)
         if net is model:
-            failure_gallery(cases, Path(args.gallery))
+            failure_gallery(cases, args.gallery)
             spread = markdown_table(
                 ["shipped model", *NAMES],
                 [[stat, *[res[f"{key}_{n}"] for n in NAMES]]
@@ -377,19 +400,19 @@ def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> Non
     text += ("\n\nAbsolute errors of the shipped model's detected cups: a few gross failures "
              "dominate the means.\n\n" + spread)
     print(text)
-    write_section("model_accuracy", "## CupNet accuracy\n\n"
-                  f"`python benchmarks/model.py`: {args.images} fresh DRRs from "
-                  f"`{args.eval_config}` (CT background on every image) at "
-                  f"{', '.join(map(str, args.sizes))} px (seed {args.seed}), MAE over detected "
-                  "true cups "
-                  f"(deg, deg, mm, mm, mm); targets {TARGETS}; false positives: detections "
-                  "matching no true cup in those images; and the detections in "
-                  f"{len(no_cup_set)} images without a cup (`{args.no_cup_config}`), where "
-                  "each should say `no_cup` (of both, how many the model flags `check`; "
-                  "the others are mostly `error` rows, without a pose to doubt). The "
-                  "ablation (segmentation "
-                  "alone vs end to end, same set) and the training record are in "
-                  "docs/training.md; the worst cases in docs/model_failures.png.\n\n" + text)
+    write("model_accuracy", "## CupNet accuracy\n\n"
+          f"`python benchmarks/model.py`: {args.images} fresh DRRs from "
+          f"`{args.eval_config}` (CT background on every image) at "
+          f"{', '.join(map(str, args.sizes))} px (seed {args.seed}), MAE over detected "
+          "true cups "
+          f"(deg, deg, mm, mm, mm); targets {TARGETS}; false positives: detections "
+          "matching no true cup in those images; and the detections in "
+          f"{len(no_cup_set)} images without a cup (`{args.no_cup_config}`), where "
+          "each should say `no_cup` (of both, how many the model flags `check`; "
+          "the others are mostly `error` rows, without a pose to doubt). The "
+          "ablation (segmentation "
+          "alone vs end to end, same set) and the training record are in "
+          f"docs/training.md; the worst cases in {args.gallery.name}.\n\n" + text, args)
 
 
 def main() -> None:
@@ -421,8 +444,10 @@ def main() -> None:
                         help="inference settings (JSON) to time the shipped model against, "
                              "in one process (--parts against); default: the nineteenth "
                              "session's")
-    parser.add_argument("--gallery", default="docs/model_failures.png",
-                        help="where to write the worst cases of the shipped model")
+    parser.add_argument("--gallery", help="where to write the model's worst cases "
+                        "(default: docs/model_failures.png, or beside another checkpoint)")
+    parser.add_argument("--doc", help="the markdown file the sections go to (default: "
+                        "docs/benchmarks.md, or benchmarks.md beside another checkpoint)")
     parser.add_argument("--threads", type=int, nargs="+", default=[1, 2],
                         help="torch intra-op threads to time with (accuracy uses the first)")
     parser.add_argument("--runtimes", nargs="+", default=["torch"], choices=RUNTIMES,
@@ -433,6 +458,7 @@ def main() -> None:
                         help="the sections to measure; the others are left as they are "
                              "(speed alone: for a change that keeps every pose)")
     args = parser.parse_args()
+    args.doc, args.gallery, args.header = output_paths(args.checkpoint, args.doc, args.gallery)
 
     def loaded(path: str, preset: str | None = None, runtime: str = "torch") -> CupNet:
         net = fold_batchnorm(load_model(path))  # as cupnet predict runs it
@@ -463,18 +489,18 @@ def main() -> None:
     if "oblong" in args.parts and args.oblong and args.oblong_images:
         text = oblong_section(shipped, args)
         print(text)
-        write_section("model_oblong", text)
+        write("model_oblong", text, args)
     if "fresh" in args.parts and args.fresh_images:
         text = fresh_seed_section(shipped, args)
         print(text)
-        write_section("model_fresh_seed", text)
+        write("model_fresh_seed", text, args)
     if "against" in args.parts:
         other = loaded(args.checkpoint, None, args.runtimes[0])
         for key, value in json.loads(args.against).items():
             setattr(other.config, key, value)
         text = against_section(next(iter(shipped.values())), other, args)
         print(text)
-        write_section("model_against", text)
+        write("model_against", text, args)
 
 
 if __name__ == "__main__":

@@ -36,10 +36,11 @@ def machine() -> str:
             f"torch {torch.__version__}, {torch.get_num_threads()} threads")
 
 
-def write_section(name: str, body: str, doc: Path = DOC) -> None:
-    """Replace (or append) the section ``name`` of docs/benchmarks.md with ``body``; atomic."""
+def write_section(name: str, body: str, doc: Path = DOC, header: str = HEADER) -> None:
+    """Replace (or append) the section ``name`` of ``doc`` (docs/benchmarks.md) with
+    ``body``, atomically; a new file starts with ``header``."""
     begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
-    text = doc.read_text() if doc.exists() else HEADER
+    text = doc.read_text() if doc.exists() else header
     block = f"{begin}\n{body.strip()}\n{end}"
     pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)
     if pattern.search(text):
