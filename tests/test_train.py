@@ -10,6 +10,7 @@ from pathlib import Path
 import lightning as L
 import pytest
 import torch
+import yaml
 
 from cupnet.crops import resample_batch, square_windows
 from cupnet.model import load_model, save_model
@@ -366,9 +367,8 @@ def _make_recipe(target: str) -> list[list[str]]:
 
 def test_hour_recipe_chains_its_stages_within_the_hour(capsys, monkeypatch):
     """``make train-hour``: each stage parses, starts from the weights the one before
-    exported, and the stages' time caps sum to at most 60 minutes."""
-    import yaml
-
+    exported, the stages' time caps sum to at most 60 minutes, and the shipped inference
+    settings land beside the last stage's export."""
     monkeypatch.chdir(ROOT)  # the Makefile's paths are relative to the checkout
     stages = _make_recipe("train-hour")
     assert len(stages) == 4
@@ -384,4 +384,7 @@ def test_hour_recipe_chains_its_stages_within_the_hour(capsys, monkeypatch):
     assert configs[0]["model"]["init_weights"] is None
     for before, after in zip(configs[:-1], configs[1:], strict=True):
         assert after["model"]["init_weights"] == before["model"]["export_path"]
-    assert configs[-1]["model"]["export_path"] == "runs/hour_locator/cupnet.safetensors"
+    export = Path(configs[-1]["model"]["export_path"])
+    assert export == Path("runs/hour_locator/cupnet.safetensors")
+    copy = f"\tcp cupnet/assets/cupnet_default.json {export.with_suffix('.json')}"
+    assert copy in (ROOT / "Makefile").read_text().splitlines()
