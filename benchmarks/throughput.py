@@ -112,10 +112,13 @@ def scores(found: list[list], data: list[dict]) -> dict[str, float]:
 def table_row(pipeline: str, networks: str, per_call: int, images: int, seconds: float,
               quality: dict[str, float]) -> list[object]:
     """One row of the table: the pipeline, its speed over ``images`` in ``seconds``, and
-    its :func:`scores`."""
-    return [pipeline, networks, per_call, f"{images / seconds:.1f}",
-            f"{1000 * seconds / images:.2f}", *(f"{quality[n]:.2f}" for n in POSE_NAMES),
-            f"{100 * quality['found']:.1f} %"]
+    its :func:`scores`. Printed at once too, so that a run stopped at its time limit (as on
+    a lent GPU machine) still shows the rows it measured."""
+    row = [pipeline, networks, per_call, f"{images / seconds:.1f}",
+           f"{1000 * seconds / images:.2f}", *(f"{quality[n]:.2f}" for n in POSE_NAMES),
+           f"{100 * quality['found']:.1f} %"]
+    print("| " + " | ".join(map(str, row)) + " |", flush=True)
+    return row
 
 
 def batched_rows(model: CupNet, data: list[dict], device: torch.device, batches: list[int],

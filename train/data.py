@@ -36,6 +36,11 @@ def synth_config(source: str | dict | None,
     return config
 
 
+def images_in(batch: dict) -> int:
+    """Images in a collated batch (``ThroughputMonitor``'s ``batch_size_fn`` in a config)."""
+    return batch["image"].shape[0]
+
+
 class RoundRobinBatches(IterableDataset):
     """Collated batches taken in turn from several sample streams (one per image size).
 
