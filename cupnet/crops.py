@@ -166,9 +166,98 @@ def resample(image: Tensor, crop_to_image: Tensor, size: int, antialias: bool = 
         return warp_affine(image[None], image_to_crop, (size, size), align_corners=True)[0]
 
 
+def lattice_bilinear(images: Tensor, index: Tensor, coords: Tensor, origin: Tensor,
+                     stride: Tensor, extent: Tensor, border: bool = False) -> Tensor:
+    """Bilinear samples of regular lattices of pixels, for ``K`` views at once.
+
+    Lattice point ``(i, j)`` of view ``k`` is pixel ``origin[k] + stride[k] * (i, j)`` of
+    ``images[index[k]]``, for ``0 <= i < extent[k, 0]``, ``0 <= j < extent[k, 1]``; a sample
+    at lattice coordinates ``(x, y)`` weighs its four neighbours as ``F.grid_sample`` with
+    ``align_corners=True`` does: a neighbour off the lattice counts as zero, or with
+    ``border`` the coordinates are first clamped onto it (``padding_mode="border"``).
+
+    Args:
+        images: ``(B, C, H, W)``.
+        index: ``(K,)`` long, the image of each view.
+        coords: ``(K, M, 2)`` lattice coordinates (x, y) of the samples.
+        origin: ``(K, 2)`` long pixel (u, v) of lattice point (0, 0).
+        stride: ``(K,)`` long pixels between lattice points.
+        extent: ``(K, 2)`` long lattice points along u and v (at most 0: none, all zeros).
+    Returns:
+        ``(K, C, M)`` in ``images``' dtype.
+    """
+    channels, height, width = images.shape[1:]
+    limit = (extent - 1).clamp_min(0).to(coords.dtype)[:, None]
+    if border:
+        coords = torch.minimum(coords.clamp_min(0), limit)
+    corner = coords.floor()
+    frac = (coords - corner).to(images.dtype)
+    corner = corner.long()
+    # Element of (image, channel) planes in the flattened images: (K, C, 1).
+    plane = ((index[:, None] * channels + torch.arange(channels, device=index.device))
+             * (height * width))[..., None]
+    flat = images.reshape(-1)
+    out = images.new_zeros(coords.shape[0], channels, coords.shape[1])
+    for du, dv in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        i, j = corner[..., 0] + du, corner[..., 1] + dv
+        weight = ((frac[..., 0] if du else 1 - frac[..., 0])
+                  * (frac[..., 1] if dv else 1 - frac[..., 1]))
+        inside = (i >= 0) & (i < extent[:, None, 0]) & (j >= 0) & (j < extent[:, None, 1])
+        # Off-lattice neighbours (weight 0) are clamped onto some pixel, to be gathered.
+        u = (origin[:, None, 0] + stride[:, None] * i).clamp(0, width - 1)
+        v = (origin[:, None, 1] + stride[:, None] * j).clamp(0, height - 1)
+        pixel = (v * width + u)[:, None]
+        out += flat[plane + pixel] * (weight * inside)[:, None]
+    return out
+
+
+def resample_stacked(images: Tensor, crop_to_image: Tensor, size: int, index: Tensor,
+                      antialias: bool) -> Tensor:
+    """:func:`resample` of every view at once, from equal-size images ``(B, C, H, W)``: the
+    same box filter (each view's region pooled from its own corner, so the same pooled
+    lattice) and bilinear samples, one gather per neighbour instead of a few dozen kernels
+    a view (on an accelerator the per-view loop is bound by launches)."""
+    height, width = images.shape[-2:]
+    with torch.autocast(images.device.type, enabled=False):
+        affine = crop_to_image.to(images.dtype)
+        steps = torch.linalg.svdvals(affine[:, :, :2])[:, -1]
+        pool = steps.floor().long().clamp_min(1) if antialias else torch.ones_like(
+            index, dtype=torch.long)
+        last = size - 1.0
+        corners = to_image(affine.new_tensor([[0.0, 0.0], [last, 0.0], [0.0, last],
+                                              [last, last]]).expand(len(affine), 4, 2), affine)
+        pad = pool[:, None].to(images.dtype)
+        lo = (corners.min(1).values - pad).floor().clamp_min(0).long()
+        hi = (corners.max(1).values + pad + 1).ceil().long()
+        hi = torch.minimum(hi, torch.tensor([width, height], device=hi.device))
+        # Without pooling the view samples the whole image, as resample does.
+        pooled = pool > 1
+        whole = torch.tensor([width, height], device=lo.device)
+        origin = torch.where(pooled[:, None], lo, 0)
+        extent = torch.where(pooled[:, None], torch.div(hi - lo, pool[:, None],
+                                                        rounding_mode="floor"), whole)
+        shift = origin.to(images.dtype) + (pad - 1) / 2
+        lattice = torch.cat([affine[:, :, :2] / pad[..., None],
+                             ((affine[:, :, 2] - shift) / pad)[..., None]], -1)
+        axis = torch.arange(size, dtype=images.dtype, device=images.device)
+        view = torch.stack(torch.meshgrid(axis, axis, indexing="xy"), -1).reshape(-1, 2)
+        coords = to_image(view.expand(len(affine), -1, -1), lattice)  # (K, size^2, 2)
+        out = images.new_zeros(len(affine), images.shape[1], size * size)
+        for p in pool.unique().tolist():  # one box-filtered image per pooling step
+            box = F.avg_pool2d(images, p, stride=1) if p > 1 else images
+            mine = pool == p
+            out[mine] = lattice_bilinear(box, index[mine], coords[mine], origin[mine],
+                                         pool[mine], extent[mine])
+        return out.reshape(len(affine), -1, size, size)
+
+
 def resample_batch(images: Tensor | list[Tensor], crop_to_image: Tensor, size: int,
                    index: Tensor | None = None, antialias: bool = True) -> Tensor:
     """Views of several images: ``(K, 2, 3)`` affines, view ``k`` taken from ``images[index[k]]``.
+
+    Off the CPU, views of equal-size images are taken all at once
+    (:func:`resample_stacked`, the same samples to float rounding); on the CPU, one
+    :func:`resample` each, which pools only each view's region.
 
     Args:
         images: ``(B, C, H, W)`` or a list of ``(C, H_i, W_i)``.
@@ -179,6 +268,11 @@ def resample_batch(images: Tensor | list[Tensor], crop_to_image: Tensor, size: i
         ``(K, C, size, size)``.
     """
     index = torch.arange(crop_to_image.shape[0]) if index is None else index
+    if (len(index) and images[0].device.type != "cpu"
+            and all(image.shape == images[0].shape for image in images)):
+        stack = images if isinstance(images, Tensor) else torch.stack(list(images))
+        return resample_stacked(stack, crop_to_image.to(stack.device), size,
+                                 index.to(stack.device), antialias)
     views = [resample(images[int(i)], a, size, antialias) for i, a in zip(index, crop_to_image,
                                                                           strict=True)]
     if not views:

@@ -339,7 +339,10 @@ class CupNet(nn.Module):
             largest components first; scores ``(B, C)`` (mean probability of the component).
         """
         cfg = self.config
-        prob = [torch.sigmoid(m.detach()).cpu().double().numpy()[0] for m in logits]
+        # One copy from the device for a batch (one each for per-image maps).
+        prob = (list(torch.sigmoid(logits.detach()).cpu().double().numpy()[:, 0])
+                if isinstance(logits, Tensor) else
+                [torch.sigmoid(m.detach()).cpu().double().numpy()[0] for m in logits])
         ellipses = torch.full((len(prob), cfg.max_cups, 5), math.nan, dtype=torch.float64)
         scores = torch.zeros(len(prob), cfg.max_cups, dtype=torch.float64)
         for i, p in enumerate(prob):

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from cupnet.crops import lattice_bilinear
 from cupnet.ellipse import ellipse_points, params_to_conic
 from cupnet.parallel import map_on_cores
 
@@ -196,10 +197,21 @@ def sample_strips(images: Tensor | list[Tensor], index: Tensor, points: Tensor, 
             ``(K, S)``, each cup's own.
     Returns:
         ``(K, 1, S, n)`` in the images' dtype (border values outside an image; the points'
-        dtype for ``K = 0``).
+        dtype for ``K = 0``). Off the CPU, strips of a ``(B, 1, H, W)`` tensor are sampled
+        all at once (:func:`cupnet.crops.lattice_bilinear`, the same samples to float
+        rounding): one ``grid_sample`` a strip is bound by kernel launches there.
     """
     offsets = offsets.expand(points.shape[0], -1)
     grid = points[:, None] + offsets[:, :, None, None] * normals[:, None]  # (K, S, n, 2)
+    if isinstance(images, Tensor) and images.device.type != "cpu" and len(points):
+        count, device = len(points), images.device
+        size = torch.tensor(images.shape[-1:-3:-1], device=device)  # (W, H)
+        samples = lattice_bilinear(
+            images, index.to(device), grid.flatten(1, 2).to(device, images.dtype),
+            torch.zeros(count, 2, dtype=torch.long, device=device),
+            torch.ones(count, dtype=torch.long, device=device), size.expand(count, 2),
+            border=True)
+        return samples.reshape(count, images.shape[1], *grid.shape[1:3])
     strips = []
     for k in range(points.shape[0]):
         image = images[int(index[k])]

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from cupnet.config import SPEED_PRESETS, CupNetConfig, apply_speed_preset
@@ -15,8 +16,10 @@ from cupnet.crops import (
     ellipse_crop_affine,
     ellipse_to_view,
     frame_ellipse,
+    lattice_bilinear,
     letterbox_affine,
     resample,
+    resample_stacked,
     square_windows,
     to_image,
     to_view,
@@ -82,6 +85,49 @@ def test_resample_ignores_autocast(antialias: bool) -> None:
     with torch.autocast("cpu", dtype=torch.bfloat16):
         mixed = resample(ramp, affine, 64, antialias)
     assert mixed.dtype == torch.float32 and torch.equal(mixed, plain)
+
+
+def random_views(count: int, generator: torch.Generator) -> torch.Tensor:
+    """``(count, 2, 3)`` float64 crop_to_image affines: rotated, 0.5-5 image px per view px
+    (so box filters of 1 to 5 px), some partly or wholly off a 300 x 420 image."""
+    angle, scale, stretch, u, v = torch.rand(5, count, generator=generator, dtype=torch.float64)
+    angle, scale = 2 * math.pi * angle, 0.5 + 4.5 * scale
+    across = scale * (0.5 + stretch)
+    rows = ([scale * angle.cos(), -across * angle.sin(), 600 * u - 150],
+            [scale * angle.sin(), across * angle.cos(), 500 * v - 150])
+    return torch.stack([torch.stack(row, -1) for row in rows], -2)
+
+
+@pytest.mark.parametrize("antialias", [False, True])
+def test_stacked_resample_matches_the_per_view_loop(antialias: bool, generator) -> None:
+    """All views at once (as an accelerator takes them) against one resample each: the same
+    box filters, pooled from the same corners, and the same samples (zeros off the image)."""
+    images = torch.rand(3, 2, 300, 420, generator=generator, dtype=torch.float64)
+    affines = random_views(40, generator)
+    index = torch.randint(0, 3, (40,), generator=generator)
+    ours = resample_stacked(images, affines, 48, index, antialias)
+    theirs = torch.stack([resample(images[int(i)], a, 48, antialias)
+                          for i, a in zip(index, affines, strict=True)])
+    steps = torch.linalg.svdvals(affines[:, :, :2])[:, -1]
+    assert {1, 2, 3, 4} <= set(steps.floor().long().tolist())  # several box filters
+    assert 10 < int((theirs.abs().sum((1, 2, 3)) > 0).sum()) < 40  # views off the image too
+    assert torch.allclose(ours, theirs, atol=1e-9)
+
+
+@pytest.mark.parametrize("border", [False, True])
+def test_lattice_bilinear_matches_grid_sample(border: bool, generator) -> None:
+    """Samples on each image's own pixel lattice, off it by up to 50 px: torch's
+    grid_sample (align_corners=True) with zeros or border padding."""
+    images = torch.rand(3, 2, 60, 80, generator=generator, dtype=torch.float64)
+    index = torch.tensor([2, 0, 1, 2])
+    where = torch.rand(4, 500, 2, generator=generator, dtype=torch.float64) * 180 - 50
+    ours = lattice_bilinear(images, index, where, torch.zeros(4, 2, dtype=torch.long),
+                            torch.ones(4, dtype=torch.long), torch.tensor([[80, 60]] * 4),
+                            border)
+    grid = (where * torch.tensor([2 / 79, 2 / 59], dtype=torch.float64) - 1)[:, None]
+    theirs = F.grid_sample(images[index], grid, padding_mode="border" if border else "zeros",
+                           align_corners=True)[:, :, 0]
+    assert torch.allclose(ours, theirs, atol=1e-12)
 
 
 def test_to_view_inverts_to_image():
