@@ -304,9 +304,9 @@ def fit_ellipse(
         torch.stack([zero, zero, one], -1)], -2)
     conic = normalize_conic(to_norm.transpose(-1, -2) @ conic_norm @ to_norm)
 
-    ellipse = is_ellipse(conic).detach()
-    for i in range(len(status)):
-        if status[i] == "ok" and not bool(ellipse[i]):
+    # One copy from the device, not one per item.
+    for i, ellipse in enumerate(is_ellipse(conic).detach().tolist()):
+        if status[i] == "ok" and not ellipse:
             status[i] = "fit is not an ellipse (degenerate conic)"
     valid = torch.tensor([s == "ok" for s in status], dtype=torch.bool, device=points.device)
     if not valid.all() and on_error == "raise":

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import torch
 from torch import Tensor
 
 # Flat: the intensity range over a 5x5 window at most this (of the image's [0, 1]): exact
@@ -141,10 +142,12 @@ def _some_points(mask: np.ndarray) -> np.ndarray:
     return found[::step].astype(np.float64)
 
 
-def outside_field(centres: Tensor, field: tuple[float, float, float] | None) -> Tensor:
-    """Which ``centres`` (``(..., 2)`` px) lie beyond ``field`` ``(cx, cy, r)`` px (all
-    False where ``field`` is None; NaN centres are not outside)."""
+def outside_field(centres: Tensor, field: tuple[float, float, float] | Tensor | None
+                  ) -> Tensor:
+    """Which ``centres`` (``(..., 2)`` px) lie beyond ``field`` ``(cx, cy, r)`` px, or each
+    beyond its own (``(..., 3)``, NaN rows: no field). All False where ``field`` is None;
+    NaN centres are not outside."""
     if field is None:
         return centres.new_zeros(centres.shape[:-1], dtype=bool)
-    cx, cy, radius = field
+    cx, cy, radius = torch.as_tensor(field, dtype=centres.dtype).unbind(-1)
     return (centres[..., 0] - cx).hypot(centres[..., 1] - cy) > radius

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -41,6 +42,39 @@ def soft_moments(prob: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor, Tenso
     centre = torch.stack([mu_u, mu_v], -1)
     cov = torch.stack([torch.stack([var_u, cov_uv], -1), torch.stack([cov_uv, var_v], -1)], -2)
     return mass, centre, cov
+
+
+def component_moments(prob: np.ndarray, labels: np.ndarray, count: int
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`soft_moments` of each labelled component of one map, all at once (the
+    locator's blobs, on the CPU: a few sums over the labelled pixels, not a map each).
+
+    Args:
+        prob: ``(H, W)`` float64 probabilities.
+        labels: ``(H, W)`` integer labels ``0 .. count - 1``, 0 the background (as
+            ``cv2.connectedComponents`` gives them).
+        count: number of labels, the background included.
+    Returns:
+        for components ``1 .. count - 1``: mass ``(n,)`` (the sum of ``prob`` over the
+        component, px), pixels ``(n,)`` (its size), centre ``(n, 2)`` px (u, v), covariance
+        ``(n, 2, 2)`` px^2, float64.
+    """
+    v, u = np.nonzero(labels)
+    label = labels[v, u] - 1
+    n = max(count - 1, 0)
+    weight = prob[v, u]
+
+    def total(values: np.ndarray | None) -> np.ndarray:
+        return np.bincount(label, values, minlength=n)[:n].astype(np.float64)
+
+    mass = total(weight)
+    norm = mass + 1e-6  # as soft_moments: an empty map has its centre at 0
+    mu_u, mu_v = total(weight * u) / norm, total(weight * v) / norm
+    var_u = total(weight * u**2) / norm - mu_u**2
+    var_v = total(weight * v**2) / norm - mu_v**2
+    cov_uv = total(weight * u * v) / norm - mu_u * mu_v
+    cov = np.stack([np.stack([var_u, cov_uv], -1), np.stack([cov_uv, var_v], -1)], -2)
+    return mass, total(None), np.stack([mu_u, mu_v], -1), cov
 
 
 def sqrtm_2x2(matrix: Tensor) -> Tensor:

@@ -57,7 +57,7 @@ from cupnet.detection import (
 from cupnet.ellipse import fit_ellipse
 from cupnet.field import outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
-from cupnet.landmarks import ray_landmarks, soft_moments
+from cupnet.landmarks import component_moments, ray_landmarks
 from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.polarity import metal_shows_bright
 from cupnet.pose import (
@@ -345,29 +345,37 @@ class CupNet(nn.Module):
                 [torch.sigmoid(m.detach()).cpu().double().numpy()[0] for m in logits])
         ellipses = torch.full((len(prob), cfg.max_cups, 5), math.nan, dtype=torch.float64)
         scores = torch.zeros(len(prob), cfg.max_cups, dtype=torch.float64)
+        moments, owner = [], []
         for i, p in enumerate(prob):
-            affine = letterbox[i].double().cpu()
             count, labels = cv2.connectedComponents((p > cfg.detect_threshold).astype(np.uint8))
-            found = []
-            for label in range(1, count):
-                w = np.where(labels == label, p, 0.0)
-                if w.sum() < cfg.min_cup_area:
-                    continue
-                _, centre, cov = soft_moments(torch.from_numpy(w)[None, None])
-                centre = to_image(centre, affine)[0]
-                if fields is not None and outside_field(centre, fields[i]):
-                    continue
-                evals, evecs = torch.linalg.eigh(cov[0])
-                axes = 2 * evals.clamp_min(1 / 12).sqrt().flip(0)  # a filled ellipse: 4 var = a^2
-                angle = math.degrees(math.atan2(float(evecs[1, 1]), float(evecs[0, 1]))) % 180
-                found.append((float(w.sum()), centre, axes * affine[0, 0], angle,
-                              float(p[labels == label].mean())))
-            found.sort(key=lambda f: -f[0])
-            for c, (_, centre, axes, angle, score) in enumerate(found[:cfg.max_cups]):
-                ellipses[i, c, :2] = centre
-                ellipses[i, c, 2:4] = axes
-                ellipses[i, c, 4] = angle
-                scores[i, c] = score
+            moments.append(component_moments(p, labels, count))
+            owner += [i] * (count - 1)
+        if not owner:
+            return ellipses, scores
+        # Every image's components at once: a few operations a batch, not a few per blob.
+        mass, pixels, centre, cov = (torch.from_numpy(np.concatenate(parts))
+                                     for parts in zip(*moments, strict=True))
+        affine = letterbox.detach().double().cpu()[owner]  # (n, 2, 3)
+        centre = to_image(centre[:, None], affine)[:, 0]
+        kept = mass >= cfg.min_cup_area
+        if fields is not None:
+            field = torch.tensor([f or (math.nan,) * 3 for f in fields], dtype=torch.float64)
+            kept &= ~outside_field(centre, field[owner])
+        evals, evecs = torch.linalg.eigh(cov)
+        # A filled ellipse: 4 var = a^2 along each axis.
+        axes = 2 * evals.clamp_min(1 / 12).sqrt().flip(-1) * affine[:, :1, 0]
+        angle = torch.rad2deg(torch.atan2(evecs[:, 1, 1], evecs[:, 0, 1])) % 180
+        rows = torch.cat([centre, axes, angle[:, None]], -1)
+        # Per image, its largest components first; ties in label order (a stable sort).
+        image, slot, component = [], [], []
+        for k in np.lexsort((-mass.numpy(), owner)):
+            taken = image.count(owner[k])
+            if kept[k] and taken < cfg.max_cups:
+                image.append(owner[k])
+                slot.append(taken)
+                component.append(int(k))
+        ellipses[image, slot] = rows[component]
+        scores[image, slot] = mass[component] / pixels[component]  # mean probability
         return ellipses, scores
 
     def first_pass_ellipses(self, rough: Tensor) -> Tensor:

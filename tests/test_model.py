@@ -27,7 +27,7 @@ from cupnet.crops import (
 from cupnet.ellipse import ellipse_points, fit_ellipse
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
-from cupnet.landmarks import ellipse_coverage, ray_landmarks, soft_moments
+from cupnet.landmarks import component_moments, ellipse_coverage, ray_landmarks, soft_moments
 from cupnet.model import CupNet, load_model, mirrored_ellipses, save_model
 from cupnet.pose import ellipse_of_pose
 from data_synth import SynthConfig, synthesize
@@ -128,6 +128,27 @@ def test_lattice_bilinear_matches_grid_sample(border: bool, generator) -> None:
     theirs = F.grid_sample(images[index], grid, padding_mode="border" if border else "zeros",
                            align_corners=True)[:, :, 0]
     assert torch.allclose(ours, theirs, atol=1e-12)
+
+
+def test_component_moments_match_soft_moments_of_each_component(generator) -> None:
+    """Every blob's moments at once against soft_moments of the map masked to that blob."""
+    ellipses = torch.tensor([[[30.0, 40.0, 12.0, 5.0, 20.0], [90.0, 80.0, 20.0, 14.0, 130.0],
+                              [100.0, 20.0, 3.0, 2.0, 0.0]]], dtype=torch.float64)
+    prob = ellipse_coverage(ellipses, 110, 128)[0, 0]
+    prob = (prob * (0.6 + 0.4 * torch.rand(prob.shape, generator=generator,
+                                          dtype=torch.float64))).numpy()
+    count, labels = cv2.connectedComponents((prob > 0.3).astype(np.uint8))
+    assert count == 4
+    mass, pixels, centre, cov = component_moments(prob, labels, count)
+    for label in range(1, count):
+        alone = torch.from_numpy(np.where(labels == label, prob, 0.0))[None, None]
+        ref_mass, ref_centre, ref_cov = soft_moments(alone)
+        assert mass[label - 1] == pytest.approx(float(ref_mass[0]), rel=1e-12)
+        assert pixels[label - 1] == (labels == label).sum()
+        np.testing.assert_allclose(centre[label - 1], ref_centre[0].numpy(), rtol=1e-12)
+        np.testing.assert_allclose(cov[label - 1], ref_cov[0].numpy(), rtol=1e-9, atol=1e-9)
+    empty = component_moments(prob, np.zeros_like(labels), 1)
+    assert [m.shape for m in empty] == [(0,), (0,), (0, 2), (0, 2, 2)]
 
 
 def test_to_view_inverts_to_image():
