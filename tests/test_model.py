@@ -151,6 +151,28 @@ def test_component_moments_match_soft_moments_of_each_component(generator) -> No
     assert [m.shape for m in empty] == [(0,), (0,), (0, 2), (0, 2, 2)]
 
 
+def test_ellipse_coverage_counts_the_samples_inside_each_ellipse(generator) -> None:
+    """Coverage maps against samples tested in each ellipse's own axes: rotated, thin, partly
+    off the map, two an item (their union) or none (NaN rows)."""
+    count, size, supersample = 12, 40, 4
+    scale = torch.tensor([60.0, 60.0, 25.0, 12.0, 180.0], dtype=torch.float64)
+    params = torch.rand(count, 2, 5, generator=generator, dtype=torch.float64) * scale
+    params[..., 2:4] += torch.tensor([0.5, 0.3], dtype=torch.float64)
+    params[::3, 1] = math.nan
+    params[1] = math.nan
+    ours = ellipse_coverage(params, size, size, supersample)[:, 0]
+    offsets = (torch.arange(supersample, dtype=torch.float64) + 0.5) / supersample - 0.5
+    axis = (torch.arange(size, dtype=torch.float64)[:, None] + offsets).reshape(-1)
+    v, u = torch.meshgrid(axis, axis, indexing="ij")
+    cx, cy, a, b, alpha = (x[..., None, None] for x in params.unbind(-1))
+    cos, sin = torch.cos(torch.deg2rad(alpha)), torch.sin(torch.deg2rad(alpha))
+    along, across = (u - cx) * cos + (v - cy) * sin, (v - cy) * cos - (u - cx) * sin
+    inside = ((along / a) ** 2 + (across / b) ** 2 <= 1).any(1).double()  # NaN: outside
+    expected = inside.reshape(count, size, supersample, size, supersample).mean((2, 4))
+    assert torch.equal(ours, expected)
+    assert ours[1].sum() == 0 and 0 < ours.mean() < 0.5
+
+
 def test_to_view_inverts_to_image():
     affine = ellipse_crop_affine(torch.tensor([300.2, 123.4, 211.0, 70.0, 121.0],
                                               dtype=torch.float64), 128)
