@@ -187,9 +187,9 @@ def lattice_bilinear(images: Tensor, index: Tensor, coords: Tensor, origin: Tens
         ``(K, C, M)`` in ``images``' dtype.
     """
     channels, height, width = images.shape[1:]
-    limit = (extent - 1).clamp_min(0).to(coords.dtype)[:, None]
     if border:
-        coords = torch.minimum(coords.clamp_min(0), limit)
+        last = (extent - 1).clamp_min(0).to(coords.dtype)[:, None]
+        coords = torch.minimum(coords.clamp_min(0), last)
     corner = coords.floor()
     frac = (coords - corner).to(images.dtype)
     corner = corner.long()

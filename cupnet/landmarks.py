@@ -159,6 +159,6 @@ def ellipse_coverage(params: Tensor, height: int, width: int, supersample: int =
                        math.nan)
     low = ((-half - root) / conic[:, :, 0, 0])[..., None]
     high = ((-half + root) / conic[:, :, 0, 0])[..., None]
-    inside = ((u >= low) & (u <= high)).any(1)  # (B, Hs, Ws), the union of each item's
-    # The sample counts are exact in float32.
+    inside = ((u >= low) & (u <= high)).any(1)  # (B, Hs, Ws): the union of the ellipses
+    # The counts of samples inside are exact in float32.
     return F.avg_pool2d(inside[:, None].float(), supersample).to(dtype)
