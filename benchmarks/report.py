@@ -19,14 +19,16 @@ HEADER = ("# Benchmarks\n\nWritten by the scripts in `benchmarks/`; each section
           "rerun it.\n")
 
 
+def markdown_row(values: list[object]) -> str:
+    """One row of a GitHub markdown table (floats to 4 significant digits)."""
+    return "| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v)
+                             for v in values) + " |"
+
+
 def markdown_table(header: list[str], rows: list[list[object]]) -> str:
     """Rows of values -> a GitHub markdown table (floats to 4 significant digits)."""
-
-    def cell(v: object) -> str:
-        return f"{v:.4g}" if isinstance(v, float) else str(v)
-
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    lines = [markdown_row(header), "|" + "---|" * len(header)]
+    lines += [markdown_row(row) for row in rows]
     return "\n".join(lines)
 
 

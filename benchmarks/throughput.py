@@ -36,7 +36,7 @@ import numpy as np
 import torch
 
 from benchmarks.model import samples
-from benchmarks.report import machine, markdown_table, write_section
+from benchmarks.report import machine, markdown_row, markdown_table, write_section
 from cupnet.config import SPEED_PRESETS, apply_speed_preset
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
@@ -117,7 +117,7 @@ def table_row(pipeline: str, networks: str, per_call: int, images: int, seconds:
     row = [pipeline, networks, per_call, f"{images / seconds:.1f}",
            f"{1000 * seconds / images:.2f}", *(f"{quality[n]:.2f}" for n in POSE_NAMES),
            f"{100 * quality['found']:.1f} %"]
-    print("| " + " | ".join(map(str, row)) + " |", flush=True)
+    print(markdown_row(row), flush=True)
     return row
 
 

@@ -4,7 +4,7 @@ apart from the shipped model's."""
 from __future__ import annotations
 
 from benchmarks.model import output_paths
-from benchmarks.report import DOC, HEADER, write_section
+from benchmarks.report import DOC, HEADER, markdown_row, markdown_table, write_section
 from cupnet.model import DEFAULT_CHECKPOINT
 
 
@@ -28,3 +28,11 @@ def test_the_shipped_checkpoint_reports_to_docs_and_another_beside_itself(tmp_pa
     assert str(mine) in header and header != HEADER
     chosen = output_paths(str(mine), str(tmp_path / "d.md"), str(tmp_path / "g.png"))
     assert chosen[:2] == (tmp_path / "d.md", tmp_path / "g.png")
+
+
+def test_a_table_is_its_header_a_rule_and_each_row_as_printed_alone():
+    rows = [["detect", 1.234567, 8], ["batched", 2.0, "9 %"]]
+    table = markdown_table(["pipeline", "ms", "found"], rows)
+    assert table.splitlines() == ["| pipeline | ms | found |", "|---|---|---|",
+                                  "| detect | 1.235 | 8 |", "| batched | 2 | 9 % |"]
+    assert table.splitlines()[2:] == [markdown_row(row) for row in rows]
