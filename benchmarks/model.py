@@ -256,9 +256,10 @@ def fresh_seed_intro(args: argparse.Namespace, runtimes: list[str]) -> str:
 
 
 def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
-    """The shipped model's accuracy on fresh DRRs of seeds no setting was chosen on, each
-    and pooled (with 95 % bootstrap intervals over the cups), with the networks in each
-    runtime ``models`` holds (by name): the ``model_fresh_seed`` section."""
+    """The shipped model's accuracy on fresh DRRs of ``args.fresh_seeds`` (by default seeds
+    no setting was chosen on), each and pooled (with 95 % bootstrap intervals over the
+    cups), with the networks in each runtime ``models`` holds (by name): the
+    ``model_fresh_seed`` section."""
     rows = []
     for runtime, model in models.items():
         per_cup: list[np.ndarray | None] = []  # each true cup's, None where missed
