@@ -367,8 +367,9 @@ def _make_recipe(target: str) -> list[list[str]]:
 
 def test_hour_recipe_chains_its_stages_within_the_hour(capsys, monkeypatch):
     """``make train-hour``: each stage parses, starts from the weights the one before
-    exported, the stages' time caps sum to at most 60 minutes, and the shipped inference
-    settings land beside the last stage's export."""
+    exported, the stages' time caps sum to at most 58.5 minutes (the hour less the four
+    processes' start-up), and the shipped inference settings land beside the last stage's
+    export."""
     monkeypatch.chdir(ROOT)  # the Makefile's paths are relative to the checkout
     stages = _make_recipe("train-hour")
     assert len(stages) == 4
@@ -380,7 +381,7 @@ def test_hour_recipe_chains_its_stages_within_the_hour(capsys, monkeypatch):
         days, hours, mins, secs = map(int, config["trainer"]["max_time"].split(":"))
         minutes += days * 1440 + hours * 60 + mins + secs / 60
         configs.append(config)
-    assert minutes <= 60
+    assert minutes <= 58.5  # the four processes' start-up and export take about a minute
     assert configs[0]["model"]["init_weights"] is None
     for before, after in zip(configs[:-1], configs[1:], strict=True):
         assert after["model"]["init_weights"] == before["model"]["export_path"]
