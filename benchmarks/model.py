@@ -458,7 +458,8 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=20_261_123)
     parser.add_argument("--fresh-seeds", type=int, nargs="+",
                         default=FRESH_SEEDS,
-                        help="seeds of the fresh sets (no setting chosen on them)")
+                        help="seeds of the fresh sets (default: seeds no setting was chosen "
+                             "on; the section says which given seeds chose settings)")
     parser.add_argument("--fresh-images", type=int, default=180, help="images a fresh seed")
     parser.add_argument("--against", default='{"verify_gate": 1.0, "outline_settled": 0.05, '
                         '"search_screen": null}',
