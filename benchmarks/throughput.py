@@ -6,14 +6,19 @@ defaults to cuda where there is one; ``benchmarks/gpu_check.sh`` runs it there, 
 wheels that machine lacks). Writes the ``throughput_<device type>`` section of
 docs/benchmarks.md.
 
-Two pipelines, on 512 x 512 DRRs with the CT background (``configs/synth_speed.yaml``):
+Three pipelines, on 512 x 512 DRRs with the CT background (``configs/synth_speed.yaml``):
 
-- **batched** (``CupNet.forward``, the path training backpropagates through, with the
-  solver's maximum-likelihood refinement): the whole model and the images on the device,
-  ``B`` images a call: locator, connected components (OpenCV, on the CPU), one refiner
-  pass, soft landmarks, the fine rim stage's passes, the pose solver. None of ``detect``'s
-  fallbacks, outline refinement, verification or search, so it is less accurate: its pose
-  MAE and share of cups found are measured on the same images and given beside it.
+- **batched**, the whole model and the images on the device, ``B`` images a call, every
+  stage on all cups at once (the locator's connected components with OpenCV, on the CPU):
+  - ``CupNet.forward``, the path training backpropagates through, with the solver's
+    maximum-likelihood refinement: locator, one refiner pass, the fine rim stage's
+    passes, the pose solver;
+  - :func:`cupnet.batched.batched_cups`: ``detect``'s first landmark sources (the
+    locator's retry and score, two refiner passes, the thin-rim hypotheses, the coarse
+    stage and the refiner for the cups with no pose in range).
+  Neither has ``detect``'s outline refinement, verification or search, so both are less
+  accurate: their pose MAE and share of cups found are measured on the same images and
+  given beside them.
 - **detect** (``CupNet.detect``, the shipped model's accuracy; with each speed preset):
   the networks on the device, the geometry between their calls on the CPU
   (:func:`cupnet.offload.networks_on`, as ``cupnet predict --device`` runs it), 8 images
@@ -37,6 +42,7 @@ import torch
 
 from benchmarks.model import samples
 from benchmarks.report import machine, markdown_row, markdown_table, write_section
+from cupnet.batched import BatchedCups, batched_cups
 from cupnet.config import SPEED_PRESETS, apply_speed_preset
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
@@ -75,17 +81,30 @@ def stacked(data: list[dict], device: torch.device) -> tuple[torch.Tensor, Geome
     return images, Geometry.from_rows(rows), diameter
 
 
-def batched_detections(model: CupNet, data: list[dict], device: torch.device, batch: int,
-                       precision: torch.dtype | None) -> list[list[SimpleNamespace]]:
-    """Per image, the batched pipeline's cups (``pose``, ``ellipse`` as numpy arrays)."""
+def forward_cups(model: CupNet, images: torch.Tensor, geometry: Geometry,
+                 diameter: torch.Tensor) -> BatchedCups:
+    """The training path's cups: ``CupNet.forward`` with its solver's ML refinement."""
+    out = model(images, geometry, diameter, refine_pose=True)
+    return BatchedCups(out.cup_index, out.solution.pose, out.solution.ellipse,
+                       out.solution.valid)
+
+
+# The batched pipelines: name in the table -> images, geometry, diameters -> cups.
+BATCHED = {"batched (`CupNet.forward`)": forward_cups,
+           "batched (`batched_cups`)": batched_cups}
+
+
+def batched_detections(pipeline: Callable[..., BatchedCups], model: CupNet, data: list[dict],
+                       device: torch.device, batch: int, precision: torch.dtype | None
+                       ) -> list[list[SimpleNamespace]]:
+    """Per image, a batched ``pipeline``'s cups (``pose``, ``ellipse`` as numpy arrays)."""
     found: list[list[SimpleNamespace]] = []
     for first in range(0, len(data), batch):
         images, geometry, diameter = stacked(data[first:first + batch], device)
         with autocast(device, precision):
-            out = model(images, geometry, diameter, refine_pose=True)
-        poses = out.solution.pose.cpu().numpy()
-        ellipses = out.solution.ellipse.cpu().numpy()
-        owner = out.cup_index[:, 0].cpu().numpy()
+            cups = pipeline(model, images, geometry, diameter)
+        poses, ellipses = cups.pose.cpu().numpy(), cups.ellipse.cpu().numpy()
+        owner = cups.cup_index[:, 0].cpu().numpy()
         found += [[SimpleNamespace(pose=poses[k], ellipse=ellipses[k])
                    for k in np.flatnonzero(owner == b)] for b in range(len(images))]
     return found
@@ -125,28 +144,31 @@ def batched_rows(model: CupNet, data: list[dict], device: torch.device, batches:
                  precisions: list[str], repeats: int) -> list[list[object]]:
     model = fold_batchnorm(model).to(device)
     rows = []
-    for name in precisions:
-        precision = None if name == "fp32" else getattr(torch, {"bf16": "bfloat16",
-                                                               "fp16": "float16"}[name])
-        with torch.inference_mode():
-            found = batched_detections(model, data, device, max(batches), precision)
-        quality = scores(found, data)
-        for batch in batches:
-            # At least one full call, and 32 images for the small batches (not all of them:
-            # one image a call is slow, and its figure steady after a few dozen).
-            count = max(batch, min(len(data), 32))
-            part = (data * -(-count // len(data)))[:count]
-            groups = [stacked(part[i:i + batch], device) for i in range(0, len(part), batch)]
+    for label, pipeline in BATCHED.items():
+        for name in precisions:
+            precision = None if name == "fp32" else getattr(torch, {"bf16": "bfloat16",
+                                                                   "fp16": "float16"}[name])
+            with torch.inference_mode():
+                found = batched_detections(pipeline, model, data, device, max(batches),
+                                           precision)
+            quality = scores(found, data)
+            for batch in batches:
+                # At least one full call, and 32 images for the small batches (not all of
+                # them: one image a call is slow, and its figure steady after a few dozen).
+                count = max(batch, min(len(data), 32))
+                part = (data * -(-count // len(data)))[:count]
+                groups = [stacked(part[i:i + batch], device)
+                          for i in range(0, len(part), batch)]
 
-            def run(groups: list = groups, precision: torch.dtype | None = precision) -> None:
-                with torch.inference_mode(), autocast(device, precision):
-                    for images, geometry, diameter in groups:
-                        model(images, geometry, diameter, refine_pose=True)
+                def run(groups: list = groups, precision: torch.dtype | None = precision,
+                        pipeline: Callable[..., BatchedCups] = pipeline) -> None:
+                    with torch.inference_mode(), autocast(device, precision):
+                        for images, geometry, diameter in groups:
+                            pipeline(model, images, geometry, diameter)
 
-            seconds = best_seconds(run, device, repeats)
-            count = sum(len(g[0]) for g in groups)
-            rows.append(table_row("batched (`CupNet.forward`)", name, batch, count, seconds,
-                                  quality))
+                seconds = best_seconds(run, device, repeats)
+                count = sum(len(g[0]) for g in groups)
+                rows.append(table_row(label, name, batch, count, seconds, quality))
     return rows
 
 
@@ -223,9 +245,12 @@ def main() -> None:
     write_section(f"throughput_{device.type}", (
         f"## CupNet throughput on {name}\n\n`{command}` on {machine()}. 512 x 512 DRRs with "
         f"the CT background ({len(data)} distinct images; each batch size timed on at least "
-        "one full call and 32 images, repeated where there are fewer); the batched pipeline "
-        "is `CupNet.forward` (one refiner pass, the fine rim stage, the solver with its ML "
-        "refinement; no fallbacks, outline refinement, verification or search), `detect` "
+        "one full call and 32 images, repeated where there are fewer); the batched pipelines "
+        "are `CupNet.forward` (the training path: one refiner pass, the fine rim stage, the "
+        "solver with its ML refinement) and `cupnet.batched.batched_cups` (detect's first "
+        "landmark sources: two refiner passes, the thin-rim hypotheses, the coarse stage and "
+        "the refiner where they give no pose in range), neither with detect's outline "
+        "refinement, verification or search; `detect` "
         f"the shipped pipeline with its networks on the device, {DETECT_BATCH} images a "
         "call. MAE in deg (theta, phi) and mm (k, l, h) over the cups each finds: a small "
         "sample, to set the speeds beside what each pipeline gives (the figures of record "

@@ -59,6 +59,7 @@ from cupnet.field import outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import component_moments, ray_landmarks
 from cupnet.outline import outline_distances, over_dome, sphere_outline
+from cupnet.parallel import map_on_cores
 from cupnet.polarity import metal_shows_bright
 from cupnet.pose import (
     PoseSolution,
@@ -305,7 +306,8 @@ class CupNet(nn.Module):
         :meth:`kept_blobs` keeps); with ``round_field``, those centred outside the image's
         round field are dropped."""
         # An image turned over (metal "bright") keeps its flat surround: no need to undo it.
-        fields = [round_field(image) if self.config.round_field else None for image in images]
+        fields = (map_on_cores(round_field, images) if self.config.round_field
+                  else [None] * len(images))
         rough, scores = self.ellipses_from_locator(*self.locate_windows(images, gamma), fields)
         retry = self.config.locator_retry_gamma
         empty = (~self.kept_blobs(rough, scores).any(-1)).nonzero()[:, 0]
@@ -339,17 +341,22 @@ class CupNet(nn.Module):
             largest components first; scores ``(B, C)`` (mean probability of the component).
         """
         cfg = self.config
+        if not isinstance(logits, Tensor) and len({m.shape for m in logits}) == 1:
+            logits = torch.stack(logits)  # per-image maps of one size: one copy, as a batch's
         # One copy from the device for a batch (one each for per-image maps).
         prob = (list(torch.sigmoid(logits.detach()).cpu().double().numpy()[:, 0])
                 if isinstance(logits, Tensor) else
                 [torch.sigmoid(m.detach()).cpu().double().numpy()[0] for m in logits])
         ellipses = torch.full((len(prob), cfg.max_cups, 5), math.nan, dtype=torch.float64)
         scores = torch.zeros(len(prob), cfg.max_cups, dtype=torch.float64)
-        moments, owner = [], []
-        for i, p in enumerate(prob):
+
+        def blobs(p: np.ndarray) -> tuple[np.ndarray, ...]:
             count, labels = cv2.connectedComponents((p > cfg.detect_threshold).astype(np.uint8))
-            moments.append(component_moments(p, labels, count))
-            owner += [i] * (count - 1)
+            return component_moments(p, labels, count)
+
+        # OpenCV and numpy release the GIL: a large batch's maps labelled on every core.
+        moments = map_on_cores(blobs, prob)
+        owner = [i for i, parts in enumerate(moments) for _ in range(len(parts[0]))]
         if not owner:
             return ellipses, scores
         # Every image's components at once: a few operations a batch, not a few per blob.

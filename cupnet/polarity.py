@@ -45,27 +45,51 @@ def metal_shows_bright(image: Tensor, ellipses: Tensor) -> bool | None:
     Returns:
         True (metal bright), False (metal dark), or None where there is no cup to judge by.
     """
-    ellipses = ellipses[torch.isfinite(ellipses).all(-1)].double()
-    if len(ellipses) == 0:
-        return None
-    plane = image.reshape(image.shape[-2:])
-    t = torch.arange(_SPOKES, dtype=torch.float64) * (2 * math.pi / _SPOKES)
+    bright, judged = metals_show_bright(image.reshape(1, *image.shape[-2:]), ellipses[None])
+    return bool(bright[0]) if bool(judged[0]) else None
 
-    def sample(rings: Tensor) -> Tensor:
-        """Intensities at ``rings`` ``(C, R, 5)`` ellipses' points, those inside the image."""
-        points = ellipse_points(rings, t).reshape(-1, 2).round().long()
-        inside = ((points >= 0) & (points < torch.tensor(plane.shape[::-1]))).all(-1)
-        return plane[points[inside, 1], points[inside, 0]]
 
-    scales = torch.tensor(_INSIDE_SCALES, dtype=torch.float64)[:, None]
-    within = ellipses[:, None].repeat(1, len(scales), 1)
+def metals_show_bright(images: Tensor, ellipses: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`metal_shows_bright` of a batch of images of one size, all at once on their
+    device.
+
+    Args:
+        images: ``(B, 1, H, W)`` or ``(B, H, W)``.
+        ellipses: ``(B, C, 5)`` (cx, cy, a, b, alpha_deg) image pixels; rows with NaN are
+            no cup.
+    Returns:
+        ``(B,)`` bool each: whether the metal shows bright, and whether the image had a cup
+        to judge by (where not, bright is False).
+    """
+    planes = images.reshape(len(images), *images.shape[-2:])
+    height, width = planes.shape[-2:]
+    ellipses = ellipses.to(planes.device, torch.float64)
+    cup = torch.isfinite(ellipses).all(-1)  # (B, C)
+    ellipses = torch.where(cup[..., None], ellipses, 0.0)
+    t = torch.arange(_SPOKES, dtype=torch.float64, device=planes.device) * (2 * math.pi
+                                                                           / _SPOKES)
+
+    def median(rings: Tensor) -> Tensor:
+        """Median intensity ``(B,)`` at ``rings`` ``(B, C, R, 5)`` ellipses' points inside
+        the image (NaN where none is)."""
+        points = ellipse_points(rings, t).round()  # (B, C, R, S, 2)
+        inside = ((points >= 0).all(-1) & (points[..., 0] < width) & (points[..., 1] < height)
+                  & cup[:, :, None, None])
+        u = points[..., 0].clamp(0, width - 1).long()
+        v = points[..., 1].clamp(0, height - 1).long()
+        values = planes.flatten(1).gather(1, (v * width + u).flatten(1))
+        return torch.where(inside.flatten(1), values, math.nan).nanmedian(1).values
+
+    scales = torch.tensor(_INSIDE_SCALES, dtype=torch.float64, device=planes.device)[:, None]
+    within = ellipses[:, :, None].repeat(1, 1, len(scales), 1)
     within[..., 2:4] *= scales
-    circles = ellipses[:, None].repeat(1, len(_AROUND_SCALES), 1)
-    radii = ellipses[:, None, 2] * torch.tensor(_AROUND_SCALES, dtype=torch.float64)
+    circles = ellipses[:, :, None].repeat(1, 1, len(_AROUND_SCALES), 1)
+    radii = ellipses[:, :, None, 2] * torch.tensor(_AROUND_SCALES, dtype=torch.float64,
+                                                   device=planes.device)
     circles[..., 2], circles[..., 3] = radii, radii
-    inner, outer = sample(within), sample(circles)
-    if len(inner) == 0 or len(outer) == 0:
-        return None
-    low, high = torch.quantile(plane[::4, ::4].flatten().double(),
-                               torch.tensor([0.05, 0.95], dtype=torch.float64))
-    return bool(inner.median() - outer.median() > _MARGIN * (high - low))
+    inner, outer = median(within), median(circles)
+    judged = inner.isfinite() & outer.isfinite()
+    low, high = torch.quantile(planes[:, ::4, ::4].flatten(1).double(),
+                               torch.tensor([0.05, 0.95], dtype=torch.float64,
+                                            device=planes.device), dim=1)
+    return judged & (inner - outer > _MARGIN * (high - low)), judged

@@ -17,6 +17,7 @@ import torch
 
 from benchmarks.model import samples
 from benchmarks.throughput import stacked
+from cupnet.batched import batched_cups
 from cupnet.fold import fold_batchnorm
 from cupnet.model import load_model
 from cupnet.offload import networks_on
@@ -74,3 +75,19 @@ def test_batched_forward_on_the_device_matches_the_cpu_and_backpropagates(
     out.solution.pose.nan_to_num().sum().backward()
     first = next(model.rim.parameters()).grad
     assert first is not None and torch.isfinite(first).all() and first.abs().sum() > 0
+
+
+def test_batched_cups_on_the_device_match_the_cpu(drrs: list[dict]) -> None:
+    """:func:`cupnet.batched.batched_cups` with the model and images on the device: the
+    CPU's cups, with their poses."""
+    model = fold_batchnorm(load_model())
+    images, geometry, diameter = stacked(drrs, torch.device("cpu"))
+    expected = batched_cups(model, images, geometry, diameter)
+    found = batched_cups(model.to(DEVICE), *stacked(drrs, DEVICE))
+    assert found.pose.device.type == DEVICE.type
+    assert torch.equal(found.cup_index.cpu(), expected.cup_index)
+    assert torch.equal(found.valid.cpu(), expected.valid)
+    assert int(expected.valid.sum()) >= len(drrs) - 1
+    ok = expected.valid.numpy()
+    np.testing.assert_array_less(np.abs(found.pose.cpu().numpy() - expected.pose.numpy())[ok],
+                                 np.broadcast_to(POSE_TOLERANCE, (int(ok.sum()), 5)))

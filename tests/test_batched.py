@@ -1,0 +1,55 @@
+"""``cupnet.batched.batched_cups`` against ``CupNet.detect`` following the same landmark sources."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks.model import samples
+from benchmarks.throughput import stacked
+from cupnet.batched import batched_cups
+from cupnet.config import apply_speed_preset
+from cupnet.fold import fold_batchnorm
+from cupnet.geometry import Geometry
+from cupnet.model import load_model
+
+
+@pytest.fixture(scope="module")
+def drrs() -> list[dict]:
+    """Twelve 512 px DRRs with the CT background, as the throughput benchmark's."""
+    return samples("configs/synth_speed.yaml", 31_337, 12)
+
+
+def test_batched_cups_are_detects_with_the_same_sources(drrs: list[dict]) -> None:
+    """``detect`` with the ``fastest`` preset and no grown-rim source tries the same
+    sources in the same order (the fine rim stage from the refiner's fit, framed on the
+    coarse stage's fit, the refiner's landmarks), one cup at a time: the same cups and
+    poses, where it has one."""
+    model = fold_batchnorm(load_model())
+    model.config = apply_speed_preset(copy.copy(model.config), "fastest")
+    model.config.grown_rim_scale = None
+    images, geometry, diameter = stacked(drrs, torch.device("cpu"))
+    found = batched_cups(model, images, geometry, diameter)
+    detected = model.detect(images, geometry, diameter, return_masks=False)
+    owner = found.cup_index[:, 0].numpy()
+    assert len(owner) >= 10  # most DRRs hold a cup the locator finds
+    for image, cups in enumerate(detected):
+        ours = found.pose[owner == image].numpy()
+        assert len(ours) == len(cups)
+        for pose, cup in zip(ours, cups, strict=True):
+            if np.isfinite(cup.pose).all():
+                np.testing.assert_allclose(pose, cup.pose, atol=1e-6)
+    assert found.valid.float().mean() >= 0.9
+
+
+def test_batched_cups_of_an_image_without_a_cup_and_of_bad_input() -> None:
+    model = fold_batchnorm(load_model())
+    blank = torch.full((1, 1, 256, 256), 0.5)
+    geometry = Geometry.from_rows(torch.tensor([[1000.0, 0.3, 128.0, 128.0]]))
+    found = batched_cups(model, blank, geometry, torch.tensor([50.0]))
+    assert found.cup_index.shape == (0, 2) and found.pose.shape == (0, 5)
+    with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
+        batched_cups(model, blank[0], geometry, torch.tensor([50.0]))
