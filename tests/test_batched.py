@@ -53,3 +53,18 @@ def test_batched_cups_of_an_image_without_a_cup_and_of_bad_input() -> None:
     assert found.cup_index.shape == (0, 2) and found.pose.shape == (0, 5)
     with pytest.raises(ValueError, match=r"\(B, 1, H, W\)"):
         batched_cups(model, blank[0], geometry, torch.tensor([50.0]))
+
+
+def test_batched_cups_turn_images_the_config_says_show_the_metal_bright(
+        drrs: list[dict]) -> None:
+    """``metal: bright`` on the images turned over gives what ``metal: dark`` gives on them
+    as they are (the networks see the same pixels, but for 1 - (1 - x)'s float rounding)."""
+    model = fold_batchnorm(load_model())
+    images, geometry, diameter = stacked(drrs[:4], torch.device("cpu"))
+    model.config = copy.copy(model.config)
+    model.config.metal = "dark"
+    expected = batched_cups(model, images, geometry, diameter)
+    model.config.metal = "bright"
+    found = batched_cups(model, 1 - images, geometry, diameter)
+    assert torch.equal(found.cup_index, expected.cup_index) and len(found.cup_index) >= 3
+    torch.testing.assert_close(found.pose, expected.pose, atol=1e-3, rtol=0, equal_nan=True)
