@@ -1,18 +1,18 @@
 """The first landmark sources of :meth:`CupNet.detect`, for a whole batch at once.
 
 ``detect`` follows each cup through its fallbacks, outline refinement and verification, with
-the geometry on the CPU between network calls: accurate, and about 10 images a second on a
-GPU. :func:`batched_cups` keeps the part of it that runs with a fixed structure, every cup
-of a batch at once on the model's device (a few sync points a batch, none per cup), for
-throughput on a GPU:
+the geometry on the CPU between network calls: accurate, and 5-10 images a second on a GPU.
+:func:`batched_cups` keeps the part of it that runs with a fixed structure, every cup of a
+batch at once on the model's device (a few sync points a stage, none per cup; the round
+fields and locator blobs on the CPU's cores), for throughput on a GPU:
 
 1. the locator with its retry and round field (:meth:`CupNet.rough_ellipses`), the blobs
    :meth:`CupNet.kept_blobs` keeps;
 2. ``refine_passes`` refiner passes, each re-framed on the last pass's fit;
-3. the fine rim stage from the refiner's fit, with the thin-rim hypotheses where the model
-   has them (:meth:`CupNet.trusted_rim_landmarks`), solved with the ML refinement;
-4. for the cups with no pose within ``max_theta_deg``: the fine stage framed on the coarse
-   stage's fit, then the refiner's own landmarks, as ``detect`` tries them.
+3. ``detect``'s landmark sources in its order (:meth:`CupNet.rim_sources`), each solved with
+   the ML refinement on the cups still without a pose within ``max_theta_deg``: the fine
+   rim stage from the refiner's fit, framed on the coarse stage's fit, the refiner's own
+   landmarks, the thin-rim hypotheses; each cup keeps the pose ``detect`` would pick.
 
 The metal's display is judged per image as ``detect`` judges it (``metal: auto``,
 :func:`cupnet.polarity.metals_show_bright`). No outline refinement, verification, search or
@@ -23,6 +23,7 @@ throughput`); its grown-rim source made it no better (64 DRRs, session 30: theta
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -62,8 +63,8 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
     Returns:
         :class:`BatchedCups`, on the images' device.
     """
-    if images.ndim != 4:
-        raise ValueError(f"images must be (B, 1, H, W), got {tuple(images.shape)}")
+    if images.ndim != 4 or len(images) == 0:
+        raise ValueError(f"images must be (B, 1, H, W) with B >= 1, got {tuple(images.shape)}")
     cfg = model.config
     if cfg.metal == "bright":
         images = 1 - images
@@ -71,39 +72,42 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
     if cfg.metal == "auto":  # as detect judges each image, after the locator
         bright = metals_show_bright(images, rough)[0]
         images = torch.where(bright[:, None, None, None], 1 - images, images)
-    image_list = list(images)
+    # The batch as one tensor, not a list: off the CPU its crops and strips are then
+    # sampled all at once (on the CPU the stages loop over views either way).
     cup_index = model.kept_blobs(rough, scores).nonzero().to(images.device)
     index = cup_index[:, 0]
     frames = model.frames(model.first_pass_ellipses(
         rough.to(images.device)[index, cup_index[:, 1]]))
     for _ in range(cfg.refine_passes - 1):
         frames = model.frames(model.refiner_fit(
-            *model.crop_landmarks(*model.segment_crops(image_list, frames, index)), frames))
+            *model.crop_landmarks(*model.segment_crops(images, frames, index)), frames))
     refiner_points, refiner_weights = model.crop_landmarks(
-        *model.segment_crops(image_list, frames, index))
-    if model.rim is None:
-        solution = model.solve(refiner_points, refiner_weights, geometry, cup_diameter,
-                               cup_index, len(images), True)
-        return BatchedCups(cup_index, solution.pose, solution.ellipse, solution.valid)
-    start = model.refiner_fit(refiner_points, refiner_weights, frames)
-    solution = model.solve(*model.trusted_rim_landmarks(image_list, index, start), geometry,
-                           cup_diameter, cup_index, len(images), True)
-    pose, ellipse, valid = solution.pose, solution.ellipse, solution.valid
-    fallbacks = [lambda todo: (refiner_points[todo], refiner_weights[todo])]
-    if model.coarse_rim is not None:
-        fallbacks.insert(0, lambda todo: model.coarse_framed_rim_landmarks(
-            image_list, index[todo], start[todo])[:2])
-    for landmarks in fallbacks:
+        *model.segment_crops(images, frames, index))
+
+    def refiner(todo: Tensor) -> tuple[Tensor, Tensor]:
+        return refiner_points[todo], refiner_weights[todo]
+
+    sources = [refiner]
+    if model.rim is not None:
+        start = model.refiner_fit(refiner_points, refiner_weights, frames)
+        sources = model.rim_sources(images, index, start, refiner)
+    count = len(cup_index)
+    pose = torch.full((count, 5), math.nan, dtype=torch.float64, device=images.device)
+    ellipse = pose.clone()
+    valid = torch.zeros(count, dtype=torch.bool, device=images.device)
+    for source in sources:
         todo = (~(valid & model.in_theta_range(pose))).nonzero()[:, 0]
         if len(todo) == 0:
             break
-        again = model.solve(*landmarks(todo), geometry, cup_diameter, cup_index[todo],
-                            len(images), True)
-        # Taken within range, as detect takes a source's pose; out of range only by a cup
-        # with no pose yet (detect's fallback: the first pose found).
-        took = again.valid & (model.in_theta_range(again.pose) | ~valid[todo])
+        again = model.solve(*source(todo), geometry, cup_diameter, cup_index[todo],
+                            len(images), refine=True)
+        # As detect picks: a pose in range; else the first pose found; else the refiner's
+        # failure (its ellipse is the one its mask shows).
+        unsolved = ~valid[todo]
+        took = again.valid & (model.in_theta_range(again.pose) | unsolved)
+        if source is refiner:
+            took |= unsolved
         rows = todo[took]
-        pose, ellipse, valid = pose.clone(), ellipse.clone(), valid.clone()
         pose[rows], ellipse[rows], valid[rows] = (again.pose[took], again.ellipse[took],
                                                   again.valid[took])
     return BatchedCups(cup_index, pose, ellipse, valid)

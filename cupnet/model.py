@@ -306,7 +306,7 @@ class CupNet(nn.Module):
         :meth:`kept_blobs` keeps); with ``round_field``, those centred outside the image's
         round field are dropped."""
         # An image turned over (metal "bright") keeps its flat surround: no need to undo it.
-        fields = (map_on_cores(round_field, images) if self.config.round_field
+        fields = (map_on_cores(round_field, _on_cpu(images)) if self.config.round_field
                   else [None] * len(images))
         rough, scores = self.ellipses_from_locator(*self.locate_windows(images, gamma), fields)
         retry = self.config.locator_retry_gamma
@@ -341,12 +341,9 @@ class CupNet(nn.Module):
             largest components first; scores ``(B, C)`` (mean probability of the component).
         """
         cfg = self.config
-        if not isinstance(logits, Tensor) and len({m.shape for m in logits}) == 1:
-            logits = torch.stack(logits)  # per-image maps of one size: one copy, as a batch's
-        # One copy from the device for a batch (one each for per-image maps).
-        prob = (list(torch.sigmoid(logits.detach()).cpu().double().numpy()[:, 0])
-                if isinstance(logits, Tensor) else
-                [torch.sigmoid(m.detach()).cpu().double().numpy()[0] for m in logits])
+        maps = (torch.sigmoid(logits.detach()) if isinstance(logits, Tensor)
+                else [torch.sigmoid(m.detach()) for m in logits])
+        prob = [m.double().numpy()[0] for m in _on_cpu(list(maps))]
         ellipses = torch.full((len(prob), cfg.max_cups, 5), math.nan, dtype=torch.float64)
         scores = torch.zeros(len(prob), cfg.max_cups, dtype=torch.float64)
 
@@ -354,7 +351,7 @@ class CupNet(nn.Module):
             count, labels = cv2.connectedComponents((p > cfg.detect_threshold).astype(np.uint8))
             return component_moments(p, labels, count)
 
-        # OpenCV and numpy release the GIL: a large batch's maps labelled on every core.
+        # OpenCV releases the GIL: a large batch's maps labelled on every core.
         moments = map_on_cores(blobs, prob)
         owner = [i for i, parts in enumerate(moments) for _ in range(len(parts[0]))]
         if not owner:
@@ -698,13 +695,9 @@ class CupNet(nn.Module):
             start = self.refiner_fit(crop_points, crop_weights, frames)
 
             def run(method: Callable) -> _Source:
-                return lambda todo: method(image_list, index[todo], start[todo])[:2]
+                return _source_from(method, image_list, index, start)
 
-            alternatives = self.rim_alternatives()
-            sources = [run(self.trusted_rim_landmarks),
-                       *[run(alt.landmarks) for alt in alternatives if not alt.after_refiner],
-                       refiner,
-                       *[run(alt.landmarks) for alt in alternatives if alt.after_refiner]]
+            sources = self.rim_sources(image_list, index, start, refiner)
             grown = []
             if self.coarse_rim is not None and self.config.grown_rim_scale is not None:
                 grown = [self._grown_rim_source(image_list, geometry, diameter, cup_index,
@@ -1397,7 +1390,29 @@ class CupNet(nn.Module):
                                                cfg.thin_rim_margin, after_refiner=True))
         return alternatives
 
-    def trusted_rim_landmarks(self, images: list[Tensor], index: Tensor, start: Tensor
+    def rim_sources(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor,
+                    refiner: _Source) -> list[_Source]:
+        """:meth:`detect`'s landmark sources of a model with a rim stage, in the order it
+        tries them on the cups still without a pose in range: the fine rim stage from the
+        refiner's ellipses ``start`` ``(K, 5)`` (:meth:`trusted_rim_landmarks`), the
+        :meth:`rim_alternatives` tried before the refiner's own landmarks (``refiner``),
+        those, and the alternatives tried after them (not the grown-rim source).
+
+        Args:
+            images: the batch's images; index: ``(K,)`` image of each cup.
+        Returns:
+            each a function: cups ``(k,)`` -> their landmarks ``(k, n, 2)`` px and weights
+            ``(k, n)``.
+        """
+        alternatives = self.rim_alternatives()
+        return [_source_from(self.trusted_rim_landmarks, images, index, start),
+                *[_source_from(alt.landmarks, images, index, start)
+                  for alt in alternatives if not alt.after_refiner],
+                refiner,
+                *[_source_from(alt.landmarks, images, index, start)
+                  for alt in alternatives if alt.after_refiner]]
+
+    def trusted_rim_landmarks(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor
                               ) -> tuple[Tensor, Tensor]:
         """The fine rim stage's landmarks ``(K, n, 2)`` and weights ``(K, n)`` from the
         refiner's ellipses ``start`` ``(K, 5)``; where their mean ``log sigma`` exceeds
@@ -1423,6 +1438,23 @@ class CupNet(nn.Module):
             landmarks[rows], weights[rows] = rim.landmarks[better], rim.weights[better]
             doubt[rows] = rim_doubt[better]
         return landmarks, weights
+
+
+def _on_cpu(images: list[Tensor]) -> list[Tensor]:
+    """``images`` (any shapes) on the CPU, copied in this thread (so after the work queued
+    before on its stream), in one copy where they share a shape."""
+    if not images or images[0].device.type == "cpu":
+        return list(images)
+    if all(image.shape == images[0].shape for image in images):
+        return list(torch.stack(images).cpu())
+    return [image.cpu() for image in images]
+
+
+def _source_from(method: Callable, images: list[Tensor] | Tensor, index: Tensor, start: Tensor
+                 ) -> _Source:
+    """A landmark source: cups ``todo`` ``(k,)`` -> the landmarks and weights ``method``
+    (images, their indices, start ellipses) gives from their ``start`` ``(K, 5)``."""
+    return lambda todo: method(images, index[todo], start[todo])[:2]
 
 
 def _frame_ellipse(frames: Tensor, config: CupNetConfig) -> Tensor:

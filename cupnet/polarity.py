@@ -63,6 +63,9 @@ def metals_show_bright(images: Tensor, ellipses: Tensor) -> tuple[Tensor, Tensor
     """
     planes = images.reshape(len(images), *images.shape[-2:])
     height, width = planes.shape[-2:]
+    if len(planes) == 0 or ellipses.shape[1] == 0:  # no image, or no cup in any
+        unjudged = torch.zeros(len(planes), dtype=torch.bool, device=planes.device)
+        return unjudged, unjudged
     ellipses = ellipses.to(planes.device, torch.float64)
     cup = torch.isfinite(ellipses).all(-1)  # (B, C)
     ellipses = torch.where(cup[..., None], ellipses, 0.0)

@@ -23,25 +23,30 @@ def drrs() -> list[dict]:
     return samples("configs/synth_speed.yaml", 31_337, 12)
 
 
-def test_batched_cups_are_detects_with_the_same_sources(drrs: list[dict]) -> None:
-    """``detect`` with the ``fastest`` preset and no grown-rim source tries the same
-    sources in the same order (the fine rim stage from the refiner's fit, framed on the
-    coarse stage's fit, the refiner's landmarks), one cup at a time: the same cups and
-    poses, where it has one."""
+@pytest.mark.parametrize("thin_rims", [False, True])
+def test_batched_cups_are_detects_with_the_same_sources(drrs: list[dict], thin_rims: bool
+                                                        ) -> None:
+    """``detect`` with the ``fastest`` preset and no grown-rim source (with the shipped
+    thin-rim hypotheses or without) tries the same sources in the same order, one cup at
+    a time: the same cups, poses and ellipses (a failed cup's the refiner's)."""
     model = fold_batchnorm(load_model())
-    model.config = apply_speed_preset(copy.copy(model.config), "fastest")
+    shipped = model.config
+    model.config = apply_speed_preset(copy.copy(shipped), "fastest")
     model.config.grown_rim_scale = None
+    if thin_rims:
+        model.config.thin_rim_gate = shipped.thin_rim_gate
     images, geometry, diameter = stacked(drrs, torch.device("cpu"))
     found = batched_cups(model, images, geometry, diameter)
     detected = model.detect(images, geometry, diameter, return_masks=False)
     owner = found.cup_index[:, 0].numpy()
     assert len(owner) >= 10  # most DRRs hold a cup the locator finds
     for image, cups in enumerate(detected):
-        ours = found.pose[owner == image].numpy()
-        assert len(ours) == len(cups)
-        for pose, cup in zip(ours, cups, strict=True):
-            if np.isfinite(cup.pose).all():
-                np.testing.assert_allclose(pose, cup.pose, atol=1e-6)
+        rows = np.flatnonzero(owner == image)
+        assert len(rows) == len(cups)
+        for row, cup in zip(rows, cups, strict=True):
+            np.testing.assert_allclose(found.pose[row].numpy(), cup.pose, atol=1e-6)
+            np.testing.assert_allclose(found.ellipse[row].numpy(), cup.ellipse, atol=1e-6)
+            assert bool(found.valid[row]) == np.isfinite(cup.pose).all()
     assert found.valid.float().mean() >= 0.9
 
 

@@ -11,7 +11,7 @@ import torch
 from cupnet.config import TARGET_ACCURACY, CupNetConfig
 from cupnet.geometry import Geometry
 from cupnet.model import load_model
-from cupnet.polarity import metal_shows_bright
+from cupnet.polarity import metal_shows_bright, metals_show_bright
 from data_synth import SynthConfig, synthesize
 
 ELLIPSE = torch.tensor([[60.0, 50.0, 20.0, 12.0, 30.0]], dtype=torch.float64)
@@ -44,6 +44,19 @@ def test_no_cup_to_judge_by_gives_none():
     # A NaN row beside a cup: the cup decides.
     both = torch.cat([ELLIPSE, torch.full((1, 5), math.nan, dtype=torch.float64)])
     assert metal_shows_bright(image, both) is True
+    assert metal_shows_bright(image, torch.zeros(0, 5, dtype=torch.float64)) is None
+
+
+def test_a_batch_is_judged_image_by_image():
+    """:func:`metals_show_bright` of a batch: each image's own verdict, an image without a
+    cup unjudged (and not bright), a batch of none empty."""
+    images = torch.stack([disc_image(0.1, 0.7), disc_image(0.9, 0.3), disc_image(0.9, 0.3)])
+    ellipses = torch.stack([ELLIPSE, ELLIPSE, torch.full((1, 5), math.nan,
+                                                         dtype=torch.float64)])
+    bright, judged = metals_show_bright(images, ellipses)
+    assert bright.tolist() == [False, True, False] and judged.tolist() == [True, True, False]
+    bright, judged = metals_show_bright(images[:0], ellipses[:0])
+    assert bright.shape == judged.shape == (0,)
 
 
 def test_an_unknown_metal_display_is_named_with_the_choices():
