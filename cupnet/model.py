@@ -284,6 +284,8 @@ class CupNet(nn.Module):
         affines = torch.cat([affine for affine, _ in windows]).to(images[0])
         index = torch.cat([torch.full((len(place),), i) for i, (_, place) in enumerate(windows)])
         logits = self.locator_logits(resample_batch(images, affines, size, index), gamma)
+        if len(logits) == len(images):  # one window an image (square ones): nothing to merge
+            return list(logits), affines
         merged = []
         for i, (_, place) in enumerate(windows):
             views = logits[index == i]
