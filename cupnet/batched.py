@@ -72,12 +72,12 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
     if cfg.metal == "auto":  # as detect judges each image, after the locator
         bright = metals_show_bright(images, rough)[0]
         images = torch.where(bright[:, None, None, None], 1 - images, images)
-    # The batch as one tensor, not a list: off the CPU its crops and strips are then
-    # sampled all at once (on the CPU the stages loop over views either way).
     cup_index = model.kept_blobs(rough, scores).nonzero().to(images.device)
     index = cup_index[:, 0]
     frames = model.frames(model.first_pass_ellipses(
         rough.to(images.device)[index, cup_index[:, 1]]))
+    # The stages take the batch as one tensor, not a list: off the CPU its crops and strips
+    # are then sampled all at once (on the CPU they loop over views either way).
     for _ in range(cfg.refine_passes - 1):
         frames = model.frames(model.refiner_fit(
             *model.crop_landmarks(*model.segment_crops(images, frames, index)), frames))
