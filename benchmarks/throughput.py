@@ -35,6 +35,7 @@ import copy
 import time
 from collections.abc import Callable
 from contextlib import nullcontext
+from functools import partial
 from types import SimpleNamespace
 
 import numpy as np
@@ -91,7 +92,8 @@ def forward_cups(model: CupNet, images: torch.Tensor, geometry: Geometry,
 
 # The batched pipelines: name in the table -> images, geometry, diameters -> cups.
 BATCHED = {"batched (`CupNet.forward`)": forward_cups,
-           "batched (`batched_cups`)": batched_cups}
+           "batched (`batched_cups`)": batched_cups,
+           "batched (`batched_cups`, outline)": partial(batched_cups, outline=True)}
 
 
 def batched_detections(pipeline: Callable[..., BatchedCups], model: CupNet, data: list[dict],

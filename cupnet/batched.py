@@ -14,11 +14,14 @@ fields and locator blobs on the CPU's cores), for throughput on a GPU:
    rim stage from the refiner's fit, framed on the coarse stage's fit, the refiner's own
    landmarks, the thin-rim hypotheses; each cup keeps the pose ``detect`` would pick.
 
+With ``outline=True``, 4. ``detect``'s outline stage (:func:`outlined`): each solved pose
+refined with the dome's outline, each ambiguous pair ordered by the rim network's doubt.
+
 The metal's display is judged per image as ``detect`` judges it (``metal: auto``,
-:func:`cupnet.polarity.metals_show_bright`). No outline refinement, verification, search or
-later looks, so it is less accurate than ``detect`` (docs/benchmarks.md, `CupNet
-throughput`); its grown-rim source made it no better (64 DRRs, session 30: theta MAE 3.48 ->
-3.51 deg) and is left out.
+:func:`cupnet.polarity.metals_show_bright`). No verification, search or later looks, so it
+is less accurate than ``detect`` (docs/benchmarks.md, `CupNet throughput`); ``detect``'s
+grown-rim source made it no better (64 DRRs, session 30: theta MAE 3.48 -> 3.51 deg) and is
+left out.
 """
 
 from __future__ import annotations
@@ -30,8 +33,9 @@ import torch
 from torch import Tensor
 
 from cupnet.geometry import Geometry
-from cupnet.model import CupNet
+from cupnet.model import CupNet, geometry_rows
 from cupnet.polarity import metals_show_bright
+from cupnet.pose import PoseSolution, ellipse_of_pose
 
 
 class BatchedCups(NamedTuple):
@@ -51,8 +55,8 @@ class BatchedCups(NamedTuple):
 
 
 @torch.inference_mode()
-def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter: Tensor
-                 ) -> BatchedCups:
+def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter: Tensor,
+                 outline: bool = False) -> BatchedCups:
     """Cups of a batch of images, every stage on all of them at once (module docstring).
 
     Args:
@@ -60,6 +64,8 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
         images: ``(B, 1, H, W)`` float32 in [0, 1].
         geometry: fields ``(B,)`` or scalars, principal point in image pixels.
         cup_diameter: ``(B,)`` mm.
+        outline: refine the solved poses with the dome's outline and order each ambiguous
+            pair by the rim network's doubt, as ``detect`` does (:func:`outlined`).
     Returns:
         :class:`BatchedCups`, on the images' device.
     """
@@ -91,23 +97,96 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
     if model.rim is not None:
         start = model.refiner_fit(refiner_points, refiner_weights, frames)
         sources = model.rim_sources(images, index, start, refiner)
-    count = len(cup_index)
-    pose = torch.full((count, 5), math.nan, dtype=torch.float64, device=images.device)
-    ellipse = pose.clone()
-    valid = torch.zeros(count, dtype=torch.bool, device=images.device)
+    picks = _Picks.empty(len(cup_index), images.device)
     for source in sources:
-        todo = (~(valid & model.in_theta_range(pose))).nonzero()[:, 0]
+        todo = (~(picks.valid & model.in_theta_range(picks.pose))).nonzero()[:, 0]
         if len(todo) == 0:
             break
-        again = model.solve(*source(todo), geometry, cup_diameter, cup_index[todo],
+        points, weights = source(todo)
+        again = model.solve(points, weights, geometry, cup_diameter, cup_index[todo],
                             len(images), refine=True)
         # As detect picks: a pose in range; else the first pose found; else the refiner's
         # failure (its ellipse is the one its mask shows).
-        unsolved = ~valid[todo]
+        unsolved = ~picks.valid[todo]
         took = again.valid & (model.in_theta_range(again.pose) | unsolved)
         if source is refiner:
             took |= unsolved
-        rows = todo[took]
-        pose[rows], ellipse[rows], valid[rows] = (again.pose[took], again.ellipse[took],
-                                                  again.valid[took])
-    return BatchedCups(cup_index, pose, ellipse, valid)
+        picks.take(todo[took], again, took, points[took], weights[took])
+    if outline and model.rim is not None and cfg.outline_passes:
+        outlined(model, images, index, picks, geometry, cup_diameter)
+    return BatchedCups(cup_index, picks.pose, picks.ellipse, picks.valid)
+
+
+class _Picks:
+    """Each cup's pick of :func:`batched_cups` so far: pose, ellipse, validity, and what
+    :func:`outlined` refines from (the landmarks, weights and residual it was solved from,
+    whether ambiguous, the second pose)."""
+
+    def __init__(self, pose: Tensor, valid: Tensor) -> None:
+        self.pose, self.ellipse, self.alt_pose = pose, pose.clone(), pose.clone()
+        self.residual = pose[:, 0].clone()
+        self.valid, self.ambiguous = valid, valid.clone()
+        self.landmarks: list[tuple[Tensor, Tensor, Tensor]] = []  # (rows, points, weights)
+
+    @classmethod
+    def empty(cls, count: int, device: torch.device) -> _Picks:
+        return cls(torch.full((count, 5), math.nan, dtype=torch.float64, device=device),
+                   torch.zeros(count, dtype=torch.bool, device=device))
+
+    def take(self, rows: Tensor, solution: PoseSolution, took: Tensor, points: Tensor,
+             weights: Tensor) -> None:
+        """The cups ``rows`` take the ``took`` rows of ``solution``, solved from ``points``
+        ``(k, n, 2)`` px and ``weights`` ``(k, n)`` (already those rows)."""
+        self.pose[rows], self.ellipse[rows] = solution.pose[took], solution.ellipse[took]
+        self.valid[rows], self.ambiguous[rows] = solution.valid[took], solution.ambiguous[took]
+        self.alt_pose[rows] = solution.alt_pose[took]
+        self.residual[rows] = solution.residual_px[took]
+        self.landmarks.append((rows, points, weights))
+
+    def padded_landmarks(self) -> tuple[Tensor, Tensor]:
+        """Each cup's landmarks ``(K, N, 2)`` px and weights ``(K, N)``, the sources' sets
+        zero-padded to the largest (as ``detect`` pads them), the last taken winning."""
+        width = max((points.shape[1] for _, points, _ in self.landmarks), default=0)
+        points = self.pose.new_zeros(len(self.pose), width, 2)
+        weights = self.pose.new_zeros(len(self.pose), width)
+        for rows, found, found_weights in self.landmarks:
+            points[rows, :found.shape[1]] = found.to(points)
+            weights[rows, :found.shape[1]] = found_weights.to(weights)
+        return points, weights
+
+
+def outlined(model: CupNet, images: Tensor, index: Tensor, picks: _Picks, geometry: Geometry,
+             cup_diameter: Tensor) -> None:
+    """``detect``'s outline stage on every solved cup at once, in place in ``picks``: each
+    pose, and an ambiguous cup's second pose, refined with the dome's outline
+    (:meth:`CupNet.outline_refined`); with ``ambiguous_by_doubt``, each pair ordered by
+    :meth:`CupNet.pose_doubt`; each solved cup's ellipse the rim of its refined pose.
+
+    Args:
+        images: ``(B, 1, H, W)``; index: ``(K,)`` image of each cup.
+        geometry: fields ``(B,)`` or scalars; cup_diameter: ``(B,)`` mm.
+    """
+    batch = len(images)
+    rows = geometry_rows(geometry, batch).to(images.device)
+    diameter = torch.as_tensor(cup_diameter, dtype=torch.float64,
+                               device=images.device).expand(batch)
+    solved = picks.valid.nonzero()[:, 0]
+    if len(solved) == 0:
+        return
+    paired = solved[picks.ambiguous[solved]]
+    cups = torch.cat([solved, paired])
+    points, weights = picks.padded_landmarks()
+    refined = model.outline_refined(
+        images, index[cups], torch.cat([picks.pose[solved], picks.alt_pose[paired]]),
+        points[cups], weights[cups], picks.residual[cups], rows[index[cups]],
+        diameter[index[cups]])
+    picks.pose[solved], picks.alt_pose[paired] = refined[:len(solved)], refined[len(solved):]
+    pairs = paired[torch.isfinite(picks.alt_pose[paired]).all(-1)]
+    if model.config.ambiguous_by_doubt and len(pairs):
+        both = torch.stack([picks.pose[pairs], picks.alt_pose[pairs]], 1).flatten(0, 1)
+        image = index[pairs].repeat_interleave(2)
+        doubt = model.pose_doubt(images, image, both, rows[image], diameter[image])
+        swap = pairs[doubt.reshape(-1, 2, 2).sum(-1).diff(dim=-1)[:, 0] < 0]
+        picks.pose[swap], picks.alt_pose[swap] = picks.alt_pose[swap], picks.pose[swap]
+    picks.ellipse[solved] = ellipse_of_pose(picks.pose[solved], diameter[index[solved]],
+                                            Geometry.from_rows(rows[index[solved]]))

@@ -1251,8 +1251,8 @@ class CupNet(nn.Module):
         radius = diameter.to(poses) / 2
         rim_weights = weights / residual.clamp_min(0.3)[:, None] ** 2
         pose = pose_to_radians(poses)
-        active = torch.ones(len(pose), dtype=torch.bool)
-        twin = torch.arange(len(pose))  # the row each row's refinement continues in
+        active = torch.ones(len(pose), dtype=torch.bool, device=pose.device)
+        twin = torch.arange(len(pose), device=pose.device)  # the row each row continues in
         for _ in range(cfg.outline_passes):
             rows = active.nonzero()[:, 0]
             if len(rows) == 0:
@@ -1477,7 +1477,7 @@ def _merge_twins(poses: Tensor, index: Tensor, active: Tensor, twin: Tensor) -> 
     continues in itself: made inactive, its ``twin`` that row (in place)."""
     near = ((poses[:, None] - poses[None]).abs() < poses.new_tensor(_OUTLINE_TWINS)).all(-1)
     near &= index[:, None] == index[None]
-    rows = torch.arange(len(poses))
+    rows = torch.arange(len(poses), device=poses.device)
     for row in active.nonzero()[:, 0].tolist():
         kept = near[row] & (twin == rows) & (rows != row) & ((rows < row) | ~active)
         if kept.any():
@@ -1492,9 +1492,12 @@ def _representatives(twin: Tensor) -> Tensor:
     return twin
 
 
-def _inside(points: Tensor, images: list[Tensor], index: Tensor) -> Tensor:
-    """``(K, n)``: which of ``points`` ``(K, n, 2)`` px lie inside their images ``index``."""
-    size = torch.tensor([images[int(i)].shape[-1:-3:-1] for i in index], dtype=points.dtype)
+def _inside(points: Tensor, images: list[Tensor] | Tensor, index: Tensor) -> Tensor:
+    """``(K, n)``: which of ``points`` ``(K, n, 2)`` px lie inside their images ``index``
+    (a ``(B, 1, H, W)`` batch's all share one size)."""
+    size = (points.new_tensor(images.shape[-1:-3:-1]).expand(len(index), 2)
+            if isinstance(images, Tensor) else
+            torch.tensor([images[int(i)].shape[-1:-3:-1] for i in index], dtype=points.dtype))
     return (points >= 0).all(-1) & (points <= size[:, None] - 1).all(-1)
 
 

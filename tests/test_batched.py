@@ -19,24 +19,35 @@ from cupnet.model import load_model
 
 @pytest.fixture(scope="module")
 def drrs() -> list[dict]:
-    """Twelve 512 px DRRs with the CT background, as the throughput benchmark's."""
-    return samples("configs/synth_speed.yaml", 31_337, 12)
+    """Twelve 512 px DRRs with the CT background, as the throughput benchmark's; three of
+    their cups are ambiguous pairs."""
+    return samples("configs/synth_speed.yaml", 777, 12)
 
 
-@pytest.mark.parametrize("thin_rims", [False, True])
-def test_batched_cups_are_detects_with_the_same_sources(drrs: list[dict], thin_rims: bool
-                                                        ) -> None:
-    """``detect`` with the ``fastest`` preset and no grown-rim source (with the shipped
-    thin-rim hypotheses or without) tries the same sources in the same order, one cup at
-    a time: the same cups, poses and ellipses (a failed cup's the refiner's)."""
+# detect's settings that try what batched_cups tries, one cup at a time: no grown-rim
+# source, verification, search or later looks (the fastest preset has none of the last
+# three, nor the outline; with outline=True the outline stage is compared too).
+SAME_SOURCES = {"grown_rim_scale": None, "second_look": False, "third_look_gamma": None,
+                "fourth_look_turned": False}
+
+
+@pytest.mark.parametrize(("preset", "thin_rims", "outline"),
+                         [("fastest", False, False), ("fastest", True, False),
+                          ("fast", True, True)])
+def test_batched_cups_are_detects_with_the_same_sources(
+        drrs: list[dict], preset: str, thin_rims: bool, outline: bool) -> None:
+    """``detect`` trying the same sources in the same order (with the shipped thin-rim
+    hypotheses or without; with the outline stage or without), one cup at a time: the
+    same cups, poses (an ambiguous pair's, ordered by doubt, too) and ellipses (a failed
+    cup's the refiner's)."""
     model = fold_batchnorm(load_model())
     shipped = model.config
-    model.config = apply_speed_preset(copy.copy(shipped), "fastest")
-    model.config.grown_rim_scale = None
-    if thin_rims:
-        model.config.thin_rim_gate = shipped.thin_rim_gate
+    model.config = apply_speed_preset(copy.copy(shipped), preset)
+    for name, value in SAME_SOURCES.items():
+        setattr(model.config, name, value)
+    model.config.thin_rim_gate = shipped.thin_rim_gate if thin_rims else None
     images, geometry, diameter = stacked(drrs, torch.device("cpu"))
-    found = batched_cups(model, images, geometry, diameter)
+    found = batched_cups(model, images, geometry, diameter, outline=outline)
     detected = model.detect(images, geometry, diameter, return_masks=False)
     owner = found.cup_index[:, 0].numpy()
     assert len(owner) >= 10  # most DRRs hold a cup the locator finds
@@ -48,6 +59,7 @@ def test_batched_cups_are_detects_with_the_same_sources(drrs: list[dict], thin_r
             np.testing.assert_allclose(found.ellipse[row].numpy(), cup.ellipse, atol=1e-6)
             assert bool(found.valid[row]) == np.isfinite(cup.pose).all()
     assert found.valid.float().mean() >= 0.9
+    assert sum(cup.ambiguous for cups in detected for cup in cups) >= 2
 
 
 def test_batched_cups_of_an_image_without_a_cup_and_of_bad_input() -> None:
@@ -72,4 +84,8 @@ def test_batched_cups_turn_images_the_config_says_show_the_metal_bright(
     model.config.metal = "bright"
     found = batched_cups(model, 1 - images, geometry, diameter)
     assert torch.equal(found.cup_index, expected.cup_index) and len(found.cup_index) >= 3
-    torch.testing.assert_close(found.pose, expected.pose, atol=1e-3, rtol=0, equal_nan=True)
+    # 1 - (1 - x) rounds x: a thin rim's h moves by a few tenths of a millimetre with it.
+    np.testing.assert_array_less(np.abs(found.pose - expected.pose).nan_to_num().numpy(),
+                                 np.broadcast_to([0.05, 0.05, 0.05, 0.05, 0.5],
+                                                 found.pose.shape))
+    assert torch.equal(found.valid, expected.valid)

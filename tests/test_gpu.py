@@ -77,13 +77,14 @@ def test_batched_forward_on_the_device_matches_the_cpu_and_backpropagates(
     assert first is not None and torch.isfinite(first).all() and first.abs().sum() > 0
 
 
-def test_batched_cups_on_the_device_match_the_cpu(drrs: list[dict]) -> None:
-    """:func:`cupnet.batched.batched_cups` with the model and images on the device: the
-    CPU's cups, with their poses."""
+@pytest.mark.parametrize("outline", [False, True])
+def test_batched_cups_on_the_device_match_the_cpu(drrs: list[dict], outline: bool) -> None:
+    """:func:`cupnet.batched.batched_cups` (with its outline stage or without) with the model
+    and images on the device: the CPU's cups, with their poses."""
     model = fold_batchnorm(load_model())
     images, geometry, diameter = stacked(drrs, torch.device("cpu"))
-    expected = batched_cups(model, images, geometry, diameter)
-    found = batched_cups(model.to(DEVICE), *stacked(drrs, DEVICE))
+    expected = batched_cups(model, images, geometry, diameter, outline=outline)
+    found = batched_cups(model.to(DEVICE), *stacked(drrs, DEVICE), outline=outline)
     assert found.pose.device.type == DEVICE.type
     assert torch.equal(found.cup_index.cpu(), expected.cup_index)
     assert torch.equal(found.valid.cpu(), expected.valid)
