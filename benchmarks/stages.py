@@ -37,7 +37,8 @@ from cupnet.offload import resolve_device
 STAGES: tuple[str | tuple[object, str], ...] = (
     "locate", "locate_windows", "rough_ellipses", "ellipses_from_locator", "segment_crops",
     "crop_landmarks", "refiner_fit", "trusted_rim_landmarks", "rim_landmarks",
-    "coarse_framed_rim_landmarks", "ranked_thin_rim_landmarks", "solve",
+    "coarse_framed_rim_landmarks", "ranked_thin_rim_landmarks", "solve", "outline_refined",
+    "pose_doubt",
     (cupnet.model, "map_on_cores"), (cupnet.batched, "metals_show_bright"))
 # What a row's stage does, where its name does not say it.
 NOTES = {"map_on_cores": " (each image's round field and locator blobs, on the CPU)"}
