@@ -87,7 +87,7 @@ def forward_cups(model: CupNet, images: torch.Tensor, geometry: Geometry,
     """The training path's cups: ``CupNet.forward`` with its solver's ML refinement."""
     out = model(images, geometry, diameter, refine_pose=True)
     return BatchedCups(out.cup_index, out.solution.pose, out.solution.ellipse,
-                       out.solution.valid)
+                       out.solution.valid, out.solution.alt_pose)
 
 
 # The batched pipelines: name in the table -> images, geometry, diameters -> cups.

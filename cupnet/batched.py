@@ -46,12 +46,15 @@ class BatchedCups(NamedTuple):
         pose: ``(K, 5)`` (theta_deg, phi_deg, k_mm, l_mm, h_mm), NaN where no source gave one.
         ellipse: ``(K, 5)`` (cx, cy, a, b, alpha_deg) original-image pixels.
         valid: ``(K,)`` bool, whether ``pose`` is a solved pose.
+        alt_pose: ``(K, 5)`` the second pose of an ambiguous cup (the same rim from the
+            other side), NaN for the others.
     """
 
     cup_index: Tensor
     pose: Tensor
     ellipse: Tensor
     valid: Tensor
+    alt_pose: Tensor
 
 
 @torch.inference_mode()
@@ -114,7 +117,8 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
         picks.take(todo[took], again, took, points[took], weights[took])
     if outline and model.rim is not None and cfg.outline_passes:
         outlined(model, images, index, picks, geometry, cup_diameter)
-    return BatchedCups(cup_index, picks.pose, picks.ellipse, picks.valid)
+    return BatchedCups(cup_index, picks.pose, picks.ellipse, picks.valid,
+                       torch.where(picks.ambiguous[:, None], picks.alt_pose, math.nan))
 
 
 class _Picks:

@@ -38,8 +38,8 @@ def test_batched_cups_are_detects_with_the_same_sources(
         drrs: list[dict], preset: str, thin_rims: bool, outline: bool) -> None:
     """``detect`` trying the same sources in the same order (with the shipped thin-rim
     hypotheses or without; with the outline stage or without), one cup at a time: the
-    same cups, poses (an ambiguous pair's, ordered by doubt, too) and ellipses (a failed
-    cup's the refiner's)."""
+    same cups, poses (an ambiguous cup's second pose too, the pair ordered by doubt with
+    the outline stage) and ellipses (a failed cup's the refiner's)."""
     model = fold_batchnorm(load_model())
     shipped = model.config
     model.config = apply_speed_preset(copy.copy(shipped), preset)
@@ -58,6 +58,8 @@ def test_batched_cups_are_detects_with_the_same_sources(
             np.testing.assert_allclose(found.pose[row].numpy(), cup.pose, atol=1e-6)
             np.testing.assert_allclose(found.ellipse[row].numpy(), cup.ellipse, atol=1e-6)
             assert bool(found.valid[row]) == np.isfinite(cup.pose).all()
+            second = cup.alt_pose if cup.ambiguous else np.full(5, np.nan)
+            np.testing.assert_allclose(found.alt_pose[row].numpy(), second, atol=1e-6)
     assert found.valid.float().mean() >= 0.9
     assert sum(cup.ambiguous for cups in detected for cup in cups) >= 2
 
