@@ -1477,12 +1477,18 @@ def _merge_twins(poses: Tensor, index: Tensor, active: Tensor, twin: Tensor) -> 
     continues in itself: made inactive, its ``twin`` that row (in place)."""
     near = ((poses[:, None] - poses[None]).abs() < poses.new_tensor(_OUTLINE_TWINS)).all(-1)
     near &= index[:, None] == index[None]
-    rows = torch.arange(len(poses), device=poses.device)
-    for row in active.nonzero()[:, 0].tolist():
-        kept = near[row] & (twin == rows) & (rows != row) & ((rows < row) | ~active)
+    # Row by row, each depending on the last: on the CPU (the same tensors there), not with
+    # a device sync a row.
+    near, on_cpu_active, on_cpu_twin = near.cpu(), active.cpu(), twin.cpu()
+    rows = torch.arange(len(poses))
+    for row in on_cpu_active.nonzero()[:, 0].tolist():
+        kept = (near[row] & (on_cpu_twin == rows) & (rows != row)
+                & ((rows < row) | ~on_cpu_active))
         if kept.any():
-            twin[row] = int(kept.nonzero()[0, 0])
-            active[row] = False
+            on_cpu_twin[row] = int(kept.nonzero()[0, 0])
+            on_cpu_active[row] = False
+    active.copy_(on_cpu_active)
+    twin.copy_(on_cpu_twin)
 
 
 def _representatives(twin: Tensor) -> Tensor:
