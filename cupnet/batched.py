@@ -117,8 +117,7 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
         picks.take(todo[took], again, took, points[took], weights[took])
     if outline and model.rim is not None and cfg.outline_passes:
         outlined(model, images, index, picks, geometry, cup_diameter)
-    return BatchedCups(cup_index, picks.pose, picks.ellipse, picks.valid,
-                       torch.where(picks.ambiguous[:, None], picks.alt_pose, math.nan))
+    return BatchedCups(cup_index, picks.pose, picks.ellipse, picks.valid, picks.alt_pose)
 
 
 class _Picks:
