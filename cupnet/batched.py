@@ -8,7 +8,8 @@ fields and locator blobs on the CPU's cores), for throughput on a GPU:
 
 1. the locator with its retry and round field (:meth:`CupNet.rough_ellipses`), the blobs
    :meth:`CupNet.kept_blobs` keeps;
-2. ``refine_passes`` refiner passes, each re-framed on the last pass's fit;
+2. ``refine_passes`` refiner passes, each re-framed on the last pass's fit
+   (:meth:`CupNet.refiner_passes`);
 3. ``detect``'s landmark sources in its order (:meth:`CupNet.rim_sources`), each solved with
    the ML refinement on the cups still without a pose within ``max_theta_deg``: the fine
    rim stage from the refiner's fit, framed on the coarse stage's fit, the refiner's own
@@ -87,11 +88,8 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
         rough.to(images.device)[index, cup_index[:, 1]]))
     # The stages take the batch as one tensor, not a list: off the CPU its crops and strips
     # are then sampled all at once (on the CPU they loop over views either way).
-    for _ in range(cfg.refine_passes - 1):
-        frames = model.frames(model.refiner_fit(
-            *model.crop_landmarks(*model.segment_crops(images, frames, index)), frames))
-    refiner_points, refiner_weights = model.crop_landmarks(
-        *model.segment_crops(images, frames, index))
+    frames, *crops = model.refiner_passes(images, frames, index)
+    refiner_points, refiner_weights = model.crop_landmarks(*crops)
 
     def refiner(todo: Tensor) -> tuple[Tensor, Tensor]:
         return refiner_points[todo], refiner_weights[todo]

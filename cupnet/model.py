@@ -412,6 +412,17 @@ class CupNet(nn.Module):
             return crops, affines
         return self.refiner(_standardise(crops)), affines
 
+    def refiner_passes(self, images: list[Tensor] | Tensor, frames: Tensor, index: Tensor
+                       ) -> tuple[Tensor, Tensor, Tensor]:
+        """Stage 2 at inference: ``refine_passes`` passes from crop ``frames`` ``(K, 5)`` of
+        the images ``index`` ``(K,)``, each re-framed on the last one's fit where it is
+        usable (the old frame kept otherwise). Returns the last pass's frames ``(K, 5)``,
+        crop logits ``(K, 1, s, s)`` and crop-to-image affines ``(K, 2, 3)``."""
+        for _ in range(self.config.refine_passes - 1):
+            frames = self.frames(self.refiner_fit(
+                *self.crop_landmarks(*self.segment_crops(images, frames, index)), frames))
+        return frames, *self.segment_crops(images, frames, index)
+
     def crop_landmarks(self, crop_logits: Tensor, crop_to_image: Tensor) -> tuple[Tensor, Tensor]:
         """Soft landmarks in original-image pixels ``(K, N, 2)`` float64 and weights ``(K, N)``."""
         points, weights = ray_landmarks(torch.sigmoid(crop_logits).double(), self.config.n_rays,
@@ -668,12 +679,8 @@ class CupNet(nn.Module):
         results: list[list[CupDetection]] = [[] for _ in range(batch)]
         if len(cup_index) == 0:
             return results
-        for _ in range(self.config.refine_passes - 1):
-            # Re-frame on the fitted ellipse where it is usable; keep the old frame otherwise.
-            crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
-            frames = self.frames(self.refiner_fit(*self.crop_landmarks(crop_logits,
-                                                                       crop_to_image), frames))
-        crop_logits, crop_to_image = self.segment_crops(image_list, frames, cup_index[:, 0])
+        frames, crop_logits, crop_to_image = self.refiner_passes(image_list, frames,
+                                                                 cup_index[:, 0])
         crop_points, crop_weights = self.crop_landmarks(crop_logits, crop_to_image)
         # Each cup's landmarks, weights and (solution, row) from the first source that gives
         # it a pose within max_theta_deg, each source run on the cups left: (1) the fine rim
