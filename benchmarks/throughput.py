@@ -6,19 +6,20 @@ defaults to cuda where there is one; ``benchmarks/gpu_check.sh`` runs it there, 
 wheels that machine lacks). Writes the ``throughput_<device type>`` section of
 docs/benchmarks.md.
 
-Three pipelines, on 512 x 512 DRRs with the CT background (``configs/synth_speed.yaml``):
+Four pipelines, on 512 x 512 DRRs with the CT background (``configs/synth_speed.yaml``):
 
 - **batched**, the whole model and the images on the device, ``B`` images a call, every
   stage on all cups at once (the locator's connected components with OpenCV, on the CPU):
   - ``CupNet.forward``, the path training backpropagates through, with the solver's
     maximum-likelihood refinement: locator, one refiner pass, the fine rim stage's
     passes, the pose solver;
-  - :func:`cupnet.batched.batched_cups`: ``detect``'s first landmark sources (the
-    locator's retry and score, two refiner passes, the thin-rim hypotheses, the coarse
-    stage and the refiner for the cups with no pose in range).
-  Neither has ``detect``'s outline refinement, verification or search, so both are less
-  accurate: their pose MAE and share of cups found are measured on the same images and
-  given beside them.
+  - :func:`cupnet.batched.batched_cups`: ``detect``'s landmark sources (the locator's
+    retry and score, two refiner passes, the thin-rim hypotheses, the coarse stage and
+    the refiner for the cups with no pose in range), and again with ``outline=True``,
+    ``detect``'s dome-outline stage too.
+  None has ``detect``'s verification, search or later looks, so all are less accurate:
+  their pose MAE and share of cups found are measured on the same images and given beside
+  them.
 - **detect** (``CupNet.detect``, the shipped model's accuracy; with each speed preset):
   the networks on the device, the geometry between their calls on the CPU
   (:func:`cupnet.offload.networks_on`, as ``cupnet predict --device`` runs it), 8 images
@@ -249,10 +250,10 @@ def main() -> None:
         f"the CT background ({len(data)} distinct images; each batch size timed on at least "
         "one full call and 32 images, repeated where there are fewer); the batched pipelines "
         "are `CupNet.forward` (the training path: one refiner pass, the fine rim stage, the "
-        "solver with its ML refinement) and `cupnet.batched.batched_cups` (detect's first "
+        "solver with its ML refinement) and `cupnet.batched.batched_cups` (detect's "
         "landmark sources: two refiner passes, the thin-rim hypotheses, the coarse stage and "
-        "the refiner where they give no pose in range), neither with detect's outline "
-        "refinement, verification or search; `detect` "
+        "the refiner where they give no pose in range; with `outline` detect's dome-outline "
+        "stage too), none with detect's verification, search or later looks; `detect` "
         f"the shipped pipeline with its networks on the device, {DETECT_BATCH} images a "
         "call. MAE in deg (theta, phi) and mm (k, l, h) over the cups each finds: a small "
         "sample, to set the speeds beside what each pipeline gives (the figures of record "
