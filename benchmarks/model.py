@@ -1,9 +1,10 @@
 """CupNet speed and accuracy: segmentation + pose per 512x512 image, and pose MAE on fresh DRRs.
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
-...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh against]
-[--against JSON]``. Writes the ``model`` (speed), ``model_accuracy`` (accuracy, ablation),
-``model_oblong`` (oblong images), ``model_fresh_seed`` (seeds no setting was chosen on) and
+...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh against
+small] [--against JSON]``. Writes the ``model`` (speed), ``model_accuracy`` (accuracy,
+ablation), ``model_oblong`` (oblong images), ``model_small`` (small images; not by default),
+``model_fresh_seed`` (seeds no setting was chosen on) and
 ``model_against`` (other inference settings, timed in one process) sections of
 docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases); for another
 ``--checkpoint``, benchmarks.md and model_failures.png beside it instead.
@@ -32,7 +33,7 @@ from cupnet.detection import CupDetection  # noqa: E402
 from cupnet.evaluate import GROSS_DEG  # noqa: E402
 from cupnet.fold import fold_batchnorm  # noqa: E402
 from cupnet.geometry import Geometry  # noqa: E402
-from cupnet.model import DEFAULT_CHECKPOINT, CupNet, load_model  # noqa: E402
+from cupnet.model import DEFAULT_CHECKPOINT, MIN_IMAGE_SIDE, CupNet, load_model  # noqa: E402
 from cupnet.offload import PassThrough  # noqa: E402
 from cupnet.runtime import RUNTIMES, networks_in_onnx_runtime  # noqa: E402
 from train.data import synth_config  # noqa: E402
@@ -188,6 +189,36 @@ def false_detections(model: CupNet, data: list[dict]) -> tuple[int, int]:
     return len(dets), sum(det.check for det in dets)
 
 
+def scored(res: dict[str, float]) -> list:
+    """A table row's scores from :func:`accuracy`'s ``res``: the MAEs, cups found, false
+    positives."""
+    return [*[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} % of {res['cups']}",
+            f"{res['false_positives']} ({res['false_positives_flagged']} flagged)"]
+
+
+def small_section(model: CupNet, args: argparse.Namespace) -> str:
+    """The shipped model on images of ``args.small`` sides, each size's DRRs from one seed:
+    where :data:`cupnet.model.MIN_IMAGE_SIDE` comes from; the ``model_small`` section."""
+    rows = []
+    for size in args.small:
+        res = accuracy(model, samples(args.eval_config, args.seed + 21, args.small_images,
+                                      [size]))
+        print("small", size, res)
+        rows.append([size, args.small_images, *scored(res), f"{res['median_theta']:.2f}",
+                     f"{res['median_phi']:.2f}"])
+    return ("## CupNet on small images\n\n"
+            f"`python benchmarks/model.py --parts small --runtimes {args.runtimes[0]}`: "
+            f"{args.small_images} fresh DRRs a size from `{args.eval_config}` (seed "
+            f"{args.seed + 21}), the shipped model, MAE over detected true cups (deg, deg, mm, "
+            "mm, mm) and the angles' medians (deg), false positives as in the accuracy table. "
+            "Below some side the poses are far off, not a little worse: `cupnet predict` "
+            f"gives an image under {MIN_IMAGE_SIDE} px a side an error row "
+            "(`cupnet.model.MIN_IMAGE_SIDE`).\n\n"
+            + markdown_table(["side (px)", "images", *[f"MAE {n}" for n in NAMES],
+                              "detected", "false positives", "median theta", "median phi"],
+                             rows))
+
+
 def oblong_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
     """The shipped model's accuracy on oblong images (their field of view as wide as their
     short side), per shape and pooled over the shapes' cups, with the networks in each
@@ -204,9 +235,7 @@ def oblong_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
             found.append(res["detected"] * res["cups"])
             cups.append(res["cups"])
             false.append((res["false_positives"], res["false_positives_flagged"]))
-            rows.append([runtime, f"{size[0]}x{size[1]}", count, *maes[-1],
-                         f"{100 * res['detected']:.1f} % of {res['cups']}",
-                         "{} ({} flagged)".format(*false[-1])])
+            rows.append([runtime, f"{size[0]}x{size[1]}", count, *scored(res)])
         pooled = np.average(maes, axis=0, weights=found)  # each shape's MAE: its found cups
         rows.append([runtime, "all", args.oblong_images, *pooled,
                      f"{100 * sum(found) / sum(cups):.1f} % of {sum(cups)}",
@@ -455,6 +484,9 @@ def main() -> None:
                         default=[(768, 512), (512, 768), (1024, 640)],
                         help="oblong image shapes (WxH) to score the shipped model on too")
     parser.add_argument("--oblong-images", type=int, default=90)
+    parser.add_argument("--small", type=int, nargs="*", default=[512, 384, 256, 192, 128],
+                        help="square sides (px) to score the shipped model on (--parts small)")
+    parser.add_argument("--small-images", type=int, default=30, help="images a small side")
     parser.add_argument("--seed", type=int, default=20_261_123)
     parser.add_argument("--fresh-seeds", type=int, nargs="+",
                         default=FRESH_SEEDS,
@@ -476,7 +508,7 @@ def main() -> None:
                         help="what runs the networks (cupnet predict --runtime); the first "
                              "model of the first is the shipped one of the gallery")
     parser.add_argument("--parts", nargs="+", default=["speed", "accuracy", "oblong", "fresh"],
-                        choices=["speed", "accuracy", "oblong", "fresh", "against"],
+                        choices=["speed", "accuracy", "oblong", "fresh", "against", "small"],
                         help="the sections to measure; the others are left as they are "
                              "(speed alone: for a change that keeps every pose)")
     args = parser.parse_args()
@@ -512,6 +544,10 @@ def main() -> None:
         text = oblong_section(shipped, args)
         print(text)
         write("model_oblong", text, args)
+    if "small" in args.parts and args.small:
+        text = small_section(next(iter(shipped.values())), args)
+        print(text)
+        write("model_small", text, args)
     if "fresh" in args.parts and args.fresh_images:
         text = fresh_seed_section(shipped, args)
         print(text)

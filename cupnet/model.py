@@ -84,6 +84,11 @@ from cupnet.rim import (
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 DEFAULT_CHECKPOINT = ASSETS / "cupnet_default.safetensors"
+# The shortest image side :meth:`CupNet.detect` is trusted on: on 30 DRRs a side at 512 / 384
+# / 256 / 192 / 128 px the shipped model's anteversion MAE is 0.93 / 1.38 / 3.56 / 8.40 /
+# 11.0 deg and it finds 100 / 100 / 90 / 87 / 57 % of the cups (docs/benchmarks.md, `CupNet
+# on small images`).
+MIN_IMAGE_SIDE = 256
 
 
 class RimAlternative(NamedTuple):
@@ -578,7 +583,8 @@ class CupNet(nn.Module):
 
         Args:
             images: ``(B, 1, H, W)`` float32 in [0, 1], or a list of ``(H, W)`` / ``(1, H, W)``
-                arrays of any sizes (256-4096 px).
+                arrays of any sizes (:data:`MIN_IMAGE_SIDE` to 4096 px; smaller ones run,
+                with far worse poses).
             geometry: fields ``(B,)`` or scalars, principal point in original-image pixels.
             cup_diameter: mm, scalar or ``(B,)``.
             return_masks: fill :attr:`CupDetection.mask` (an ``(H, W)`` array per cup).

@@ -278,7 +278,14 @@ class NetworkDetector:
     def file_values(self, name: str) -> dict[str, float]:
         return {}
 
-    def input_error(self, name: str) -> str | None:
+    def input_error(self, frame: Frame) -> str | None:
+        """An image too small for the model: its poses would be far off, not just worse."""
+        from cupnet.model import MIN_IMAGE_SIDE
+
+        height, width = frame.image.shape[-2:]
+        if min(height, width) < MIN_IMAGE_SIDE:
+            return (f"error: image too small for the model: {width} x {height} px (at least "
+                    f"{MIN_IMAGE_SIDE} px a side)")
         return None
 
     def __call__(self, frames: list[Frame], geometries: list[ResolvedGeometry]) -> list[list]:
@@ -311,9 +318,9 @@ class LandmarkDetector:
                 return self.sets[key]
         return []
 
-    def input_error(self, name: str) -> str | None:
+    def input_error(self, frame: Frame) -> str | None:
         """The landmark file's error for an image all of whose rows are unreadable."""
-        cups = self.cups_of(name)
+        cups = self.cups_of(frame.name)
         if cups and all(c.error is not None for c in cups):
             return f"error: {cups[0].error}"
         return None
@@ -535,7 +542,7 @@ class Predictor:
         batch = Batch(len(frames))
         for i, frame in enumerate(frames):
             error = (f"error: {frame.error}" if frame.error is not None
-                     else self.detector.input_error(frame.name))
+                     else self.detector.input_error(frame))
             if error is not None:
                 batch.records[i] = {"image": frame.name, "rows": [
                     status_row(frame.name, error, frame.seconds)]}

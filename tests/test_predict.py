@@ -28,7 +28,7 @@ def checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return save_model(CupNet(), tmp_path_factory.mktemp("model") / "untrained.safetensors")
 
 
-def noise_png(path: Path, dtype: type = np.uint16, size: int = 160) -> Path:
+def noise_png(path: Path, dtype: type = np.uint16, size: int = 256) -> Path:
     rng = np.random.default_rng(len(path.name))
     cv2.imwrite(str(path), (rng.random((size, size)) * np.iinfo(dtype).max).astype(dtype))
     return path
@@ -54,11 +54,12 @@ def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
     images.mkdir()
     noise_png(images / "a16.png")
     noise_png(images / "b8.png", np.uint8)
-    write_dicom(images / "c.dcm", (np.random.default_rng(1).random((160, 160)) * 4000)
+    write_dicom(images / "c.dcm", (np.random.default_rng(1).random((256, 256)) * 4000)
                 .astype(np.uint16), DistanceSourceToDetector=1100.0,
                 ImagerPixelSpacing=[0.2, 0.2])
     (images / "empty.png").write_bytes(b"")
     (images / "text.png").write_text("not an image")
+    cv2.imwrite(str(images / "thumb.png"), np.full((200, 300), 128, np.uint8))
     data = (images / "a16.png").read_bytes()
     (images / "cut.png").write_bytes(data[: len(data) // 3])
     meta = tmp_path / "meta.csv"
@@ -69,7 +70,11 @@ def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
                  "--save-masks"])
     assert code == 0
     by_image = rows_by_image(read_csv(out / "results.csv"))
-    assert set(by_image) == {"a16.png", "b8.png", "c.dcm", "empty.png", "text.png", "cut.png"}
+    assert set(by_image) == {"a16.png", "b8.png", "c.dcm", "empty.png", "text.png", "cut.png",
+                             "thumb.png"}
+    # Poses from a thumbnail would be far off (docs/training.md, item 41): an error, not cups.
+    assert by_image["thumb.png"][0]["status"] == (
+        "error: image too small for the model: 300 x 200 px (at least 256 px a side)")
     assert by_image["empty.png"][0]["status"] == "error: empty file (0 bytes)"
     assert "not a readable PNG" in by_image["text.png"][0]["status"]
     assert "corrupt or truncated PNG" in by_image["cut.png"][0]["status"]
@@ -87,16 +92,16 @@ def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
     # meta.csv wins over the flag and the tags; the flag wins over the tag.
     assert geometry["pixel_spacing_mm"] == {"value": 0.3, "source": "meta.csv"}
     assert geometry["sdd_mm"] == {"value": 990.0, "source": "command line"}
-    assert geometry["principal_u_px"] == {"value": 79.5, "source": "image centre"}
+    assert geometry["principal_u_px"] == {"value": 127.5, "source": "image centre"}
     assert records["a16.png"]["geometry"]["sdd_mm"]["source"] == "meta.csv"
     assert document["model"]["checkpoint"] == str(checkpoint)
     assert document["software"]["cupnet"]
-    assert document["summary"]["images"] == 6 and document["summary"]["errors"] >= 4
+    assert document["summary"]["images"] == 7 and document["summary"]["errors"] >= 5
     for name in ("a16.png", "c.dcm"):
         overlay = out / records[name]["overlay"]
         assert cv2.imread(str(overlay)).shape == (768, 768, 3)  # enlarged to stay readable
         for mask in records[name].get("masks", []):
-            assert cv2.imread(str(out / mask), cv2.IMREAD_UNCHANGED).shape == (160, 160)
+            assert cv2.imread(str(out / mask), cv2.IMREAD_UNCHANGED).shape == (256, 256)
 
 
 def test_geometry_precedence_and_assumptions() -> None:
@@ -146,7 +151,7 @@ def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
     images = tmp_path / "images"
     images.mkdir()
     for i in range(5):
-        noise_png(images / f"im{i}.png", size=128)
+        noise_png(images / f"im{i}.png")
     out = tmp_path / "out"
     args = ["predict", str(images), "--out", str(out), "--checkpoint", str(blind_checkpoint),
             "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet",
@@ -175,7 +180,7 @@ def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
 
 
 def test_multiframe_dicom_gives_a_row_per_frame(tmp_path: Path, blind_checkpoint: Path) -> None:
-    frames = (np.random.default_rng(2).random((3, 128, 128)) * 4000).astype(np.uint16)
+    frames = (np.random.default_rng(2).random((3, 256, 256)) * 4000).astype(np.uint16)
     path = write_dicom(tmp_path / "run.dcm", frames, DistanceSourceToDetector=1000.0,
                        ImagerPixelSpacing=[0.3, 0.3])
     out = tmp_path / "out"
@@ -357,7 +362,7 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
 
 def test_spacing_from_patient_plane_pixel_spacing_is_recorded_and_reported(
         tmp_path: Path, blind_checkpoint: Path, capsys: pytest.CaptureFixture) -> None:
-    stored = np.zeros((64, 80), np.uint16)
+    stored = np.zeros((256, 320), np.uint16)
     write_dicom(tmp_path / "plain.dcm", stored, PixelSpacing=[0.2, 0.2],
                 DistanceSourceToDetector=1000.0)
     write_dicom(tmp_path / "imager.dcm", stored, ImagerPixelSpacing=[0.2, 0.2],
@@ -394,7 +399,7 @@ def test_several_inputs_as_a_shell_expands_them(tmp_path: Path, blind_checkpoint
 def test_assumptions_printed_once_and_recorded(tmp_path: Path, blind_checkpoint: Path,
                                                capsys: pytest.CaptureFixture) -> None:
     for i in range(3):
-        noise_png(tmp_path / f"im{i}.png", size=100)
+        noise_png(tmp_path / f"im{i}.png")
     out = tmp_path / "out"
     assert main(["predict", str(tmp_path), "--out", str(out), "--checkpoint",
                  str(blind_checkpoint), "--sdd", "1000", "--assume-defaults", "--quiet",
@@ -405,7 +410,7 @@ def test_assumptions_printed_once_and_recorded(tmp_path: Path, blind_checkpoint:
     document = json.loads((out / "results.json").read_text())
     assert set(document["assumptions"]) == {"cup_diameter_mm", "pixel_spacing_mm"}
     geometry = document["images"][0]["geometry"]
-    assert geometry["pixel_spacing_mm"] == {"value": predict.ASSUMED_DETECTOR_WIDTH_MM / 100,
+    assert geometry["pixel_spacing_mm"] == {"value": predict.ASSUMED_DETECTOR_WIDTH_MM / 256,
                                             "source": "assumed"}
     assert geometry["sdd_mm"]["source"] == "command line"
 

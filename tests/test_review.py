@@ -73,7 +73,7 @@ def test_predict_writes_the_page_beside_the_results(tmp_path: Path,
                                                     blind_checkpoint: Path) -> None:
     images = tmp_path / "images"
     images.mkdir()
-    cv2.imwrite(str(images / "blank.png"), np.zeros((96, 128), np.uint8))
+    cv2.imwrite(str(images / "blank.png"), np.zeros((256, 320), np.uint8))
     (images / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n not really")
     out = tmp_path / "out"
     assert main(["predict", str(images), "--out", str(out), "--checkpoint",
