@@ -1,4 +1,5 @@
-"""DICOM test files written with pydicom (imported by the image and predict tests)."""
+"""DICOM test files written with pydicom, and re-encoded by GDCM (imported by the image and predict
+tests)."""
 
 from __future__ import annotations
 
@@ -24,4 +25,24 @@ def write_dicom(path: Path, pixels: np.ndarray, photometric: str = "MONOCHROME2"
     for key, value in tags.items():
         setattr(ds, key, value)
     ds.save_as(path, enforce_file_format=True)
+    return path
+
+
+def transcoded(source: Path, path: Path, transfer_syntax: str) -> Path:
+    """``source`` (a DICOM file) re-encoded by GDCM, an independent encoder, in
+    ``transfer_syntax`` (a UID), written to ``path``."""
+    import gdcm
+
+    reader = gdcm.ImageReader()
+    reader.SetFileName(str(source))
+    assert reader.Read(), source
+    change = gdcm.ImageChangeTransferSyntax()
+    change.SetTransferSyntax(gdcm.TransferSyntax(gdcm.TransferSyntax.GetTSType(transfer_syntax)))
+    change.SetInput(reader.GetImage())
+    assert change.Change(), transfer_syntax
+    writer = gdcm.ImageWriter()
+    writer.SetFileName(str(path))
+    writer.SetFile(reader.GetFile())
+    writer.SetImage(change.GetOutput())
+    assert writer.Write(), path
     return path

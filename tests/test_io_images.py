@@ -6,8 +6,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pydicom
 import pytest
-from dicom_factory import write_dicom
+from dicom_factory import transcoded, write_dicom
+from pydicom.data import get_testdata_file
+from pydicom.uid import JPEG2000Lossless, JPEGLosslessSV1, JPEGLSLossless
 
 from cupnet.io.images import (
     MAX_SIDE,
@@ -86,6 +89,38 @@ def test_dicom_monochrome1_is_inverted(tmp_path: Path) -> None:
     mono2 = read_image(write_dicom(tmp_path / "m2.dcm", stored, "MONOCHROME2"))
     mono1 = read_image(write_dicom(tmp_path / "m1.dcm", stored, "MONOCHROME1"))
     np.testing.assert_allclose(mono1, 1.0 - mono2, atol=1e-6)
+
+
+@pytest.mark.parametrize("syntax", [JPEGLosslessSV1, JPEGLSLossless, JPEG2000Lossless],
+                         ids=["jpeg-lossless", "jpeg-ls", "jpeg-2000"])
+def test_compressed_dicom_gives_the_uncompressed_image_and_tags(tmp_path: Path,
+                                                                 syntax: str) -> None:
+    # 12-bit detector values, as C-arms store them, each frame re-encoded by GDCM.
+    stored = np.round(np.random.default_rng(3).random((2, 60, 70)) * 4095).astype(np.uint16)
+    plain = write_dicom(tmp_path / "plain.dcm", stored, DistanceSourceToDetector=1000.0,
+                        ImagerPixelSpacing=[0.2, 0.2])
+    packed = transcoded(plain, tmp_path / "packed.dcm", syntax)
+    assert pydicom.dcmread(packed).file_meta.TransferSyntaxUID == syntax
+    for ours, reference in zip(read_frames(packed), read_frames(plain), strict=True):
+        assert ours.error is None, ours.error
+        np.testing.assert_array_equal(ours.image, reference.image)
+        assert (ours.sdd_mm, ours.pixel_spacing_mm) == (1000.0, 0.2)
+
+
+def test_pydicoms_jpeg_ls_sample_matches_its_uncompressed_twin() -> None:
+    # Encoded elsewhere (pydicom's test data), so not only GDCM's round trip.
+    (ours,) = read_frames(Path(get_testdata_file("MR_small_jpeg_ls_lossless.dcm",
+                                                 download=False)))
+    (reference,) = read_frames(Path(get_testdata_file("MR_small.dcm", download=False)))
+    assert ours.error is None, ours.error
+    np.testing.assert_array_equal(ours.image, reference.image)
+
+
+def test_a_compression_no_decoder_reads_is_named_not_called_corrupt() -> None:
+    # pydicom's own sample: 12-bit JPEG Extended, which neither GDCM's plugin nor Pillow reads.
+    path = Path(get_testdata_file("JPGExtended.dcm", download=False))
+    (frame,) = read_frames(path)
+    assert frame.error.startswith("cannot decode DICOM pixel data compressed as JPEG Extended")
 
 
 def test_dicom_rescale_and_window_are_applied(tmp_path: Path) -> None:
