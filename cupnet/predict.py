@@ -73,6 +73,11 @@ if TYPE_CHECKING:  # the model's libraries load only when a model is
 ASSUMED_SDD_MM = 1040.0
 ASSUMED_CUP_DIAMETER_MM = 52.0
 ASSUMED_DETECTOR_WIDTH_MM = 300.0
+# Geometry values (mm) outside these are most likely a slip: a cup's radius for its diameter,
+# centimetres, a spacing of the downsampled image's original. Warned about, not refused: the
+# solver takes any geometry, and h, the distance, scales with the cup diameter and spacing.
+PLAUSIBLE_MM = {"sdd_mm": (500.0, 2000.0), "pixel_spacing_mm": (0.03, 2.0),
+                "cup_diameter_mm": (36.0, 80.0)}
 
 # Outputs are rewritten at most every FLUSH_SECONDS, and at least FLUSH_RATIO times as long as
 # the last rewrite took, so rewriting stays a small share of the run on huge folders.
@@ -364,6 +369,7 @@ class Outputs:
     header: dict
     records: dict[str, dict] = field(default_factory=dict)
     assumptions: dict[str, str] = field(default_factory=dict)
+    warnings: dict[str, str] = field(default_factory=dict)  # geometry key -> the first
     last_flush: float = 0.0
     flush_interval: float = FLUSH_SECONDS
 
@@ -383,6 +389,7 @@ class Outputs:
                 document = json.loads(self.json_path.read_text())
                 previous = {r["image"]: r for r in document["images"]}
                 self.assumptions.update(document.get("assumptions", {}))
+                self.warnings.update(document.get("warnings", {}))
             except (ValueError, KeyError, TypeError):
                 previous = {}  # unreadable JSON: rebuild the records from the CSV
         if self.csv_path.exists():
@@ -396,7 +403,7 @@ class Outputs:
         if not force and time.monotonic() - self.last_flush < self.flush_interval:
             return
         start = time.monotonic()
-        document = {**self.header, "assumptions": self.assumptions,
+        document = {**self.header, "assumptions": self.assumptions, "warnings": self.warnings,
                     "summary": summary or summarise(self.records.values()),
                     "images": list(self.records.values())}
         atomic_write(self.json_path, lambda f: json.dump(document, f, indent=1, default=_json))
@@ -536,6 +543,19 @@ class Predictor:
             tqdm.write(f"assuming {REQUIRED[key][0]} = {text} where not given "
                        "(--assume-defaults)", file=sys.stderr)
 
+    def _note_implausible(self, name: str, geometry: ResolvedGeometry) -> None:
+        """Warn, once per value, of a geometry value outside :data:`PLAUSIBLE_MM`."""
+        for key, (low, high) in PLAUSIBLE_MM.items():
+            value = geometry.values[key]
+            if low <= value <= high or key in self.outputs.warnings:
+                continue
+            hint = " (its radius?)" if key == "cup_diameter_mm" and value < low else ""
+            text = (f"{REQUIRED[key][0]} {value:g} mm{hint} lies outside {low:g}-{high:g} mm: "
+                    f"first in {name}, from {geometry.sources[key]}; check it, the poses' "
+                    "distances scale with it")
+            self.outputs.warnings[key] = text
+            tqdm.write(f"warning: {text}", file=sys.stderr)
+
     def prepare(self, frames: list[Frame]) -> Batch:
         """Read errors and geometry of a batch: records of the images that fail, and the
         images ready for detection."""
@@ -557,6 +577,7 @@ class Predictor:
                                                         frame.seconds)]}
                 continue
             self._note_assumptions(geometry, frame.image.shape[1])
+            self._note_implausible(frame.name, geometry)
             batch.ready.append((i, frame, geometry))
         return batch
 
@@ -622,7 +643,7 @@ def _software() -> dict:
 
 
 def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
-                   interrupted: bool) -> None:
+                   interrupted: bool, warnings: dict[str, str]) -> None:
     lines = [
         f"{'interrupted' if interrupted else 'done'}: {summary['images']} images, "
         f"{summary['cups']} cups found ({summary['ok']} ok, {summary['ambiguous']} ambiguous), "
@@ -641,6 +662,7 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     if summary["metal_bright"]:
         lines.append(f"  {summary['metal_bright']} image(s) taken to show metal bright and "
                      "turned over for the networks: metal=bright in results.csv")
+    lines += [f"  warning: {text}" for text in warnings.values()]
     lines.append(f"results: {out / 'results.csv'}, results.json and review.html"
                  + (f"; overlays: {out / 'overlays'}" if overlays else "")
                  + f" ({elapsed:.1f} s this run)")
@@ -730,6 +752,6 @@ def _run(args: argparse.Namespace) -> int:
         summary = summarise(outputs.records.values())
         outputs.flush(summary, force=True)
     _print_summary(summary, args.out, not args.no_overlays, time.perf_counter() - start,
-                   interrupted)
+                   interrupted, outputs.warnings)
     return 130 if interrupted else 0
 

@@ -490,3 +490,27 @@ def test_fast_and_fastest_exclude_each_other(tmp_path: Path,
     with pytest.raises(SystemExit):
         main(["predict", str(tmp_path), "--out", str(tmp_path / "out"), "--fast", "--fastest"])
     assert "not allowed with argument" in capsys.readouterr().err
+
+
+def test_implausible_geometry_is_warned_of_once_and_recorded(
+        tmp_path: Path, blind_checkpoint: Path, capsys: pytest.CaptureFixture) -> None:
+    for i in range(3):
+        noise_png(tmp_path / f"im{i}.png")
+    meta = tmp_path / "meta.csv"  # im1's spacing in cm: a slip of unit
+    meta.write_text("image,pixel_spacing_mm\nim0.png,0.2\nim1.png,0.02\nim2.png,0.2\n")
+    out = tmp_path / "out"
+    assert main(["predict", str(tmp_path), "--out", str(out), "--checkpoint",
+                 str(blind_checkpoint), "--meta", str(meta), "--sdd", "1000",
+                 "--cup-diameter", "26", "--quiet", "--no-overlays"]) == 0
+    captured = capsys.readouterr()
+    diameter = ("cup diameter 26 mm (its radius?) lies outside 36-80 mm: first in im0.png, "
+                "from command line")
+    spacing = "pixel spacing 0.02 mm lies outside 0.03-2 mm: first in im1.png, from meta.csv"
+    assert captured.err.count(diameter) == 1 and captured.err.count(spacing) == 1
+    assert "source-to-detector" not in captured.err
+    assert f"  warning: {diameter}" in captured.out  # repeated in the closing summary
+    warnings = json.loads((out / "results.json").read_text())["warnings"]
+    assert set(warnings) == {"cup_diameter_mm", "pixel_spacing_mm"}
+    assert warnings["pixel_spacing_mm"].startswith(spacing)
+    # Warned of, not refused: every image is run.
+    assert {r["status"] for r in read_csv(out / "results.csv")} == {"no_cup"}
