@@ -49,6 +49,7 @@ from cupnet.io.meta import (
     REQUIRED,
     add_geometry_arguments,
     geometry_flags,
+    implausible,
     meta_row,
     read_meta,
 )
@@ -73,11 +74,6 @@ if TYPE_CHECKING:  # the model's libraries load only when a model is
 ASSUMED_SDD_MM = 1040.0
 ASSUMED_CUP_DIAMETER_MM = 52.0
 ASSUMED_DETECTOR_WIDTH_MM = 300.0
-# Geometry values (mm) outside these are most likely a slip: a cup's radius for its diameter,
-# centimetres, a spacing of the downsampled image's original. Warned about, not refused: the
-# solver takes any geometry, and h, the distance, scales with the cup diameter and spacing.
-PLAUSIBLE_MM = {"sdd_mm": (500.0, 2000.0), "pixel_spacing_mm": (0.03, 2.0),
-                "cup_diameter_mm": (36.0, 80.0)}
 
 # Outputs are rewritten at most every FLUSH_SECONDS, and at least FLUSH_RATIO times as long as
 # the last rewrite took, so rewriting stays a small share of the run on huge folders.
@@ -544,15 +540,13 @@ class Predictor:
                        "(--assume-defaults)", file=sys.stderr)
 
     def _note_implausible(self, name: str, geometry: ResolvedGeometry) -> None:
-        """Warn, once per value, of a geometry value outside :data:`PLAUSIBLE_MM`."""
-        for key, (low, high) in PLAUSIBLE_MM.items():
-            value = geometry.values[key]
-            if low <= value <= high or key in self.outputs.warnings:
+        """Warn, once per value, of a geometry value outside
+        :data:`cupnet.io.meta.PLAUSIBLE_MM`."""
+        for key, problem in implausible(geometry.values).items():
+            if key in self.outputs.warnings:
                 continue
-            hint = " (its radius?)" if key == "cup_diameter_mm" and value < low else ""
-            text = (f"{REQUIRED[key][0]} {value:g} mm{hint} lies outside {low:g}-{high:g} mm: "
-                    f"first in {name}, from {geometry.sources[key]}; check it, the poses' "
-                    "distances scale with it")
+            text = (f"{problem}: first in {name}, from {geometry.sources[key]}; check it, the "
+                    "poses' distances scale with it")
             self.outputs.warnings[key] = text
             tqdm.write(f"warning: {text}", file=sys.stderr)
 

@@ -18,7 +18,14 @@ import torch
 from cupnet.detection import CupDetection
 from cupnet.geometry import Geometry
 from cupnet.io.landmarks import LandmarkSet, read_landmarks
-from cupnet.io.meta import REQUIRED, add_geometry_arguments, geometry_flags, meta_row, read_meta
+from cupnet.io.meta import (
+    REQUIRED,
+    add_geometry_arguments,
+    geometry_flags,
+    implausible,
+    meta_row,
+    read_meta,
+)
 from cupnet.io.results import cup_row, status_row, write_results_csv
 from cupnet.pose import solve_pose
 
@@ -90,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     flags = geometry_flags(args)
     records, failures, solved = [], 0, 0
+    warned: set[str] = set()
     for image, cups in landmark_sets.items():
         rows = []
         for cup in cups:
@@ -100,7 +108,15 @@ def run(args: argparse.Namespace) -> int:
             elif isinstance(resolved, str):
                 rows.append(status_row(image, resolved, 0.0))
             else:
-                detection = solve_cup(cup, *resolved, refine=not args.closed_form)
+                geometry, diameter = resolved
+                problems = implausible({"sdd_mm": float(geometry.sdd),
+                                        "pixel_spacing_mm": float(geometry.pixel_spacing),
+                                        "cup_diameter_mm": diameter})
+                for key in problems.keys() - warned:  # once a value, as predict warns
+                    warned.add(key)
+                    print(f"cupnet solve: warning: {problems[key]}: first in {image}; check "
+                          "it, the poses' distances scale with it", file=sys.stderr)
+                detection = solve_cup(cup, geometry, diameter, refine=not args.closed_form)
                 rows.append(cup_row(image, cup.cup, detection, time.perf_counter() - start))
         failures += sum(str(r["status"]).startswith("error") for r in rows)
         solved += sum(not str(r["status"]).startswith("error") for r in rows)

@@ -98,3 +98,18 @@ def test_unknown_format_and_empty_file_are_clear_errors(tmp_path):
     (tmp_path / "e.csv").write_text("")
     with pytest.raises(ValueError, match="empty"):
         read_landmarks(tmp_path / "e.csv")
+
+
+def test_implausible_geometry_is_warned_of_once_and_still_solved(tmp_path, capsys):
+    geometry = Geometry(1000.0, 0.4, 300.0, 250.0)
+    write_long(tmp_path / "lm.csv", geometry)
+    out = tmp_path / "r.csv"
+    # The radius given for the diameter: h comes out twice too near the source, not refused.
+    assert main(["solve", str(tmp_path / "lm.csv"), "--sdd", "1000", "--pixel-spacing", "0.4",
+                 "--cup-diameter", "25", "--principal-point", "300", "250",
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("warning: cup diameter 25 mm (its radius?) lies outside 36-80 mm: "
+                     "first in a.png") == 1
+    assert "pixel spacing" not in err and "source-to-detector" not in err
+    assert all(row["status"] in ("ok", "ambiguous") for row in results(out))

@@ -18,6 +18,23 @@ REQUIRED = {
     "cup_diameter_mm": ("cup diameter", "--cup-diameter"),
 }
 GEOMETRY_KEYS = (*REQUIRED, "principal_u_px", "principal_v_px")
+# Geometry values (mm) outside these are most likely a slip: a cup's radius for its diameter,
+# centimetres, a spacing of the downsampled image's original. Warned of, not refused: the
+# solver takes any geometry, and h, the distance, scales with the cup diameter and spacing.
+PLAUSIBLE_MM = {"sdd_mm": (500.0, 2000.0), "pixel_spacing_mm": (0.03, 2.0),
+                "cup_diameter_mm": (36.0, 80.0)}
+
+
+def implausible(values: dict[str, float]) -> dict[str, str]:
+    """Each of ``values`` (geometry key -> mm) outside :data:`PLAUSIBLE_MM`, as key -> what
+    is wrong with it."""
+    out = {}
+    for key, (low, high) in PLAUSIBLE_MM.items():
+        value = values.get(key)
+        if value is not None and not low <= value <= high:
+            hint = " (its radius?)" if key == "cup_diameter_mm" and value < low else ""
+            out[key] = f"{REQUIRED[key][0]} {value:g} mm{hint} lies outside {low:g}-{high:g} mm"
+    return out
 
 
 def add_geometry_arguments(parser: argparse.ArgumentParser) -> None:
