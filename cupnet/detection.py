@@ -7,7 +7,7 @@ libraries.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -59,6 +59,22 @@ class CupDetection:
     doubt: float | None = None
     check: bool = False
     metal_bright: bool | None = None
+
+
+def moved(cup: CupDetection, offset: tuple[int, int], shape: tuple[int, int]
+          ) -> CupDetection:
+    """``cup`` found in a crop whose top-left pixel is ``offset`` ``(u, v)`` of an image of
+    ``shape`` ``(H, W)``, in that image's pixels (the pose, in mm about the principal point,
+    is the same in both)."""
+    du, dv = offset
+    ellipse = cup.ellipse.copy()
+    ellipse[:2] += (du, dv)
+    mask = None
+    if cup.mask is not None:
+        mask = np.zeros(shape, cup.mask.dtype)
+        mask[dv:dv + cup.mask.shape[0], du:du + cup.mask.shape[1]] = cup.mask
+    return replace(cup, ellipse=ellipse, landmarks=cup.landmarks + (du, dv), mask=mask,
+                   outline=None if cup.outline is None else cup.outline + (du, dv))
 
 
 def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1

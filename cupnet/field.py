@@ -16,6 +16,8 @@ surround is no part of its edge.
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 import torch
@@ -34,6 +36,11 @@ MAX_OFFSET = 0.15
 # ... and holding the exposed region but this share of it (a short arc's circle can pass
 # the checks above and still cut the field, and cups in it would be dropped).
 MAX_EXPOSED_OUTSIDE = 0.01
+# A field narrower than this (its diameter over the image's shorter side) is cut out before
+# the networks look: the synthetic training frames' fields span 0.92-1.24 of the side
+# (field_radius_frac 0.46-0.62), a screenshot's or secondary capture's within wide margins
+# may span half, and there every cup looks small to the locator (docs/training.md, item 41).
+CROP_BELOW = 0.9
 # Trimming rounds at most (a stem's edge is gone after two or three), and edge points used
 # (every k-th: a 4096 px frame's edge holds tens of thousands).
 _TRIM_ROUNDS = 6
@@ -140,6 +147,22 @@ def _some_points(mask: np.ndarray) -> np.ndarray:
     found = found.reshape(-1, 2)
     step = max(1, len(found) // _MAX_POINTS)
     return found[::step].astype(np.float64)
+
+
+def field_crop(image: Tensor | np.ndarray) -> tuple[int, int, int] | None:
+    """The square to cut from ``image`` (as :func:`round_field` takes it) so that its round
+    field fills it as the training frames' fields fill theirs: ``(u0, v0, side)`` pixels
+    (top-left corner, side), the field's bounding square kept within the image; None where
+    the image shows no round field or one at least :data:`CROP_BELOW` of its shorter side
+    wide."""
+    field = round_field(image)
+    height, width = image.shape[-2:]
+    if field is None or 2 * field[2] >= CROP_BELOW * min(height, width):
+        return None
+    cx, cy, radius = field
+    side = min(math.ceil(2 * radius) + 1, height, width)
+    return (min(max(round(cx - radius), 0), width - side),
+            min(max(round(cy - radius), 0), height - side), side)
 
 
 def outside_field(centres: Tensor, field: tuple[float, float, float] | Tensor | None

@@ -52,10 +52,11 @@ from cupnet.detection import (
     CupDetection,
     distinct_cups,
     later_look_cups,
+    moved,
     wants_another_look,
 )
 from cupnet.ellipse import fit_ellipse
-from cupnet.field import outside_field, round_field
+from cupnet.field import field_crop, outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import component_moments, ray_landmarks
 from cupnet.outline import outline_distances, over_dome, sphere_outline
@@ -588,6 +589,10 @@ class CupNet(nn.Module):
             geometry: fields ``(B,)`` or scalars, principal point in original-image pixels.
             cup_diameter: mm, scalar or ``(B,)``.
             return_masks: fill :attr:`CupDetection.mask` (an ``(H, W)`` array per cup).
+
+        With ``round_field``, an image whose round field is much narrower than its frame (a
+        screenshot or secondary capture with wide margins) is cut to the field's square
+        first (:func:`cupnet.field.field_crop`), and its cups given back in its own pixels.
         """
         # Switch modes only when needed: smp's train() walks every submodule (~2 ms a call).
         was_training = self.training
@@ -597,12 +602,18 @@ class CupNet(nn.Module):
             # Checked and converted once: every look takes these, or a subset of them.
             image_list = _as_image_list(images, self.dtype)
             diameter = _cup_diameters(cup_diameter, len(image_list))
+            shapes = [tuple(image.shape[-2:]) for image in image_list]
+            crops = (map_on_cores(field_crop, _on_cpu(image_list)) if self.config.round_field
+                     else [None] * len(image_list))
+            if any(crops):
+                image_list, geometry = _cropped(image_list, geometry, crops)
             with memoised_strips():
                 found = self._detect(image_list, geometry, diameter, return_masks)
                 for look in self.later_looks():
                     self._looked_again(found, image_list, geometry, diameter, return_masks,
                                        look)
-                return found
+            return [cups if crop is None else [moved(cup, crop[:2], shape) for cup in cups]
+                    for cups, crop, shape in zip(found, crops, shapes, strict=True)]
         finally:
             if was_training:
                 self.train()
@@ -1463,6 +1474,22 @@ def _on_cpu(images: list[Tensor]) -> list[Tensor]:
     if all(image.shape == images[0].shape for image in images):
         return list(torch.stack(images).cpu())
     return [image.cpu() for image in images]
+
+
+def _cropped(images: list[Tensor], geometry: Geometry,
+             crops: list[tuple[int, int, int] | None]) -> tuple[list[Tensor], Geometry]:
+    """``images`` ``(1, H, W)`` cut to their ``crops`` (``(u0, v0, side)`` or None: whole),
+    and ``geometry`` with each principal point where its crop puts it."""
+    rows = geometry_rows(geometry, len(images)).clone()
+    out = []
+    for i, (image, crop) in enumerate(zip(images, crops, strict=True)):
+        if crop is None:
+            out.append(image)
+            continue
+        u0, v0, side = crop
+        out.append(image[:, v0:v0 + side, u0:u0 + side].contiguous())
+        rows[i, 2:] -= rows.new_tensor([u0, v0])
+    return out, Geometry.from_rows(rows)
 
 
 def _source_from(method: Callable, images: list[Tensor] | Tensor, index: Tensor, start: Tensor

@@ -128,7 +128,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep the locator's cups centred outside an image "
                              "intensifier's round field where the image shows one (the "
                              "shipped model drops them, as the surround's dark ends of an "
-                             "oblong frame look like cups to it; docs/training.md, item 23)")
+                             "oblong frame look like cups to it; docs/training.md, item 23), "
+                             "and look at a narrow field's whole frame, not its square "
+                             "(item 41)")
     parser.add_argument("--landmarks", type=Path,
                         help="solve from manual landmarks in this file instead of the network")
     parser.add_argument("--overwrite", action="store_true", help="replace existing results")

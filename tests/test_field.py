@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from cupnet.field import outside_field, round_field
+from cupnet.field import CROP_BELOW, field_crop, outside_field, round_field
 from data_synth import SynthConfig
 from data_synth.formation import form_image
 
@@ -136,3 +136,72 @@ def test_outside_field_by_hand():
     centres = torch.tensor([[100.0, 100.0], [100.0, 151.0], [math.nan, math.nan]])
     assert outside_field(centres, (100.0, 100.0, 50.0)).tolist() == [False, True, False]
     assert outside_field(centres, None).tolist() == [False, False, False]
+
+
+@pytest.mark.parametrize(("height", "width", "centre", "radius", "crop"), [
+    # A screenshot: the disc half the frame's height, with text beside it. The square is
+    # the disc's bounding square (the surround's flat part starts up to 3 px out).
+    (600, 900, (449.5, 299.5), 150.0, True),
+    (600, 900, (430.0, 310.0), 0.44 * 600, True),  # just narrower than CROP_BELOW
+    (600, 900, (449.5, 299.5), 0.46 * 600, False),  # as narrow as training's narrowest
+    (480, 640, (319.5, 239.5), 236.0, False),  # a video frame's disc: taken whole
+])
+def test_field_crop_cuts_out_a_field_narrower_than_training_showed(height, width, centre,
+                                                                   radius, crop):
+    image = framed(height, width, centre, radius)
+    text = np.zeros(image.shape, np.uint8)
+    cv2.putText(text, "L HIP 72 kV", (5, height - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.8, 255, 2)
+    image[text > 0] = 1.0
+    found = field_crop(image)
+    assert (found is not None) == crop
+    if crop:
+        u0, v0, side = found
+        cx, cy, r = round_field(image)
+        assert 2 * r < CROP_BELOW * height
+        # The disc's bounding square, whole, in the image: every exposed pixel kept.
+        assert abs(u0 - (cx - r)) <= 0.5 and abs(v0 - (cy - r)) <= 0.5
+        assert side == math.ceil(2 * r) + 1
+        v, u = np.nonzero(image > 0.03)
+        inside = np.hypot(u - centre[0], v - centre[1]) <= radius
+        assert u[inside].min() >= u0 and u[inside].max() < u0 + side
+        assert v[inside].min() >= v0 and v[inside].max() < v0 + side
+    assert field_crop(np.full((600, 900), 0.5, np.float32)) is None  # no field at all
+
+
+def test_detect_cuts_a_narrow_field_out_of_its_frame_and_answers_in_the_frames_pixels():
+    # A 512 px intensifier frame pasted into a 900 x 600 capture with wide flat margins and
+    # burnt-in text: its disc spans 0.8 of the capture's height, narrower than any training
+    # frame's, so detect looks at the disc's square and maps the cups back.
+    from cupnet.geometry import Geometry
+    from cupnet.model import load_model
+    from data_synth import synthesize
+
+    config = SynthConfig(image_size=(512, 512), p_anatomy=0.0, p_circular_field=1.0,
+                         field_radius_frac=(0.47, 0.47), p_bilateral=0.0, p_no_cup=0.0)
+    sample = synthesize(config, 3, 0)
+    frame = sample["image"][0]
+    capture = torch.full((600, 900), float(frame[0, 0]))  # the surround, flat to the edge
+    capture[44:556, 194:706] = frame
+    text = np.zeros((600, 900), np.uint8)
+    cv2.putText(text, "L HIP 2026-11-03", (5, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.8, 255, 2)
+    capture[torch.from_numpy(text > 0)] = 1.0
+    sdd, spacing, u0, v0 = (float(v) for v in sample["geometry"])
+    diameter = float(sample["cup_diameter"][0])
+    model = load_model()
+    (cup,) = model.detect(capture[None, None], Geometry(sdd, spacing, u0 + 194, v0 + 44),
+                          diameter)[0]
+    # The cup where the frame shows it, its pose the frame's.
+    truth = sample["ellipse"][0].numpy()
+    assert np.hypot(*(cup.ellipse[:2] - truth[:2] - (194, 44))) < 2.0
+    assert np.abs(cup.pose[:2] - sample["pose"][0, :2].numpy()).max() < 1.0
+    # Exactly the detection of the square cut by hand, moved to the capture's pixels.
+    left, top, side = field_crop(capture)
+    square = capture[top:top + side, left:left + side]
+    (alone,) = model.detect(square[None, None], Geometry(sdd, spacing, u0 + 194 - left,
+                                                         v0 + 44 - top), diameter)[0]
+    np.testing.assert_array_equal(cup.pose, alone.pose)
+    np.testing.assert_array_equal(cup.ellipse[:2], alone.ellipse[:2] + (left, top))
+    np.testing.assert_array_equal(cup.landmarks, alone.landmarks + (left, top))
+    np.testing.assert_array_equal(cup.outline, alone.outline + (left, top))
+    assert cup.mask.shape == (600, 900) and cup.mask.sum() == pytest.approx(alone.mask.sum())
+    np.testing.assert_array_equal(cup.mask[top:top + side, left:left + side], alone.mask)
