@@ -35,7 +35,7 @@ import torch
 from torch import Tensor
 
 from cupnet.geometry import Geometry
-from cupnet.model import CupNet, geometry_rows
+from cupnet.model import CupNet, geometry_rows, takes_pick
 from cupnet.polarity import metals_show_bright
 from cupnet.pose import PoseSolution, ellipse_of_pose
 
@@ -107,12 +107,8 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
         points, weights = source(todo)
         again = model.solve(points, weights, geometry, cup_diameter, cup_index[todo],
                             len(images), refine=True)
-        # As detect picks: a pose in range; else the first pose found; else the refiner's
-        # failure (its ellipse is the one its mask shows).
-        unsolved = ~picks.valid[todo]
-        took = again.valid & (model.in_theta_range(again.pose) | unsolved)
-        if source is refiner:
-            took |= unsolved
+        took = takes_pick(again.valid, again.valid & model.in_theta_range(again.pose),
+                          picks.valid[todo], source is refiner)
         picks.take(todo[took], again, took, points[took], weights[took])
     if outline and model.rim is not None and cfg.outline_passes:
         outlined(model, images, index, picks, geometry, cup_diameter)

@@ -741,14 +741,18 @@ class CupNet(nn.Module):
                                 dtype=torch.long)
             if len(todo) == 0:
                 break
-            for k, pick in self._solved_picks(source, todo, geometry, diameter, cup_index,
-                                              batch):
-                solution, row = pick[2], pick[3]
-                valid = bool(solution.valid[row])
-                kept_valid = fallback[k] is not None and bool(fallback[k][2].valid[fallback[k][3]])
-                if valid and bool(self.in_theta_range(solution.pose[row])):
+            solved = self._solved_picks(source, todo, geometry, diameter, cup_index, batch)
+            solution = solved[0][1][2]  # one solution for the source's rows
+            in_range = solution.valid & self.in_theta_range(solution.pose)
+            solved_before = torch.tensor([fallback[k] is not None and
+                                          bool(fallback[k][2].valid[fallback[k][3]])
+                                          for k in todo.tolist()], dtype=torch.bool)
+            took = takes_pick(solution.valid, in_range, solved_before, source is refiner)
+            for (k, pick), take, final in zip(solved, took.tolist(), in_range.tolist(),
+                                              strict=True):
+                if take and final:
                     chosen[k] = pick
-                elif not kept_valid and (valid or source is refiner):
+                elif take:
                     fallback[k] = pick
         picks = [pick if pick is not None else other
                  for pick, other in zip(chosen, fallback, strict=True)]
@@ -1474,6 +1478,16 @@ def _on_cpu(images: list[Tensor]) -> list[Tensor]:
     if all(image.shape == images[0].shape for image in images):
         return list(torch.stack(images).cpu())
     return [image.cpu() for image in images]
+
+
+def takes_pick(valid: Tensor, in_range: Tensor, solved_before: Tensor, refiner: bool
+               ) -> Tensor:
+    """Which cups take a landmark source's solution ``(K,)`` bool, as :meth:`CupNet.detect`
+    and :func:`cupnet.batched.batched_cups` pick: a pose within ``max_theta_deg``
+    (``in_range``, the search for the cup then ends); else, while the cup has no pose
+    (``solved_before`` false), any pose (``valid``), or the refiner's failure (its ellipse is
+    the one its mask shows)."""
+    return in_range | (~solved_before & (valid | refiner))
 
 
 def _cropped(images: list[Tensor], geometry: Geometry,

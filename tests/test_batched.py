@@ -14,7 +14,7 @@ from cupnet.batched import batched_cups
 from cupnet.config import apply_speed_preset
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
-from cupnet.model import load_model
+from cupnet.model import load_model, takes_pick
 
 
 @pytest.fixture(scope="module")
@@ -91,3 +91,16 @@ def test_batched_cups_turn_images_the_config_says_show_the_metal_bright(
                                  np.broadcast_to([0.05, 0.05, 0.05, 0.05, 0.5],
                                                  found.pose.shape))
     assert torch.equal(found.valid, expected.valid)
+
+
+def test_the_picking_rule_by_hand():
+    # Cups: (a) in range; (b) a pose out of range, none before; (c) the same with one before;
+    # (d) no pose, none before; (e) no pose, one before.
+    valid = torch.tensor([True, True, True, False, False])
+    in_range = torch.tensor([True, False, False, False, False])
+    before = torch.tensor([False, False, True, False, True])
+    assert takes_pick(valid, in_range, before, refiner=False).tolist() == [
+        True, True, False, False, False]
+    # The refiner's failure stands for a cup with no pose yet: its mask's ellipse.
+    assert takes_pick(valid, in_range, before, refiner=True).tolist() == [
+        True, True, False, True, False]
