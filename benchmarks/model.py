@@ -261,7 +261,7 @@ def captures_section(model: CupNet, args: argparse.Namespace) -> str:
     data = samples(args.eval_config, args.seed + 31, args.capture_images, [512, 768])
     rows = []
     for label, images, crop_below in (
-            ("the frames (a disc of 0.49 of the width)", [in_a_disc(s) for s in data],
+            ("the frames (a disc of radius 0.49 of the width)", [in_a_disc(s) for s in data],
              cupnet.field.CROP_BELOW),
             ("the captures, whole (as before `field_crop`)", [captured(s) for s in data], 0.0),
             ("the captures, the field cut out (`detect`)", [captured(s) for s in data],
@@ -276,7 +276,7 @@ def captures_section(model: CupNet, args: argparse.Namespace) -> str:
             f"(seed {args.seed + 31}), each masked to an intensifier's disc, and the same "
             "frames as a screenshot or secondary capture holds them: in flat margins 40 % "
             "wider and 16 % higher with burnt-in text (`benchmarks/model.py`, `captured`). "
-            "The disc then spans 0.86 of the capture's height, narrower than any training "
+            "The disc then spans about 0.85 of the capture's height, narrower than any training "
             "frame's; `CupNet.detect` cuts such a field to its square first "
             "(`cupnet.field.field_crop`, below `CROP_BELOW` of the short side). MAE over "
             "detected true cups (deg, deg, mm, mm, mm), false positives as in the accuracy "

@@ -151,12 +151,17 @@ def _some_points(mask: np.ndarray) -> np.ndarray:
 
 def field_crop(image: Tensor | np.ndarray) -> tuple[int, int, int] | None:
     """The square to cut from ``image`` (as :func:`round_field` takes it) so that its round
-    field fills it as the training frames' fields fill theirs: ``(u0, v0, side)`` pixels
-    (top-left corner, side), the field's bounding square kept within the image; None where
-    the image shows no round field or one at least :data:`CROP_BELOW` of its shorter side
+    field fills it as the training frames' fields fill theirs: :func:`crop_of_field` of its
+    :func:`round_field`."""
+    return crop_of_field(round_field(image), *image.shape[-2:])
+
+
+def crop_of_field(field: tuple[float, float, float] | None, height: int, width: int
+                  ) -> tuple[int, int, int] | None:
+    """``(u0, v0, side)`` pixels (top-left corner, side): the bounding square of the round
+    ``field`` ``(cx, cy, r)`` of an ``height`` x ``width`` image, kept within the image;
+    None without a field or where it is at least :data:`CROP_BELOW` of the shorter side
     wide."""
-    field = round_field(image)
-    height, width = image.shape[-2:]
     if field is None or 2 * field[2] >= CROP_BELOW * min(height, width):
         return None
     cx, cy, radius = field

@@ -56,7 +56,7 @@ from cupnet.detection import (
     wants_another_look,
 )
 from cupnet.ellipse import fit_ellipse
-from cupnet.field import field_crop, outside_field, round_field
+from cupnet.field import crop_of_field, outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import component_moments, ray_landmarks
 from cupnet.outline import outline_distances, over_dome, sphere_outline
@@ -306,16 +306,17 @@ class CupNet(nn.Module):
             merged.append(grid)
         return merged, torch.stack([affine[0] for affine, _ in windows]).to(images[0])
 
-    def rough_ellipses(self, images: list[Tensor], gamma: float | None = None
+    def rough_ellipses(self, images: list[Tensor], gamma: float | None = None,
+                       fields: list[tuple[float, float, float] | None] | None = None
                        ) -> tuple[Tensor, Tensor]:
         """Stage 1 at inference: :meth:`ellipses_from_locator` of :meth:`locate_windows`
         (on the images raised to the power ``gamma``, None: as they are), looked for again
         with ``locator_retry_gamma`` in the images where no cup was found (no blob
         :meth:`kept_blobs` keeps); with ``round_field``, those centred outside the image's
-        round field are dropped."""
-        # An image turned over (metal "bright") keeps its flat surround: no need to undo it.
-        fields = (map_on_cores(round_field, _on_cpu(images)) if self.config.round_field
-                  else [None] * len(images))
+        round field (``fields``, each image's :func:`cupnet.field.round_field` where known)
+        are dropped."""
+        if fields is None:
+            fields = self.round_fields(images)
         rough, scores = self.ellipses_from_locator(*self.locate_windows(images, gamma), fields)
         retry = self.config.locator_retry_gamma
         empty = (~self.kept_blobs(rough, scores).any(-1)).nonzero()[:, 0]
@@ -327,6 +328,12 @@ class CupNet(nn.Module):
             found = self.kept_blobs(*again).any(-1)
             rough[empty[found]], scores[empty[found]] = again[0][found], again[1][found]
         return rough, scores
+
+    def round_fields(self, images: list[Tensor]) -> list[tuple[float, float, float] | None]:
+        """Each image's :func:`cupnet.field.round_field` with ``round_field``, else Nones."""
+        # An image turned over (metal "bright") keeps its flat surround: no need to undo it.
+        return (map_on_cores(round_field, _on_cpu(images)) if self.config.round_field
+                else [None] * len(images))
 
     def kept_blobs(self, rough: Tensor, scores: Tensor) -> Tensor:
         """Which locator blobs are taken for cups ``(B, C)`` bool: found (rough ellipses
@@ -603,15 +610,22 @@ class CupNet(nn.Module):
             image_list = _as_image_list(images, self.dtype)
             diameter = _cup_diameters(cup_diameter, len(image_list))
             shapes = [tuple(image.shape[-2:]) for image in image_list]
-            crops = (map_on_cores(field_crop, _on_cpu(image_list)) if self.config.round_field
-                     else [None] * len(image_list))
+            # Found once: the crops come from them, and the looks at the images as given
+            # keep them (a mirrored or turned look's locator finds its field afresh).
+            fields = self.round_fields(image_list)
+            crops = [crop_of_field(field, *shape)
+                     for field, shape in zip(fields, shapes, strict=True)]
             if any(crops):
                 image_list, geometry = _cropped(image_list, geometry, crops)
+                fields = [field if crop is None else (field[0] - crop[0], field[1] - crop[1],
+                                                      field[2])
+                          for field, crop in zip(fields, crops, strict=True)]
             with memoised_strips():
-                found = self._detect(image_list, geometry, diameter, return_masks)
+                found = self._detect(image_list, geometry, diameter, return_masks,
+                                     fields=fields)
                 for look in self.later_looks():
                     self._looked_again(found, image_list, geometry, diameter, return_masks,
-                                       look)
+                                       look, fields)
             return [cups if crop is None else [moved(cup, crop[:2], shape) for cup in cups]
                     for cups, crop, shape in zip(found, crops, shapes, strict=True)]
         finally:
@@ -639,9 +653,9 @@ class CupNet(nn.Module):
 
     def _looked_again(self, found: list[list[CupDetection]], images: list[Tensor],
                       geometry: Geometry, diameter: Tensor, return_masks: bool,
-                      look: Look) -> None:
-        """The ``images`` ``(1, H, W)`` (with their ``geometry`` and cup ``diameter`` ``(B,)``
-        mm) of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
+                      look: Look, fields: list[tuple[float, float, float] | None]) -> None:
+        """The ``images`` ``(1, H, W)`` (with their ``geometry``, cup ``diameter`` ``(B,)``
+        mm and round ``fields``) of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
         error (and with ``look.empty_images`` those with no cup) detected again as ``look``
         says; a flagged or failed cup takes the new look's detection of the same place
         where that one is not flagged and is doubted less, and less than ``look.below``
@@ -662,23 +676,25 @@ class CupNet(nn.Module):
             return
         rows = geometry_rows(geometry, len(images))
         second = self._detect([images[i] for i in again], Geometry.from_rows(rows[again]),
-                              diameter[again], return_masks, look)
+                              diameter[again], return_masks, look, [fields[i] for i in again])
         for i, cups in zip(again, second, strict=True):
             found[i] = later_look_cups(found[i], cups, look.below)
 
     def _detect(self, image_list: list[Tensor], geometry: Geometry, diameter: Tensor,
-                return_masks: bool, look: Look = FIRST_LOOK
+                return_masks: bool, look: Look = FIRST_LOOK,
+                fields: list[tuple[float, float, float] | None] | None = None
                 ) -> list[list[CupDetection]]:
         """:meth:`detect` in eval mode on ``image_list`` ``(1, H, W)`` of the model's dtype
         and cup ``diameter`` ``(B,)`` mm (as :meth:`detect` checked them), the locator
-        looking at the images as ``look`` says (the gamma through :meth:`rough_ellipses`)."""
+        looking at the images as ``look`` says (the gamma through :meth:`rough_ellipses`),
+        their round ``fields`` where known."""
         batch = len(image_list)
         turned = (self.config.metal == "bright") != look.turned
         if turned:
             image_list = [1 - image for image in image_list]
         rough, scores = self.rough_ellipses(
             [image.flip(-1) for image in image_list] if look.mirrored else image_list,
-            look.gamma)
+            look.gamma, None if look.mirrored or turned else fields)
         if look.mirrored:
             widths = torch.tensor([image.shape[-1] for image in image_list]).to(rough)
             rough = mirrored_ellipses(rough, widths[:, None])
@@ -746,7 +762,8 @@ class CupNet(nn.Module):
             in_range = solution.valid & self.in_theta_range(solution.pose)
             solved_before = torch.tensor([fallback[k] is not None and
                                           bool(fallback[k][2].valid[fallback[k][3]])
-                                          for k in todo.tolist()], dtype=torch.bool)
+                                          for k in todo.tolist()], dtype=torch.bool,
+                                         device=solution.valid.device)
             took = takes_pick(solution.valid, in_range, solved_before, source is refiner)
             for (k, pick), take, final in zip(solved, took.tolist(), in_range.tolist(),
                                               strict=True):
@@ -1494,7 +1511,7 @@ def _cropped(images: list[Tensor], geometry: Geometry,
              crops: list[tuple[int, int, int] | None]) -> tuple[list[Tensor], Geometry]:
     """``images`` ``(1, H, W)`` cut to their ``crops`` (``(u0, v0, side)`` or None: whole),
     and ``geometry`` with each principal point where its crop puts it."""
-    rows = geometry_rows(geometry, len(images)).clone()
+    rows = geometry_rows(geometry, len(images))  # a new tensor: the caller's is kept
     out = []
     for i, (image, crop) in enumerate(zip(images, crops, strict=True)):
         if crop is None:

@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
                 problems = implausible({"sdd_mm": float(geometry.sdd),
                                         "pixel_spacing_mm": float(geometry.pixel_spacing),
                                         "cup_diameter_mm": diameter})
-                for key in problems.keys() - warned:  # once a value, as predict warns
+                for key in (key for key in problems if key not in warned):  # once a value
                     warned.add(key)
                     print(f"cupnet solve: warning: {problems[key]}: first in {image}; check "
                           "it, the poses' distances scale with it", file=sys.stderr)

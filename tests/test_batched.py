@@ -94,13 +94,14 @@ def test_batched_cups_turn_images_the_config_says_show_the_metal_bright(
 
 
 def test_the_picking_rule_by_hand():
-    # Cups: (a) in range; (b) a pose out of range, none before; (c) the same with one before;
-    # (d) no pose, none before; (e) no pose, one before.
-    valid = torch.tensor([True, True, True, False, False])
-    in_range = torch.tensor([True, False, False, False, False])
-    before = torch.tensor([False, False, True, False, True])
+    # Cups: (a) in range; (b) in range, replacing a pose out of range taken before; (c) a
+    # pose out of range, none before; (d) the same with one before; (e) no pose, none
+    # before; (f) no pose, one before.
+    valid = torch.tensor([True, True, True, True, False, False])
+    in_range = torch.tensor([True, True, False, False, False, False])
+    before = torch.tensor([False, True, False, True, False, True])
     assert takes_pick(valid, in_range, before, refiner=False).tolist() == [
-        True, True, False, False, False]
+        True, True, True, False, False, False]
     # The refiner's failure stands for a cup with no pose yet: its mask's ellipse.
     assert takes_pick(valid, in_range, before, refiner=True).tolist() == [
-        True, True, False, True, False]
+        True, True, True, False, True, False]

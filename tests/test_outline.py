@@ -350,11 +350,11 @@ def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = Tru
     looks: list[tuple[str, int]] = []
     detect_once = model._detect
 
-    def tracked(images, geometry, diameter, masks, look=FIRST_LOOK):
+    def tracked(images, geometry, diameter, masks, look=FIRST_LOOK, fields=None):
         kind = ("mirrored" if look.mirrored else "gamma" if look.gamma else
                 "turned" if look.turned else "first")
         looks.append((kind, len(images)))
-        return detect_once(images, geometry, diameter, masks, look)
+        return detect_once(images, geometry, diameter, masks, look, fields)
 
     monkeypatch.setattr(model, "_detect", tracked)
     refine = model.outline_refined
@@ -429,8 +429,8 @@ def test_an_image_with_no_cup_found_is_looked_at_turned_over(shipped_on_drr, mon
                                fourth_look_turned=fourth_look_turned)
     rough_ellipses = model.rough_ellipses
 
-    def hidden_at_first(images, gamma=None):
-        rough, scores = rough_ellipses(images, gamma)
+    def hidden_at_first(images, gamma=None, fields=None):
+        rough, scores = rough_ellipses(images, gamma, fields)
         return (torch.full_like(rough, math.nan) if looks[-1][0] == "first" else rough), scores
 
     monkeypatch.setattr(model, "rough_ellipses", hidden_at_first)

@@ -505,7 +505,8 @@ def test_implausible_geometry_is_warned_of_once_and_recorded(
     captured = capsys.readouterr()
     diameter = ("cup diameter 26 mm (its radius?) lies outside 36-80 mm: first in im0.png, "
                 "from command line")
-    spacing = "pixel spacing 0.02 mm lies outside 0.03-2 mm: first in im1.png, from meta.csv"
+    spacing = ("pixel spacing 0.02 mm (in cm?) lies outside 0.03-2 mm: first in im1.png, from "
+               "meta.csv")
     assert captured.err.count(diameter) == 1 and captured.err.count(spacing) == 1
     assert "source-to-detector" not in captured.err
     assert f"  warning: {diameter}" in captured.out  # repeated in the closing summary

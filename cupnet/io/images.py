@@ -278,11 +278,16 @@ def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarr
         stored = pixel_array(path, index=index)
     except Exception as exc:  # pydicom raises many types on broken pixel data
         syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
-        if syntax is not None and syntax.is_compressed:
+        try:
+            compressed = syntax is not None and syntax.is_compressed
+        except ValueError:  # a private or unknown transfer syntax: no decoder knows it
+            raise ImageReadError(f"cannot decode DICOM pixel data in transfer syntax "
+                                 f"{syntax} ({exc})") from exc
+        if compressed:
             # Most often intact data no installed decoder reads (12-bit JPEG Extended), not
             # a broken file: say which compression, and what the decoders said.
             raise ImageReadError(f"cannot decode DICOM pixel data compressed as {syntax.name} "
-                                 f"({exc})") from exc
+                                 f"(unsupported or damaged: {exc})") from exc
         raise ImageReadError(f"corrupt or truncated DICOM pixel data ({exc})") from exc
     if stored.ndim == 3 and stored.shape[-1] == 3:
         stored = _to_gray(stored)

@@ -32,7 +32,8 @@ def implausible(values: dict[str, float]) -> dict[str, str]:
     for key, (low, high) in PLAUSIBLE_MM.items():
         value = values.get(key)
         if value is not None and not low <= value <= high:
-            hint = " (its radius?)" if key == "cup_diameter_mm" and value < low else ""
+            hint = (" (its radius?)" if key == "cup_diameter_mm" and low <= 2 * value <= high
+                    else " (in cm?)" if low <= 10 * value <= high else "")
             out[key] = f"{REQUIRED[key][0]} {value:g} mm{hint} lies outside {low:g}-{high:g} mm"
     return out
 
