@@ -49,7 +49,7 @@ from cupnet.io.meta import (
     REQUIRED,
     add_geometry_arguments,
     geometry_flags,
-    implausible,
+    implausible_once,
     meta_row,
     read_meta,
 )
@@ -544,12 +544,8 @@ class Predictor:
     def _note_implausible(self, name: str, geometry: ResolvedGeometry) -> None:
         """Warn, once per value, of a geometry value outside
         :data:`cupnet.io.meta.PLAUSIBLE_MM`."""
-        for key, problem in implausible(geometry.values).items():
-            if key in self.outputs.warnings:
-                continue
-            text = (f"{problem}: first in {name}, from {geometry.sources[key]}; check it, the "
-                    "poses' distances scale with it")
-            self.outputs.warnings[key] = text
+        for text in implausible_once(geometry.values, self.outputs.warnings, name,
+                                     geometry.sources):
             tqdm.write(f"warning: {text}", file=sys.stderr)
 
     def prepare(self, frames: list[Frame]) -> Batch:

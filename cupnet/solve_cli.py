@@ -22,7 +22,7 @@ from cupnet.io.meta import (
     REQUIRED,
     add_geometry_arguments,
     geometry_flags,
-    implausible,
+    implausible_once,
     meta_row,
     read_meta,
 )
@@ -97,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     flags = geometry_flags(args)
     records, failures, solved = [], 0, 0
-    warned: set[str] = set()
+    warned: dict[str, str] = {}
     for image, cups in landmark_sets.items():
         rows = []
         for cup in cups:
@@ -109,13 +109,11 @@ def run(args: argparse.Namespace) -> int:
                 rows.append(status_row(image, resolved, 0.0))
             else:
                 geometry, diameter = resolved
-                problems = implausible({"sdd_mm": float(geometry.sdd),
-                                        "pixel_spacing_mm": float(geometry.pixel_spacing),
-                                        "cup_diameter_mm": diameter})
-                for key in (key for key in problems if key not in warned):  # once a value
-                    warned.add(key)
-                    print(f"cupnet solve: warning: {problems[key]}: first in {image}; check "
-                          "it, the poses' distances scale with it", file=sys.stderr)
+                values = {"sdd_mm": float(geometry.sdd),
+                          "pixel_spacing_mm": float(geometry.pixel_spacing),
+                          "cup_diameter_mm": diameter}
+                for text in implausible_once(values, warned, image):
+                    print(f"cupnet solve: warning: {text}", file=sys.stderr)
                 detection = solve_cup(cup, geometry, diameter, refine=not args.closed_form)
                 rows.append(cup_row(image, cup.cup, detection, time.perf_counter() - start))
         failures += sum(str(r["status"]).startswith("error") for r in rows)

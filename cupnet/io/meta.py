@@ -38,6 +38,21 @@ def implausible(values: dict[str, float]) -> dict[str, str]:
     return out
 
 
+def implausible_once(values: dict[str, float], warned: dict[str, str], image: str,
+                     sources: dict[str, str] | None = None) -> list[str]:
+    """The warnings of :func:`implausible` ``values`` not in ``warned`` (key -> text) yet,
+    each naming ``image`` and, where given, the value's source; added to ``warned`` (in
+    place), so a run warns once a value."""
+    new = []
+    for key, problem in implausible(values).items():
+        if key not in warned:
+            source = f", from {sources[key]}" if sources else ""
+            warned[key] = (f"{problem}: first in {image}{source}; check it, the poses' "
+                           "distances scale with it")
+            new.append(warned[key])
+    return new
+
+
 def add_geometry_arguments(parser: argparse.ArgumentParser) -> None:
     """``--meta``, ``--sdd``, ``--pixel-spacing``, ``--cup-diameter``, ``--principal-point``."""
     parser.add_argument("--meta", type=Path,
