@@ -45,13 +45,17 @@ from cupnet.io.images import (
     iter_frames,
 )
 from cupnet.io.meta import (
-    GEOMETRY_KEYS,
+    ASSUMED_CUP_DIAMETER_MM,
+    ASSUMED_DETECTOR_WIDTH_MM,
+    ASSUMED_SDD_MM,
     REQUIRED,
+    ResolvedGeometry,
     add_geometry_arguments,
     geometry_flags,
     implausible_once,
     meta_row,
     read_meta,
+    resolve_geometry,
 )
 from cupnet.io.results import (
     atomic_write,
@@ -69,12 +73,6 @@ from cupnet.runtime import RUNTIMES, onnx_runtime_available
 if TYPE_CHECKING:  # the model's libraries load only when a model is
     from cupnet.model import CupNet
 
-# --assume-defaults: the paper's SDD, a common cup size, and a mid-size detector whose width
-# spans the image (so the spacing scales with the image size).
-ASSUMED_SDD_MM = 1040.0
-ASSUMED_CUP_DIAMETER_MM = 52.0
-ASSUMED_DETECTOR_WIDTH_MM = 300.0
-
 # Outputs are rewritten at most every FLUSH_SECONDS, and at least FLUSH_RATIO times as long as
 # the last rewrite took, so rewriting stays a small share of the run on huge folders.
 FLUSH_SECONDS = 2.0
@@ -90,11 +88,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="output folder")
     parser.add_argument("--recursive", action="store_true", help="include subfolders")
     add_geometry_arguments(parser)
-    parser.add_argument("--assume-defaults", action="store_true",
-                        help=f"fill missing values (SDD {ASSUMED_SDD_MM:g} mm, cup "
-                             f"{ASSUMED_CUP_DIAMETER_MM:g} mm, pixel spacing = "
-                             f"{ASSUMED_DETECTOR_WIDTH_MM:g} mm / image width) instead of an "
-                             "error row")
     parser.add_argument("--checkpoint", type=Path,
                         help="model weights (.safetensors or a weights-only torch file); "
                              "default: the shipped model")
@@ -157,59 +150,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # -- geometry ---------------------------------------------------------------------------------
-@dataclass
-class ResolvedGeometry:
-    """The geometry of one image: ``values`` by key, where each came from, what is missing."""
-
-    values: dict[str, float] = field(default_factory=dict)
-    sources: dict[str, str] = field(default_factory=dict)
-    missing: list[str] = field(default_factory=list)
-
-    def error(self, notes: dict[str, str] | None) -> str:
-        """The error status naming the missing values, how to give them, and tag problems."""
-        parts = []
-        for key in self.missing:
-            name, flag = REQUIRED[key]
-            note = f"; {notes[key]}" if notes and key in notes else ""
-            parts.append(f"{name} ({flag} or meta.csv {key}{note})")
-        return f"error: missing {', '.join(parts)}; or use --assume-defaults"
-
-    def to_json(self) -> dict[str, dict[str, float | str]]:
-        return {k: {"value": self.values[k], "source": self.sources[k]} for k in self.values}
-
-    def geometry(self) -> Geometry:
-        """The scalar :class:`Geometry` of the image."""
-        v = self.values
-        return Geometry(v["sdd_mm"], v["pixel_spacing_mm"], v["principal_u_px"],
-                        v["principal_v_px"])
-
-
-def resolve_geometry(frame: Frame, meta: dict[str, float], flags: dict[str, float],
-                     assume_defaults: bool, file_values: dict[str, float] | None = None
-                     ) -> ResolvedGeometry:
-    """Each value from the first of: meta.csv row, command-line flag, DICOM tag, the landmark
-    file's own values (``file_values``), assumption, image centre (principal point)."""
-    height, width = frame.image.shape  # type: ignore[union-attr]
-    tags = {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm}
-    assumed = {"sdd_mm": ASSUMED_SDD_MM, "cup_diameter_mm": ASSUMED_CUP_DIAMETER_MM,
-               "pixel_spacing_mm": ASSUMED_DETECTOR_WIDTH_MM / width}
-    centre = {"principal_u_px": (width - 1) / 2, "principal_v_px": (height - 1) / 2}
-    geometry = ResolvedGeometry()
-    for key in GEOMETRY_KEYS:
-        for source, values in (("meta.csv", meta), ("command line", flags),
-                               ("DICOM tags", tags), ("landmark file", file_values or {}),
-                               ("assumed", assumed if assume_defaults else {}),
-                               ("image centre", centre)):
-            if values.get(key) is not None:
-                geometry.values[key] = float(values[key])
-                geometry.sources[key] = ((frame.tag_sources or {}).get(key, source)
-                                         if values is tags else source)
-                break
-        else:
-            geometry.missing.append(key)
-    return geometry
-
-
 def batch_geometry(geometries: list[ResolvedGeometry]) -> tuple[Geometry, torch.Tensor]:
     """``Geometry`` with ``(B,)`` float64 fields and ``(B,)`` cup diameters (mm)."""
     def column(key: str) -> torch.Tensor:
@@ -330,10 +270,7 @@ class LandmarkDetector:
 
     def file_values(self, name: str) -> dict[str, float]:
         cups = [c for c in self.cups_of(name) if c.error is None]
-        if not cups:
-            return {}
-        return {k: getattr(cups[0], k) for k in ("sdd_mm", "pixel_spacing_mm", "cup_diameter_mm")
-                if getattr(cups[0], k) is not None}
+        return cups[0].geometry_values() if cups else {}
 
     def __call__(self, frames: list[Frame], geometries: list[ResolvedGeometry]) -> list[list]:
         from cupnet.detection import CupDetection
@@ -559,9 +496,11 @@ class Predictor:
                 batch.records[i] = {"image": frame.name, "rows": [
                     status_row(frame.name, error, frame.seconds)]}
                 continue
-            geometry = resolve_geometry(frame, meta_row(self.meta, frame.name), self.flags,
-                                        self.args.assume_defaults,
-                                        self.detector.file_values(frame.name))
+            geometry = resolve_geometry(
+                frame.image.shape, meta_row(self.meta, frame.name),  # type: ignore[union-attr]
+                self.flags, self.args.assume_defaults,
+                {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm},
+                frame.tag_sources, self.detector.file_values(frame.name))
             if geometry.missing:
                 batch.records[i] = {"image": frame.name, "geometry": geometry.to_json(),
                                     "rows": [status_row(frame.name,

@@ -16,7 +16,8 @@ import cupnet.predict as predict
 from cupnet.cli import main
 from cupnet.config import CupNetConfig
 from cupnet.geometry import Geometry, pose_to_radians, project_rim
-from cupnet.io.images import PATIENT_SPACING_SOURCE, Frame, ImageSource
+from cupnet.io.images import PATIENT_SPACING_SOURCE
+from cupnet.io.meta import ASSUMED_DETECTOR_WIDTH_MM, resolve_geometry
 from cupnet.io.results import POSE_COLUMNS, RESULT_COLUMNS
 from cupnet.model import CupNet, save_model
 
@@ -105,28 +106,34 @@ def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
 
 
 def test_geometry_precedence_and_assumptions() -> None:
-    frame = Frame("x.dcm", ImageSource(Path("x.dcm"), "x.dcm"), image=np.zeros((100, 200)),
-                  sdd_mm=1200.0, pixel_spacing_mm=0.15)
-    tags_only = predict.resolve_geometry(frame, {}, {}, assume_defaults=False)
+    tags = {"sdd_mm": 1200.0, "pixel_spacing_mm": 0.15}
+    tags_only = resolve_geometry((100, 200), {}, {}, tags=tags)
     assert tags_only.missing == ["cup_diameter_mm"]
     assert tags_only.values["sdd_mm"] == 1200.0 and tags_only.sources["sdd_mm"] == "DICOM tags"
     assert (tags_only.values["principal_u_px"], tags_only.values["principal_v_px"]) == (99.5, 49.5)
     flags = {"sdd_mm": 1000.0, "cup_diameter_mm": 50.0, "principal_u_px": 10.0,
              "principal_v_px": 20.0}
-    explicit = predict.resolve_geometry(frame, {"sdd_mm": 900.0}, flags, assume_defaults=False)
+    explicit = resolve_geometry((100, 200), {"sdd_mm": 900.0}, flags, tags=tags,
+                                file_values={"pixel_spacing_mm": 0.3})
     assert explicit.missing == []
     assert explicit.values["sdd_mm"] == 900.0 and explicit.sources["sdd_mm"] == "meta.csv"
-    assert explicit.values["pixel_spacing_mm"] == 0.15
+    assert explicit.values["pixel_spacing_mm"] == 0.15  # the tags before the landmark file
     assert explicit.values["principal_u_px"] == 10.0
-    bare = Frame("y.png", ImageSource(Path("y.png"), "y.png"), image=np.zeros((100, 200)))
-    assumed = predict.resolve_geometry(bare, {}, {}, assume_defaults=True)
+    assumed = resolve_geometry((100, 200), {}, {}, assume_defaults=True)
     assert assumed.missing == []
-    assert assumed.values["pixel_spacing_mm"] == pytest.approx(
-        predict.ASSUMED_DETECTOR_WIDTH_MM / 200)
+    assert assumed.values["pixel_spacing_mm"] == pytest.approx(ASSUMED_DETECTOR_WIDTH_MM / 200)
     assert set(assumed.sources.values()) == {"assumed", "image centre"}
-    missing = predict.resolve_geometry(bare, {}, {}, assume_defaults=False)
+    missing = resolve_geometry((100, 200), {}, {})
     message = missing.error({"pixel_spacing_mm": "DICOM PixelSpacing is not square"})
     assert "source-to-detector distance (--sdd" in message and "not square" in message
+    assert message.endswith("; or use --assume-defaults")
+    # No image size (a landmark file without it): no centre, no spacing to assume, no hint.
+    sizeless = resolve_geometry(None, {}, {}, assume_defaults=True)
+    assert sizeless.missing == ["pixel_spacing_mm", "principal_u_px", "principal_v_px"]
+    assert sizeless.error() == (
+        "error: missing pixel spacing (--pixel-spacing or meta.csv pixel_spacing_mm), "
+        "principal point (--principal-point or meta.csv principal_u_px, principal_v_px; no "
+        "image size to take its centre from)")
 
 
 def test_no_overwrite_without_flag(tmp_path: Path, blind_checkpoint: Path,
@@ -410,7 +417,7 @@ def test_assumptions_printed_once_and_recorded(tmp_path: Path, blind_checkpoint:
     document = json.loads((out / "results.json").read_text())
     assert set(document["assumptions"]) == {"cup_diameter_mm", "pixel_spacing_mm"}
     geometry = document["images"][0]["geometry"]
-    assert geometry["pixel_spacing_mm"] == {"value": predict.ASSUMED_DETECTOR_WIDTH_MM / 256,
+    assert geometry["pixel_spacing_mm"] == {"value": ASSUMED_DETECTOR_WIDTH_MM / 256,
                                             "source": "assumed"}
     assert geometry["sdd_mm"]["source"] == "command line"
 

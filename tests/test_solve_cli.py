@@ -113,3 +113,23 @@ def test_implausible_geometry_is_warned_of_once_and_still_solved(tmp_path, capsy
                      "first in a.png") == 1
     assert "pixel spacing" not in err and "source-to-detector" not in err
     assert all(row["status"] in ("ok", "ambiguous") for row in results(out))
+
+
+def test_assume_defaults_fill_what_the_file_lacks_as_predict_does(tmp_path, capsys):
+    # The rims were drawn with the assumed SDD; the cup is 50 mm, given on the command line.
+    geometry = Geometry(1040.0, 0.5, 255.5, 255.5)
+    write_long(tmp_path / "lm.csv", geometry)
+    out = tmp_path / "r.csv"
+    flags = ["--pixel-spacing", "0.5", "--cup-diameter", "50"]
+    assert main(["solve", str(tmp_path / "lm.csv"), *flags, "--principal-point", "255.5",
+                 "255.5", "--out", str(out)]) == 0
+    assert all(row["status"] == "error: missing source-to-detector distance (--sdd or meta.csv "
+               "sdd_mm); or use --assume-defaults" for row in results(out))
+    assert main(["solve", str(tmp_path / "lm.csv"), *flags, "--principal-point", "255.5",
+                 "255.5", "--assume-defaults", "--out", str(out), "--overwrite"]) == 0
+    assert_poses(results(out))
+    # The long format gives no image size: the principal point is still the user's to give.
+    assert main(["solve", str(tmp_path / "lm.csv"), *flags, "--assume-defaults",
+                 "--out", str(out), "--overwrite"]) == 0
+    assert all(row["status"].startswith("error: missing principal point")
+               and "--assume-defaults" not in row["status"] for row in results(out))

@@ -47,6 +47,17 @@ class LandmarkSet:
     pixel_spacing_mm: float | None = None
     error: str | None = None
 
+    def size(self) -> tuple[int, int] | None:
+        """The image's ``(height, width)`` pixels where the file gives it, else None."""
+        return None if self.width is None or self.height is None else (self.height,
+                                                                        self.width)
+
+    def geometry_values(self) -> dict[str, float]:
+        """The geometry the file carries, by meta.csv key (those it lacks left out)."""
+        values = {"sdd_mm": self.sdd_mm, "pixel_spacing_mm": self.pixel_spacing_mm,
+                  "cup_diameter_mm": self.cup_diameter_mm}
+        return {key: value for key, value in values.items() if value is not None}
+
 
 def read_landmarks(path: str | Path) -> dict[str, list[LandmarkSet]]:
     """Landmark sets by image name (one per cup), from either CONVENTIONS format.

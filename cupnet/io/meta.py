@@ -1,14 +1,18 @@
 """Per-image geometry from ``meta.csv`` and the command line (CONVENTIONS "File formats").
 
 ``meta.csv``: ``image,sdd_mm,pixel_spacing_mm,cup_diameter_mm`` and optionally
-``principal_u_px,principal_v_px``. Shared by ``cupnet predict`` and ``cupnet solve``.
+``principal_u_px,principal_v_px``. Shared by ``cupnet predict`` and ``cupnet solve``, which
+resolve each image's geometry the same way (:func:`resolve_geometry`).
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+from dataclasses import dataclass, field
 from pathlib import Path
+
+from cupnet.geometry import Geometry
 
 # Geometry values an image needs, with what they are called in messages and which flag sets
 # them; the principal point defaults to the image centre (CONVENTIONS) where the size is known.
@@ -18,6 +22,12 @@ REQUIRED = {
     "cup_diameter_mm": ("cup diameter", "--cup-diameter"),
 }
 GEOMETRY_KEYS = (*REQUIRED, "principal_u_px", "principal_v_px")
+PRINCIPAL_KEYS = GEOMETRY_KEYS[len(REQUIRED):]
+# --assume-defaults: the paper's SDD, a common cup size, and a mid-size detector whose width
+# spans the image (so the spacing scales with the image size).
+ASSUMED_SDD_MM = 1040.0
+ASSUMED_CUP_DIAMETER_MM = 52.0
+ASSUMED_DETECTOR_WIDTH_MM = 300.0
 # Geometry values (mm) outside these are most likely a slip: a cup's radius for its diameter,
 # centimetres, a spacing of the downsampled image's original. Warned of, not refused: the
 # solver takes any geometry, and h, the distance, scales with the cup diameter and spacing.
@@ -53,8 +63,85 @@ def implausible_once(values: dict[str, float], warned: dict[str, str], image: st
     return new
 
 
+@dataclass
+class ResolvedGeometry:
+    """The geometry of one image: ``values`` by key, where each came from, what is missing."""
+
+    values: dict[str, float] = field(default_factory=dict)
+    sources: dict[str, str] = field(default_factory=dict)
+    missing: list[str] = field(default_factory=list)
+    assumed_defaults: bool = False
+
+    def error(self, notes: dict[str, str] | None = None) -> str:
+        """The error status naming the missing values, how to give them (``--assume-defaults``
+        where not used yet), and the ``notes`` (key -> text: why a DICOM tag could not serve)
+        of those."""
+        parts = []
+        for key in self.missing:
+            if key in PRINCIPAL_KEYS:
+                if key == PRINCIPAL_KEYS[0]:  # one part for the pair
+                    parts.append("principal point (--principal-point or meta.csv "
+                                 f"{', '.join(PRINCIPAL_KEYS)}; no image size to take its "
+                                 "centre from)")
+                continue
+            name, flag = REQUIRED[key]
+            note = f"; {notes[key]}" if notes and key in notes else ""
+            parts.append(f"{name} ({flag} or meta.csv {key}{note})")
+        hint = "" if self.assumed_defaults else "; or use --assume-defaults"
+        return f"error: missing {', '.join(parts)}{hint}"
+
+    def to_json(self) -> dict[str, dict[str, float | str]]:
+        return {k: {"value": self.values[k], "source": self.sources[k]} for k in self.values}
+
+    def geometry(self) -> Geometry:
+        """The scalar :class:`Geometry` of the image."""
+        v = self.values
+        return Geometry(v["sdd_mm"], v["pixel_spacing_mm"], v["principal_u_px"],
+                        v["principal_v_px"])
+
+
+def resolve_geometry(size: tuple[int, int] | None, meta: dict[str, float],
+                     flags: dict[str, float], assume_defaults: bool = False,
+                     tags: dict[str, float | None] | None = None,
+                     tag_sources: dict[str, str] | None = None,
+                     file_values: dict[str, float] | None = None) -> ResolvedGeometry:
+    """One image's geometry, each value from the first of: its ``meta`` row, the command
+    line's ``flags``, its DICOM ``tags`` (named by ``tag_sources`` where given), the landmark
+    file's own ``file_values``, an assumption (with ``assume_defaults``), the image centre
+    (principal point); all by meta.csv key.
+
+    Args:
+        size: the image's ``(height, width)`` pixels, or None where unknown (a landmark file
+            without it): then neither the principal point nor the spacing can be taken from
+            it.
+    """
+    assumed: dict[str, float] = {}
+    centre: dict[str, float] = {}
+    if assume_defaults:
+        assumed = {"sdd_mm": ASSUMED_SDD_MM, "cup_diameter_mm": ASSUMED_CUP_DIAMETER_MM}
+    if size is not None:
+        height, width = size
+        if assume_defaults:
+            assumed["pixel_spacing_mm"] = ASSUMED_DETECTOR_WIDTH_MM / width
+        centre = dict(zip(PRINCIPAL_KEYS, ((width - 1) / 2, (height - 1) / 2), strict=True))
+    geometry = ResolvedGeometry(assumed_defaults=assume_defaults)
+    for key in GEOMETRY_KEYS:
+        for source, values in (("meta.csv", meta), ("command line", flags),
+                               ("DICOM tags", tags or {}), ("landmark file", file_values or {}),
+                               ("assumed", assumed), ("image centre", centre)):
+            if values.get(key) is not None:
+                geometry.values[key] = float(values[key])  # type: ignore[arg-type]
+                geometry.sources[key] = ((tag_sources or {}).get(key, source)
+                                         if source == "DICOM tags" else source)
+                break
+        else:
+            geometry.missing.append(key)
+    return geometry
+
+
 def add_geometry_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--meta``, ``--sdd``, ``--pixel-spacing``, ``--cup-diameter``, ``--principal-point``."""
+    """``--meta``, ``--sdd``, ``--pixel-spacing``, ``--cup-diameter``, ``--principal-point``,
+    ``--assume-defaults``."""
     parser.add_argument("--meta", type=Path,
                         help="meta.csv: image,sdd_mm,pixel_spacing_mm,cup_diameter_mm"
                              "[,principal_u_px,principal_v_px]")
@@ -64,6 +151,11 @@ def add_geometry_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cup-diameter", type=float, metavar="MM", help="cup outer diameter")
     parser.add_argument("--principal-point", type=float, nargs=2, metavar=("U", "V"),
                         help="principal point in pixels (default: the image centre)")
+    parser.add_argument("--assume-defaults", action="store_true",
+                        help=f"fill missing values (SDD {ASSUMED_SDD_MM:g} mm, cup "
+                             f"{ASSUMED_CUP_DIAMETER_MM:g} mm, pixel spacing = "
+                             f"{ASSUMED_DETECTOR_WIDTH_MM:g} mm / image width) instead of an "
+                             "error row")
 
 
 def geometry_flags(args: argparse.Namespace) -> dict[str, float]:
