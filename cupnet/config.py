@@ -196,6 +196,12 @@ class CupNetConfig:
         turned_look_doubt: ... where the network doubts it less than this, too (None:
             wherever it is not flagged, as the other looks'): turned over, a blob on no cup
             can be judged a cup in the other display and believed only just.
+        partner_look: the mirrored look (``second_look``) also looks at the images with
+            fewer cups than ``max_cups`` for cups elsewhere, and adds those it believes
+            (doubted less than ``turned_look_doubt`` where set): the locator passes over a
+            bilateral pair's second cup more often than over a lone one (a pair's cup is
+            its other side's mirror image, so the mirrored locator sees it as it saw the
+            first). Only blobs away from the cups found get the cup stages.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -258,6 +264,7 @@ class CupNetConfig:
     third_look_gamma: float | None = None
     fourth_look_turned: bool = False
     turned_look_doubt: float | None = None
+    partner_look: bool = False
 
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:

@@ -105,12 +105,14 @@ def wants_another_look(cup: CupDetection) -> bool:
 
 
 def later_look_cups(first: list[CupDetection], second: list[CupDetection],
-                    below: float | None = None) -> list[CupDetection]:
+                    below: float | None = None, up_to: int = 0) -> list[CupDetection]:
     """One image's cups ``first`` with each one that :func:`wants_another_look` replaced by
     the least doubted cup of ``second`` at the same place (each centre within the other's
     major semi-axis) that is believed (not flagged, doubted less than ``below``, None: any
-    doubt) and doubted less; the others as they are. Where ``first`` is empty (no cup
-    found), the believed cups of ``second``."""
+    doubt) and doubted less; the others as they are; then, while there are fewer than
+    ``up_to``, the least doubted believed cups of ``second`` at other places added (a
+    bilateral pair's other cup). Where ``first`` is empty (no cup found), the believed
+    cups of ``second``."""
     believed = [other for other in second if other.doubt is not None and not other.check
                 and (below is None or other.doubt < below)]
     if not first:
@@ -121,13 +123,18 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
             shape = np.asarray(cup.ellipse, np.float64)
             better = [other for other in believed
                       if (cup.doubt is None or other.doubt < cup.doubt)
-                      and _same_place(shape, np.asarray(other.ellipse, np.float64))]
+                      and same_place(shape, np.asarray(other.ellipse, np.float64))]
             cup = min(better, key=lambda other: other.doubt, default=cup)
         out.append(cup)
+    for other in sorted(believed, key=lambda other: other.doubt):
+        shape = np.asarray(other.ellipse, np.float64)
+        if len(out) < up_to and not any(same_place(shape, np.asarray(cup.ellipse, np.float64))
+                                        for cup in out):
+            out.append(other)
     return out
 
 
-def _same_place(one: np.ndarray, other: np.ndarray) -> bool:
+def same_place(one: np.ndarray, other: np.ndarray) -> bool:
     """Whether ellipses ``(5,)`` px ``one`` and ``other`` mark one place: each centre within
     the other's major semi-axis (False where either is NaN)."""
     return bool(np.hypot(*(one[:2] - other[:2])) <= min(one[2], other[2]))

@@ -53,6 +53,7 @@ from cupnet.detection import (
     distinct_cups,
     later_look_cups,
     moved,
+    same_place,
     wants_another_look,
 )
 from cupnet.ellipse import fit_ellipse
@@ -124,6 +125,8 @@ class Look(NamedTuple):
             less than this (None: wherever not flagged).
         empty_images: a later look looks at the images where no cup was found too, and
             adds the cups it finds there that it would let replace one.
+        partners: ... and at the images with fewer cups than ``max_cups``, adding such
+            cups found elsewhere (``CupNetConfig.partner_look``).
         verified: the verification of doubtful cups runs in this look ...
         searched: ... and the search of those it leaves doubtful.
     """
@@ -133,6 +136,7 @@ class Look(NamedTuple):
     turned: bool = False
     below: float | None = None
     empty_images: bool = False
+    partners: bool = False
     verified: bool = True
     searched: bool = True
 
@@ -643,7 +647,8 @@ class CupNet(nn.Module):
         None searches the cups its verification leaves doubtful: on the selection seeds
         the later looks' search changed no cup's pose, and it took a sixth of the
         default's time on the speed set (docs/training.md, item 35)."""
-        looks = [Look(mirrored=True, searched=False)] if self.config.second_look else []
+        looks = ([Look(mirrored=True, searched=False, partners=self.config.partner_look)]
+                 if self.config.second_look else [])
         if self.config.third_look_gamma is not None:
             looks.append(Look(gamma=self.config.third_look_gamma, searched=False))
         if self.config.fourth_look_turned:
@@ -670,24 +675,30 @@ class CupNet(nn.Module):
         rim network then believes the pose. Turned over, the image's display is judged
         afresh from the new blobs, where the first look may have judged it wrong.
         """
+        partners = self.config.max_cups if look.partners else 0
         again = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))
-                 or (look.empty_images and not cups)]
+                 or (look.empty_images and not cups) or 0 < len(cups) < partners]
         if not again:
             return
         rows = geometry_rows(geometry, len(images))
+        # A believed cup is neither replaced nor added again: its blob gets no cup stages.
+        known = [[cup.ellipse for cup in found[i] if not wants_another_look(cup)]
+                 for i in again]
         second = self._detect([images[i] for i in again], Geometry.from_rows(rows[again]),
-                              diameter[again], return_masks, look, [fields[i] for i in again])
+                              diameter[again], return_masks, look, [fields[i] for i in again],
+                              known)
         for i, cups in zip(again, second, strict=True):
-            found[i] = later_look_cups(found[i], cups, look.below)
+            found[i] = later_look_cups(found[i], cups, look.below, partners)
 
     def _detect(self, image_list: list[Tensor], geometry: Geometry, diameter: Tensor,
                 return_masks: bool, look: Look = FIRST_LOOK,
-                fields: list[tuple[float, float, float] | None] | None = None
-                ) -> list[list[CupDetection]]:
+                fields: list[tuple[float, float, float] | None] | None = None,
+                known: list[list[np.ndarray]] | None = None) -> list[list[CupDetection]]:
         """:meth:`detect` in eval mode on ``image_list`` ``(1, H, W)`` of the model's dtype
         and cup ``diameter`` ``(B,)`` mm (as :meth:`detect` checked them), the locator
         looking at the images as ``look`` says (the gamma through :meth:`rough_ellipses`),
-        their round ``fields`` where known."""
+        their round ``fields`` where known; blobs at the place of a ``known`` cup's ellipse
+        ``(5,)`` px (per image) are passed over."""
         batch = len(image_list)
         turned = (self.config.metal == "bright") != look.turned
         if turned:
@@ -707,7 +718,11 @@ class CupNet(nn.Module):
             bright = [turn != turned for turn in judged]
         # Weak blobs are dropped before the cup stages, not after: each cup is solved on its
         # own, so the others' results are the same, and a weak blob costs no strips.
-        cup_index = self.kept_blobs(rough, scores).nonzero()
+        kept = self.kept_blobs(rough, scores)
+        for i, ellipses in enumerate(known or []):
+            for c in kept[i].nonzero()[:, 0].tolist():
+                kept[i, c] = not any(same_place(rough[i, c].numpy(), e) for e in ellipses)
+        cup_index = kept.nonzero()
         frames = self.frames(self.first_pass_ellipses(rough[cup_index[:, 0], cup_index[:, 1]]))
         results: list[list[CupDetection]] = [[] for _ in range(batch)]
         if len(cup_index) == 0:

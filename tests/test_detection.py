@@ -66,3 +66,24 @@ def test_a_flagged_cup_takes_a_later_looks_believed_detection_of_its_place():
     assert later_look_cups([], second) == [far, believed, best, second[4], second[6],
                                             second[7]]
     assert later_look_cups([], second, below=0.8) == [far, best, second[4]]
+
+
+def test_a_later_look_adds_believed_cups_elsewhere_up_to_the_cap():
+    """With ``up_to``, the least doubted believed cups of a later look away from every cup
+    kept are added while the image has fewer: a bilateral pair's other cup."""
+    def cup(u: float, doubt: float, check: bool = False) -> CupDetection:
+        return detection([u, 200.0, 40.0, 20.0, 0.0], doubt=doubt, check=check)
+
+    first = [cup(100, 0.4)]
+    again, flagged, partner, other = cup(110, 0.1), cup(400, 0.2, True), cup(420, 0.9), \
+        cup(700, 0.6)
+    second = [again, flagged, partner, other]
+    assert later_look_cups(first, second) == first  # no up_to: nothing added
+    assert later_look_cups(first, second, up_to=1) == first  # full already
+    # 110 is the kept cup's place; 400 is flagged; 700 is doubted less than 420.
+    assert later_look_cups(first, second, up_to=2) == [first[0], other]
+    assert later_look_cups(first, second, up_to=3) == [first[0], other, partner]
+    assert later_look_cups(first, second, below=0.8, up_to=3) == [first[0], other]
+    # A replaced cup's place is taken by its replacement, not offered again.
+    replaced = later_look_cups([cup(700, 2.5, True)], second, up_to=3)
+    assert replaced == [other, again, partner]

@@ -337,9 +337,11 @@ def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_dr
 
 def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = True,
                        third_look_gamma: float | None = None,
-                       fourth_look_turned: bool = False) -> list[tuple[str, int]]:
+                       fourth_look_turned: bool = False, partner_look: bool = False
+                       ) -> list[tuple[str, int]]:
     """``model`` without verification, with or without ``second_look``, with
-    ``third_look_gamma`` and with or without ``fourth_look_turned``, its outline refinement
+    ``third_look_gamma``, with or without ``fourth_look_turned`` and ``partner_look`` (the
+    mirrored look at images with a single believed cup), its outline refinement
     made to return poses 20 deg off in inclination (where ``turned``) on the first look
     only. Returns the record of its looks: per :meth:`CupNet._detect` call, ``("first" |
     "mirrored" | "gamma" | "turned", images)``."""
@@ -347,14 +349,15 @@ def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = Tru
     monkeypatch.setattr(model.config, "second_look", second_look)
     monkeypatch.setattr(model.config, "third_look_gamma", third_look_gamma)
     monkeypatch.setattr(model.config, "fourth_look_turned", fourth_look_turned)
+    monkeypatch.setattr(model.config, "partner_look", partner_look)
     looks: list[tuple[str, int]] = []
     detect_once = model._detect
 
-    def tracked(images, geometry, diameter, masks, look=FIRST_LOOK, fields=None):
+    def tracked(images, geometry, diameter, masks, look=FIRST_LOOK, fields=None, known=None):
         kind = ("mirrored" if look.mirrored else "gamma" if look.gamma else
                 "turned" if look.turned else "first")
         looks.append((kind, len(images)))
-        return detect_once(images, geometry, diameter, masks, look, fields)
+        return detect_once(images, geometry, diameter, masks, look, fields, known)
 
     monkeypatch.setattr(model, "_detect", tracked)
     refine = model.outline_refined
@@ -447,6 +450,55 @@ def test_an_image_with_no_cup_found_is_looked_at_turned_over(shipped_on_drr, mon
     assert (error[:2] < 1.0).all() and (error[2:4] < 1.0).all() and error[4] < 8.0
     assert found[0].doubt < model.config.turned_look_doubt and not found[0].check
     assert found[0].metal_bright is False
+
+
+@pytest.mark.parametrize("partner_look", [True, False])
+def test_the_mirrored_look_finds_a_pairs_other_cup(monkeypatch, partner_look):
+    """A bilateral DRR whose right cup's blob is hidden from the first look: with
+    ``partner_look`` the mirrored look, which looks at images with fewer cups than
+    ``max_cups`` too, finds it and adds it; the left cup, believed, is neither solved again
+    nor replaced. Without it the right cup stays unfound."""
+    model = load_model()
+    sample = synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0, p_bilateral=1.0), 1,
+                        0)
+    assert bool(sample["cup_valid"].all())
+    looks = _first_look_turned(model, monkeypatch, second_look=True, turned=False,
+                               partner_look=partner_look)
+    rough_ellipses, detect_once = model.rough_ellipses, model._detect
+    right = int(sample["ellipse"][:, 0].argmax())
+
+    def hidden_at_first(images, gamma=None, fields=None):
+        rough, scores = rough_ellipses(images, gamma, fields)
+        if looks[-1][0] == "first":
+            at_right = (rough[..., 0] - sample["ellipse"][right, 0]).abs() < 20
+            rough[at_right] = math.nan
+        return rough, scores
+
+    later: list[list] = []
+
+    def recorded(*args, **kwargs):
+        cups = detect_once(*args, **kwargs)
+        later.append(list(cups))  # as found: the later looks' merge replaces its items
+        return cups
+
+    monkeypatch.setattr(model, "rough_ellipses", hidden_at_first)
+    monkeypatch.setattr(model, "_detect", recorded)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
+                         return_masks=False)[0]
+    first = later[0][0]
+    assert len(first) == 1 and not first[0].check
+    if not partner_look:
+        assert [kind for kind, _ in looks] == ["first"] and found == first
+        return
+    assert [kind for kind, _ in looks] == ["first", "mirrored"]
+    (partner,) = later[1][0]  # the left cup's blob got no cup stages
+    assert [cup is one for cup, one in zip(found, [first[0], partner], strict=True)] == [
+        True, True]
+    error = (torch.from_numpy(partner.pose) - sample["pose"][right].double()).abs()
+    # A thin rim (b = 12 px), solved without the verification this model runs without.
+    assert (error[:2] < 2.0).all() and (error[2:4] < 1.0).all() and error[4] < 8.0
+    assert not partner.check
 
 
 def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_drr,
