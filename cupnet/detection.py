@@ -111,7 +111,8 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
     major semi-axis) that is believed (not flagged, doubted less than ``below``, None: any
     doubt) and doubted less; the others as they are; then, while there are fewer than
     ``up_to``, the least doubted believed cups of ``second`` at other places added (a
-    bilateral pair's other cup). Where ``first`` is empty (no cup found), the believed
+    bilateral pair's other cup), each in place of a failed cup centred within its major
+    semi-axis where there is one. Where ``first`` is empty (no cup found), the believed
     cups of ``second``."""
     believed = [other for other in second if other.doubt is not None and not other.check
                 and (below is None or other.doubt < below)]
@@ -126,10 +127,18 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
                       and same_place(shape, np.asarray(other.ellipse, np.float64))]
             cup = min(better, key=lambda other: other.doubt, default=cup)
         out.append(cup)
-    for other in sorted(believed, key=lambda other: other.doubt):
+    for other in sorted(believed, key=lambda other: other.doubt) if up_to else []:
         shape = np.asarray(other.ellipse, np.float64)
-        if len(out) < up_to and not any(same_place(shape, np.asarray(cup.ellipse, np.float64))
-                                        for cup in out):
+        if any(same_place(shape, np.asarray(cup.ellipse, np.float64)) for cup in out):
+            continue
+        # A failed cup's ellipse is often a piece of its rim, off centre and short: one
+        # centred within this cup's major semi-axis was this cup, and its row goes.
+        failed = [k for k, cup in enumerate(out) if cup.status.startswith("error")
+                  and np.hypot(*(np.asarray(cup.ellipse[:2], np.float64) - shape[:2]))
+                  <= shape[2]]
+        if failed:
+            out[failed[0]] = other
+        elif len(out) < up_to:
             out.append(other)
     return out
 

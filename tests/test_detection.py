@@ -87,3 +87,8 @@ def test_a_later_look_adds_believed_cups_elsewhere_up_to_the_cap():
     # A replaced cup's place is taken by its replacement, not offered again.
     replaced = later_look_cups([cup(700, 2.5, True)], second, up_to=3)
     assert replaced == [other, again, partner]
+    # A failed cup whose short ellipse lies 35 px off a believed cup's centre (more than its
+    # own 20 px semi-axis, within the other's 40) was that cup: replaced, not kept beside it.
+    failed = detection([665.0, 200.0, 20.0, 5.0, 0.0], status="error: h < 0", doubt=None)
+    assert later_look_cups([first[0], failed], second, up_to=2) == [first[0], other]
+    assert later_look_cups([failed], second) == [failed]  # no up_to: as before
