@@ -614,8 +614,8 @@ class CupNet(nn.Module):
             image_list = _as_image_list(images, self.dtype)
             diameter = _cup_diameters(cup_diameter, len(image_list))
             shapes = [tuple(image.shape[-2:]) for image in image_list]
-            # Found once: the crops come from them, and the looks at the images as given
-            # keep them (a mirrored or turned look's locator finds its field afresh).
+            # Found once: the crops come from them, and the later looks keep them (mirrored
+            # where the look is; a turned look's locator finds its field afresh).
             fields = self.round_fields(image_list)
             crops = [crop_of_field(field, *shape)
                      for field, shape in zip(fields, shapes, strict=True)]
@@ -704,9 +704,14 @@ class CupNet(nn.Module):
         turned = (self.config.metal == "bright") != look.turned
         if turned:
             image_list = [1 - image for image in image_list]
+        if look.mirrored and fields is not None:
+            # The mirror image's field is the field mirrored (to 1e-12 px; finding it again
+            # took about as long as the look's locator).
+            fields = [None if field is None else (image.shape[-1] - 1 - field[0], *field[1:])
+                      for field, image in zip(fields, image_list, strict=True)]
         rough, scores = self.rough_ellipses(
             [image.flip(-1) for image in image_list] if look.mirrored else image_list,
-            look.gamma, None if look.mirrored or turned else fields)
+            look.gamma, None if turned else fields)
         if look.mirrored:
             widths = torch.tensor([image.shape[-1] for image in image_list]).to(rough)
             rough = mirrored_ellipses(rough, widths[:, None])
