@@ -54,3 +54,9 @@ def test_the_fresh_seed_prose_gives_its_command_and_says_when_its_seeds_chose_se
             f"{SELECTION_SEEDS[0]} {FRESH_SEEDS[0]}`") in flattering
     assert f"of these seeds {SELECTION_SEEDS[0]} chose" in flattering
     assert "honest estimate" not in flattering
+    # The fresh seeds' misses were looked at (item 42): said; the newer seeds' were not.
+    assert "looking at the missed cups" in honest
+    newer = fresh_seed_intro(shipped, ["onnx"], "newer")
+    assert newer.startswith("## CupNet on newer fresh seeds\n\n`python benchmarks/model.py "
+                            "--parts newer --runtimes onnx`:")
+    assert "the honest estimate" in newer and "looking at the missed" not in newer
