@@ -722,8 +722,10 @@ class CupNet(nn.Module):
             image_list = [1 - image if turn else image
                           for image, turn in zip(image_list, judged, strict=True)]
             bright = [turn != turned for turn in judged]
-        # Weak blobs are dropped before the cup stages, not after: each cup is solved on its
-        # own, so the others' results are the same, and a weak blob costs no strips.
+        # Weak blobs, and a later look's blobs at believed cups, are dropped before the cup
+        # stages, not after: each cup is solved on its own, so the others' results are the
+        # same (to float rounding: a smaller batch can round differently), and a dropped
+        # blob costs no strips.
         kept = self.kept_blobs(rough, scores)
         for i, ellipses in enumerate(known or []):
             for c in kept[i].nonzero()[:, 0].tolist():
