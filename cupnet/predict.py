@@ -49,13 +49,11 @@ from cupnet.io.meta import (
     ASSUMED_DETECTOR_WIDTH_MM,
     ASSUMED_SDD_MM,
     REQUIRED,
+    GeometryInputs,
     ResolvedGeometry,
     add_geometry_arguments,
     geometry_flags,
     implausible_once,
-    meta_row,
-    read_meta,
-    resolve_geometry,
 )
 from cupnet.io.results import (
     atomic_write,
@@ -461,9 +459,9 @@ class Predictor:
 
     def __init__(self, args: argparse.Namespace, detector: NetworkDetector | LandmarkDetector,
                  outputs: Outputs,
-                 meta: dict[str, dict[str, float]]) -> None:
-        self.args, self.detector, self.outputs, self.meta = args, detector, outputs, meta
-        self.flags = geometry_flags(args)
+                 geometry_inputs: GeometryInputs) -> None:
+        self.args, self.detector, self.outputs = args, detector, outputs
+        self.geometry_inputs = geometry_inputs
 
     def _note_assumptions(self, geometry: ResolvedGeometry, width: int) -> None:
         for key, source in geometry.sources.items():
@@ -496,9 +494,8 @@ class Predictor:
                 batch.records[i] = {"image": frame.name, "rows": [
                     status_row(frame.name, error, frame.seconds)]}
                 continue
-            geometry = resolve_geometry(
-                frame.image.shape, meta_row(self.meta, frame.name),  # type: ignore[union-attr]
-                self.flags, self.args.assume_defaults,
+            geometry = self.geometry_inputs.resolve(
+                frame.name, frame.image.shape,  # type: ignore[union-attr]
                 {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm},
                 frame.tag_sources, self.detector.file_values(frame.name))
             if geometry.missing:
@@ -627,7 +624,7 @@ def _run(args: argparse.Namespace) -> int:
     if problem is None:
         try:
             sources = gather_images(args.images, args.recursive, args.out)
-            meta = read_meta(args.meta) if args.meta is not None else {}
+            geometry_inputs = GeometryInputs.from_args(args)
         except (FileNotFoundError, ValueError) as exc:
             problem = str(exc)
     if problem is not None:
@@ -649,7 +646,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.resume:
         outputs.load_previous()
     done = set(outputs.records)
-    predictor = Predictor(args, detector, outputs, meta)
+    predictor = Predictor(args, detector, outputs, geometry_inputs)
     todo = [s for s in sources if s.name not in done]
     start = time.perf_counter()
     interrupted = False

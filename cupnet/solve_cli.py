@@ -20,14 +20,7 @@ import torch
 from cupnet.detection import CupDetection
 from cupnet.geometry import Geometry
 from cupnet.io.landmarks import LandmarkSet, read_landmarks
-from cupnet.io.meta import (
-    add_geometry_arguments,
-    geometry_flags,
-    implausible_once,
-    meta_row,
-    read_meta,
-    resolve_geometry,
-)
+from cupnet.io.meta import GeometryInputs, add_geometry_arguments, implausible_once
 from cupnet.io.results import cup_row, status_row, write_results_csv
 from cupnet.pose import solve_pose
 
@@ -60,20 +53,18 @@ def run(args: argparse.Namespace) -> int:
         return 2
     try:
         landmark_sets = read_landmarks(args.landmarks)
-        meta = read_meta(args.meta) if args.meta else {}
+        geometry_inputs = GeometryInputs.from_args(args)
     except (OSError, ValueError) as exc:
         print(f"cupnet solve: {exc}", file=sys.stderr)
         return 2
-    flags = geometry_flags(args)
     records, failures, solved = [], 0, 0
     warned: dict[str, str] = {}
     for image, cups in landmark_sets.items():
         rows = []
         for cup in cups:
             start = time.perf_counter()
-            resolved = resolve_geometry(cup.size(), meta_row(meta, image), flags,
-                                        args.assume_defaults,
-                                        file_values=cup.geometry_values())
+            resolved = geometry_inputs.resolve(image, cup.size(),
+                                               file_values=cup.geometry_values())
             if cup.error is not None:
                 rows.append(status_row(image, f"error: {cup.error}", 0.0))
             elif resolved.missing:

@@ -139,6 +139,35 @@ def resolve_geometry(size: tuple[int, int] | None, meta: dict[str, float],
     return geometry
 
 
+@dataclass(frozen=True)
+class GeometryInputs:
+    """What a command was given to resolve each image's geometry from: its ``meta.csv`` rows
+    (:func:`read_meta`), the command line's values (:func:`geometry_flags`) and
+    ``--assume-defaults``."""
+
+    meta: dict[str, dict[str, float]]
+    flags: dict[str, float]
+    assume_defaults: bool
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> GeometryInputs:
+        """From :func:`add_geometry_arguments`' arguments, ``--meta`` read now.
+
+        Raises:
+            OSError, ValueError: ``--meta`` cannot be read (:func:`read_meta`).
+        """
+        return cls(read_meta(args.meta) if args.meta is not None else {},
+                   geometry_flags(args), args.assume_defaults)
+
+    def resolve(self, name: str, size: tuple[int, int] | None,
+                tags: dict[str, float | None] | None = None,
+                tag_sources: dict[str, str] | None = None,
+                file_values: dict[str, float] | None = None) -> ResolvedGeometry:
+        """:func:`resolve_geometry` of image ``name`` (its :func:`meta_row`) and ``size``."""
+        return resolve_geometry(size, meta_row(self.meta, name), self.flags,
+                                self.assume_defaults, tags, tag_sources, file_values)
+
+
 def add_geometry_arguments(parser: argparse.ArgumentParser) -> None:
     """``--meta``, ``--sdd``, ``--pixel-spacing``, ``--cup-diameter``, ``--principal-point``,
     ``--assume-defaults``."""
