@@ -197,12 +197,13 @@ class CupNetConfig:
             wherever it is not flagged, as the other looks'): turned over, a blob on no cup
             can be judged a cup in the other display and believed only just.
         partner_look: the mirrored look (``second_look``) also looks at the images with
-            at least one cup and fewer than ``max_cups`` for cups elsewhere, and adds those
+            fewer cups than ``max_cups`` (none included) for cups elsewhere, and adds those
             it believes (not flagged): the locator passes over a bilateral pair's second
             cup more often than over a lone one, and a pair's cups are mirror images of each
-            other, so the mirrored locator sees the missed one much as it saw the found one.
-            Only blobs away from the believed cups get the cup stages (docs/training.md,
-            item 42).
+            other, so the mirrored locator sees the missed one much as it saw the found one;
+            where it found no cup, the mirrored look is a second, nearly independent
+            framing. Only blobs away from the believed cups get the cup stages
+            (docs/training.md, items 42 and 43).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"

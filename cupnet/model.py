@@ -125,8 +125,8 @@ class Look(NamedTuple):
             less than this (None: wherever not flagged).
         empty_images: a later look looks at the images where no cup was found too, and
             adds the cups it finds there that it would let replace one.
-        partners: ... and at the images with at least one cup and fewer than
-            ``max_cups``, adding such cups found elsewhere (``CupNetConfig.partner_look``).
+        partners: ... and at every image with fewer cups than ``max_cups`` (none
+            included), adding such cups found elsewhere (``CupNetConfig.partner_look``).
         verified: the verification of doubtful cups runs in this look ...
         searched: ... and the search of those it leaves doubtful.
     """
@@ -639,7 +639,7 @@ class CupNet(nn.Module):
     def later_looks(self) -> list[Look]:
         """:meth:`detect`'s later looks at images with a flagged or failed cup, in order,
         those the config asks for: mirrored (``second_look``; with ``partner_look`` at
-        images with fewer cups than ``max_cups`` too), at ``third_look_gamma``,
+        images with fewer cups than ``max_cups`` too, none included), at ``third_look_gamma``,
         turned over (``fourth_look_turned``, at images with no cup found too, without the
         verification: in the shipped JSON the cups it doubts enough to verify would not
         pass its bar, and on an image without a cup it would verify blobs on anatomy, at
@@ -678,7 +678,7 @@ class CupNet(nn.Module):
         """
         partners = self.config.max_cups if look.partners else 0
         again = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))
-                 or (look.empty_images and not cups) or 0 < len(cups) < partners]
+                 or (look.empty_images and not cups) or len(cups) < partners]
         if not again:
             return
         rows = geometry_rows(geometry, len(images))
