@@ -1,12 +1,12 @@
 """CupNet speed and accuracy: segmentation + pose per 512x512 image, and pose MAE on fresh DRRs.
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
-...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh newer against
-small captures] [--against JSON]``. Writes the ``model`` (speed), ``model_accuracy``
+...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh newer blind
+against small captures] [--against JSON]``. Writes the ``model`` (speed), ``model_accuracy``
 (accuracy, ablation), ``model_oblong`` (oblong images), ``model_small`` (small images) and
 ``model_captures`` (screenshots; these two not by default),
-``model_fresh_seed`` (seeds no setting was chosen on), ``model_newer_seeds`` (seeds nobody
-had looked at; not by default) and
+``model_fresh_seed`` (seeds no setting was chosen on), ``model_newer_seeds`` and
+``model_blind_seeds`` (seeds nobody had looked at when a rule was made; not by default) and
 ``model_against`` (other inference settings, timed in one process) sections of
 docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases); for another
 ``--checkpoint``, benchmarks.md and model_failures.png beside it instead.
@@ -49,10 +49,22 @@ from train.module import cup_errors  # noqa: E402
 # accuracy table's --seed) since the sixth session.
 FRESH_SEEDS = [20_262_123, 20_263_123, 20_264_123, 20_265_123]
 SELECTION_SEEDS = (777, 31337, 4242)
-# Seeds whose images no session had looked at when the shipped settings were fixed: the
-# thirty-second session made a rule (docs/training.md, item 42) after looking at the fresh
-# seeds' missed cups.
+# Seed sets whose images no session had looked at when a rule was made; a session then
+# looked at their missed cups and made the next rule (docs/training.md, item by item), so
+# each set after the first tests the rule before it blind.
 NEWER_SEEDS = [20_266_123, 20_267_123, 20_268_123, 20_269_123]
+BLIND_SEEDS = [20_270_123, 20_271_123, 20_272_123, 20_273_123]
+# docs/training.md's item -> the seeds whose missed cups it looked at.
+LOOKED_AT = {42: FRESH_SEEDS, 43: NEWER_SEEDS}
+# --parts name -> its section in the doc and its title.
+SEED_SECTIONS = {"fresh": ("model_fresh_seed", "CupNet on fresh seeds"),
+                 "newer": ("model_newer_seeds", "CupNet on newer fresh seeds"),
+                 "blind": ("model_blind_seeds", "CupNet on blind seeds")}
+
+
+def part_seeds(part: str, args: argparse.Namespace) -> list[int]:
+    """The seeds of the fresh-seed ``part`` (one of :data:`SEED_SECTIONS`)."""
+    return {"fresh": args.fresh_seeds, "newer": NEWER_SEEDS, "blind": BLIND_SEEDS}[part]
 
 
 def output_paths(checkpoint: str, doc: str | None = None,
@@ -335,10 +347,10 @@ def interval(values: np.ndarray, draws: int = 1000) -> np.ndarray:
 
 def fresh_seed_intro(args: argparse.Namespace, runtimes: list[str], part: str = "fresh"
                      ) -> str:
-    """The fresh-seed section's title and prose (``part`` "fresh": ``args.fresh_seeds``;
-    "newer": :data:`NEWER_SEEDS`): the command that measures it, and whether its seeds are
-    fresh (an honest estimate) or include seeds that chose settings."""
-    seeds = NEWER_SEEDS if part == "newer" else args.fresh_seeds
+    """The fresh-seed section's title and prose (``part``: one of :data:`SEED_SECTIONS`):
+    the command that measures it, and whether its seeds are fresh (an honest estimate),
+    include seeds that chose settings, or seeds whose missed cups a later rule was made on."""
+    seeds = part_seeds(part, args)
     command = f"python benchmarks/model.py --parts {part} --runtimes {' '.join(runtimes)}"
     if args.checkpoint != str(DEFAULT_CHECKPOINT):
         command += f" --checkpoint {args.checkpoint}"
@@ -350,12 +362,14 @@ def fresh_seed_intro(args: argparse.Namespace, runtimes: list[str], part: str = 
                "seeds no inference setting was chosen on (the accuracy table's seed, and "
                f"seeds {', '.join(map(str, SELECTION_SEEDS))}, chose them since the sixth "
                "session): the honest estimate of the shipped model's accuracy")
-    if set(seeds) & set(FRESH_SEEDS):
-        honesty += (" (but the thirty-second session made a rule after looking at the missed "
-                    "cups of seeds " + ", ".join(map(str, FRESH_SEEDS)) + ", docs/training.md, "
-                    "item 42; `--parts newer` measures seeds nobody had looked at)")
-    title = "CupNet on newer fresh seeds" if part == "newer" else "CupNet on fresh seeds"
-    return (f"## {title}\n\n"
+    looked = [(item, sorted(set(seeds) & set(looked_at)))
+              for item, looked_at in LOOKED_AT.items() if set(seeds) & set(looked_at)]
+    if looked:
+        honesty += (" (but a session made a rule after looking at the missed cups of seeds "
+                    + "; of seeds ".join(f"{', '.join(map(str, found))} (docs/training.md, "
+                                         f"item {item})" for item, found in looked)
+                    + "; `--parts blind` measures seeds nobody had looked at)")
+    return (f"## {SEED_SECTIONS[part][1]}\n\n"
             f"`{command}`: {args.fresh_images} DRRs a seed from `{args.eval_config}` at "
             f"{', '.join(map(str, args.sizes))} px, {honesty}, seed by seed and pooled, with "
             "95 % bootstrap intervals over the cups. A few gross failures a seed move its "
@@ -365,15 +379,14 @@ def fresh_seed_intro(args: argparse.Namespace, runtimes: list[str], part: str = 
 
 def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
                        part: str = "fresh") -> str:
-    """The shipped model's accuracy on fresh DRRs of ``args.fresh_seeds`` (``part``
-    "fresh"; by default seeds no setting was chosen on) or of :data:`NEWER_SEEDS`
-    ("newer"), each and pooled (with 95 % bootstrap intervals over the cups), with the
-    networks in each runtime ``models`` holds (by name): the ``model_fresh_seed`` or
-    ``model_newer_seeds`` section."""
+    """The shipped model's accuracy on fresh DRRs of ``part``'s seeds (:func:`part_seeds`:
+    "fresh", by default seeds no setting was chosen on, "newer" or "blind"), each and
+    pooled (with 95 % bootstrap intervals over the cups), with the networks in each runtime
+    ``models`` holds (by name): that part's section (:data:`SEED_SECTIONS`)."""
     rows = []
     for runtime, model in models.items():
         per_cup: list[np.ndarray | None] = []  # each true cup's, None where missed
-        for seed in NEWER_SEEDS if part == "newer" else args.fresh_seeds:
+        for seed in part_seeds(part, args):
             cases: list = []
             res = accuracy(model, samples(args.eval_config, seed, args.fresh_images,
                                           args.sizes), cases)
@@ -591,7 +604,7 @@ def main() -> None:
                         help="what runs the networks (cupnet predict --runtime); the first "
                              "model of the first is the shipped one of the gallery")
     parser.add_argument("--parts", nargs="+", default=["speed", "accuracy", "oblong", "fresh"],
-                        choices=["speed", "accuracy", "oblong", "fresh", "newer", "against",
+                        choices=["speed", "accuracy", "oblong", *SEED_SECTIONS, "against",
                                  "small", "captures"],
                         help="the sections to measure; the others are left as they are "
                              "(speed alone: for a change that keeps every pose)")
@@ -636,7 +649,7 @@ def main() -> None:
         text = small_section(next(iter(shipped.values())), args)
         print(text)
         write("model_small", text, args)
-    for part, section in (("fresh", "model_fresh_seed"), ("newer", "model_newer_seeds")):
+    for part, (section, _) in SEED_SECTIONS.items():
         if part in args.parts and args.fresh_images:
             text = fresh_seed_section(shipped, args, part)
             print(text)

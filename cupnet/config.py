@@ -187,6 +187,13 @@ class CupNetConfig:
         third_look_gamma: ... and an image with a cup still flagged or failed after that is
             detected again with the locator on the image raised to this power, the same rule
             taking its detections, verified but not searched (None: no third look).
+        high_gamma_look: ... and an image with a cup still flagged or failed, or with no
+            cup found, is detected again with the locator on the image raised to this power
+            (above 1), verified but not searched, the same rule taking its detections and
+            an image without a cup taking those it believes (None: no such look): a high
+            power darkens a bright surround, where bright metal on bright, nearly saturated
+            anatomy gave the first looks no blob or a wrong frame (docs/training.md, item
+            43).
         fourth_look_turned: ... and once more with the locator on the image turned over
             (``1 - image``), so the polarity check judges its display afresh: a cup
             whose metal the first looks took to show dark where it shows bright (or the
@@ -264,6 +271,7 @@ class CupNetConfig:
     check_doubt: float | None = None
     second_look: bool = False
     third_look_gamma: float | None = None
+    high_gamma_look: float | None = None
     fourth_look_turned: bool = False
     turned_look_doubt: float | None = None
     partner_look: bool = False
@@ -305,7 +313,8 @@ SPEED_PRESETS: dict[str, dict[str, object]] = {
     # pairs, which all measure the pose against the outline) nor the thin-rim hypotheses,
     # nor the later looks: segmentation, the rim stages and the solver alone
     "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
-                "second_look": False, "third_look_gamma": None, "fourth_look_turned": False},
+                "second_look": False, "third_look_gamma": None, "high_gamma_look": None,
+                "fourth_look_turned": False},
 }
 
 

@@ -639,7 +639,8 @@ class CupNet(nn.Module):
     def later_looks(self) -> list[Look]:
         """:meth:`detect`'s later looks at images with a flagged or failed cup, in order,
         those the config asks for: mirrored (``second_look``; with ``partner_look`` at
-        images with fewer cups than ``max_cups`` too, none included), at ``third_look_gamma``,
+        images with fewer cups than ``max_cups`` too, none included), at
+        ``third_look_gamma``, at ``high_gamma_look`` (at images with no cup found too),
         turned over (``fourth_look_turned``, at images with no cup found too, without the
         verification: in the shipped JSON the cups it doubts enough to verify would not
         pass its bar, and on an image without a cup it would verify blobs on anatomy, at
@@ -652,6 +653,9 @@ class CupNet(nn.Module):
                  if self.config.second_look else [])
         if self.config.third_look_gamma is not None:
             looks.append(Look(gamma=self.config.third_look_gamma, searched=False))
+        if self.config.high_gamma_look is not None:
+            looks.append(Look(gamma=self.config.high_gamma_look, empty_images=True,
+                              searched=False))
         if self.config.fourth_look_turned:
             looks.append(Look(turned=True, below=self.config.turned_look_doubt,
                               empty_images=True, verified=False, searched=False))

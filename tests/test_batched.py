@@ -28,7 +28,7 @@ def drrs() -> list[dict]:
 # source, verification, search or later looks (the fastest preset has none of the last
 # three, nor the outline; with outline=True the outline stage is compared too).
 SAME_SOURCES = {"grown_rim_scale": None, "second_look": False, "third_look_gamma": None,
-                "fourth_look_turned": False}
+                "high_gamma_look": None, "fourth_look_turned": False}
 
 
 @pytest.mark.parametrize(("preset", "thin_rims", "outline"),

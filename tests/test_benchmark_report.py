@@ -54,9 +54,15 @@ def test_the_fresh_seed_prose_gives_its_command_and_says_when_its_seeds_chose_se
             f"{SELECTION_SEEDS[0]} {FRESH_SEEDS[0]}`") in flattering
     assert f"of these seeds {SELECTION_SEEDS[0]} chose" in flattering
     assert "honest estimate" not in flattering
-    # The fresh seeds' misses were looked at (item 42): said; the newer seeds' were not.
-    assert "looking at the missed cups" in honest
+    # The fresh and the newer seeds' misses were looked at (items 42, 43): said, with the
+    # item; the blind seeds' were not.
+    assert f"missed cups of seeds {', '.join(map(str, FRESH_SEEDS))} (docs/training.md, " \
+           "item 42)" in honest
     newer = fresh_seed_intro(shipped, ["onnx"], "newer")
     assert newer.startswith("## CupNet on newer fresh seeds\n\n`python benchmarks/model.py "
                             "--parts newer --runtimes onnx`:")
-    assert "the honest estimate" in newer and "looking at the missed" not in newer
+    assert "item 43" in newer and "item 42" not in newer
+    blind = fresh_seed_intro(shipped, ["onnx"], "blind")
+    assert blind.startswith("## CupNet on blind seeds\n\n`python benchmarks/model.py "
+                            "--parts blind --runtimes onnx`:")
+    assert "the honest estimate" in blind and "looking at the missed" not in blind

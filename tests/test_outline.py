@@ -348,6 +348,7 @@ def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = Tru
     monkeypatch.setattr(model.config, "verify_gate", None)
     monkeypatch.setattr(model.config, "second_look", second_look)
     monkeypatch.setattr(model.config, "third_look_gamma", third_look_gamma)
+    monkeypatch.setattr(model.config, "high_gamma_look", None)
     monkeypatch.setattr(model.config, "fourth_look_turned", fourth_look_turned)
     monkeypatch.setattr(model.config, "partner_look", partner_look)
     looks: list[tuple[str, int]] = []
@@ -419,17 +420,19 @@ def test_the_second_look_takes_each_looked_at_images_own_geometry(shipped_on_drr
     assert not found[0].check
 
 
-@pytest.mark.parametrize("fourth_look_turned", [True, False])
-def test_an_image_with_no_cup_found_is_looked_at_turned_over(shipped_on_drr, monkeypatch,
-                                                             fourth_look_turned):
+@pytest.mark.parametrize("later", ["turned", "high gamma", None])
+def test_an_image_with_no_cup_found_is_looked_at_again(shipped_on_drr, monkeypatch, later):
     """In a batch of a blank image and the DRR, the DRR's cup hidden from the first look
-    (its locator blobs taken away): the turned look, which also looks at images with no cup
-    found, finds it, believed, and adds it with the image's own display; the blank image
-    is looked at too and stays without a cup. The mirrored look (without ``partner_look``)
-    looks at neither. Without the turned look the cup stays unfound."""
+    (its locator blobs taken away): the turned look, or the high gamma look, each of which
+    also looks at images with no cup found, finds it, believed, and adds it with the image's
+    own display; the blank image is looked at too and stays without a cup. The mirrored
+    look (without ``partner_look``) looks at neither. Without either look the cup stays
+    unfound."""
     model, sample = shipped_on_drr
     looks = _first_look_turned(model, monkeypatch, second_look=True, turned=False,
-                               fourth_look_turned=fourth_look_turned)
+                               fourth_look_turned=later == "turned")
+    if later == "high gamma":
+        monkeypatch.setattr(model.config, "high_gamma_look", 3.0)
     rough_ellipses = model.rough_ellipses
 
     def hidden_at_first(images, gamma=None, fields=None):
@@ -442,13 +445,15 @@ def test_an_image_with_no_cup_found_is_looked_at_turned_over(shipped_on_drr, mon
     blank, found = model.detect(images, geometry, float(sample["cup_diameter"][0]),
                                 return_masks=False)
     assert blank == []
-    if not fourth_look_turned:
+    if later is None:
         assert looks == [("first", 2)] and found == []
         return
-    assert looks == [("first", 2), ("turned", 2)] and len(found) == 1
+    assert looks == [("first", 2), ("turned" if later == "turned" else "gamma", 2)]
+    assert len(found) == 1
     error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
     assert (error[:2] < 1.0).all() and (error[2:4] < 1.0).all() and error[4] < 8.0
-    assert found[0].doubt < model.config.turned_look_doubt and not found[0].check
+    assert not found[0].check
+    assert later != "turned" or found[0].doubt < model.config.turned_look_doubt
     assert found[0].metal_bright is False
 
 
@@ -510,12 +515,15 @@ def test_the_mirrored_look_finds_a_pairs_other_cup(monkeypatch, partner_look, hi
 def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_drr,
                                                                       monkeypatch):
     """The shipped model's first look verifies its cups and searches those left doubtful;
-    the mirrored and gamma looks verify but do not search, and the turned look does neither
-    (its bar keeps only cups doubted less than any it would verify)."""
+    the mirrored and the two gamma looks verify but do not search, and the turned look does
+    neither (its bar keeps only cups doubted less than any it would verify). The high gamma
+    and the turned looks look at images with no cup found too."""
     model, sample = shipped_on_drr
     looks = model.later_looks()
-    assert [(look.mirrored, look.gamma is not None, look.turned) for look in looks] == [
-        (True, False, False), (False, True, False), (False, False, True)]
+    assert [(look.mirrored, look.gamma, look.turned, look.empty_images) for look in looks] == [
+        (True, None, False, False), (False, model.config.third_look_gamma, False, False),
+        (False, model.config.high_gamma_look, False, True), (False, None, True, True)]
+    assert model.config.high_gamma_look > 1 > model.config.third_look_gamma
     assert looks[-1].below < model.config.verify_gate
     calls: list[str] = []
     for name in ("reconsidered", "searched"):
@@ -525,7 +533,8 @@ def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     diameter = sample["cup_diameter"][:1].double()
     for look, expected in zip([FIRST_LOOK, *looks], [["reconsidered", "searched"],
-                                                     ["reconsidered"], ["reconsidered"], []],
+                                                     ["reconsidered"], ["reconsidered"],
+                                                     ["reconsidered"], []],
                               strict=True):
         with torch.inference_mode():
             found = model._detect([sample["image"]], geometry, diameter, False, look)[0]
