@@ -52,7 +52,6 @@ from cupnet.io.meta import (
     GeometryInputs,
     ResolvedGeometry,
     add_geometry_arguments,
-    geometry_flags,
     implausible_once,
 )
 from cupnet.io.results import (
@@ -419,9 +418,6 @@ def _check_args(args: argparse.Namespace) -> str | None:
             resolve_device(args.device)
         except ValueError as exc:
             return str(exc)  # it names the device
-    for key, value in geometry_flags(args).items():
-        if key in REQUIRED and not (math.isfinite(value) and value > 0):
-            return f"{REQUIRED[key][1]} must be a positive number of mm, got {value}"
     existing = [p.name for p in (args.out / "results.csv", args.out / "results.json")
                 if p.exists()]
     if existing and not (args.resume or args.overwrite):

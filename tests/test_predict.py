@@ -209,6 +209,10 @@ def test_folder_without_images_and_bad_checkpoint(tmp_path: Path, capsys: pytest
     assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o2"),
                  "--checkpoint", str(missing)]) == 2
     assert "checkpoint not found" in capsys.readouterr().err
+    assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o3"),
+                 "--sdd", "0"]) == 2
+    assert "--sdd must be a positive number of mm, got 0.0" in capsys.readouterr().err
+    assert not (tmp_path / "o3" / "results.csv").exists()
 
 
 # Overlays over 768 px draw 2 px wide lines: the tolerance is half the width + 1 px.

@@ -91,6 +91,21 @@ def test_existing_output_is_not_overwritten(tmp_path, capsys):
     assert_poses(results(out))
 
 
+@pytest.mark.parametrize(("flag", "value"), [("--sdd", "-1040"), ("--pixel-spacing", "0"),
+                                             ("--cup-diameter", "nan")])
+def test_a_flag_that_is_no_positive_size_stops_the_command(tmp_path, capsys, flag, value):
+    """A geometry flag holds for every image: a bad one is named once, before any row, and
+    nothing is written (as `cupnet predict` does)."""
+    write_long(tmp_path / "lm.csv", Geometry(1000.0, 0.4, 300.0, 250.0))
+    out = tmp_path / "r.csv"
+    given = {"--sdd": "1000", "--pixel-spacing": "0.4", "--cup-diameter": "50", flag: value}
+    args = [item for pair in given.items() for item in pair]
+    assert main(["solve", str(tmp_path / "lm.csv"), *args, "--out", str(out)]) == 2
+    assert f"{flag} must be a positive number of mm, got {float(value)}" in \
+        capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_unknown_format_and_empty_file_are_clear_errors(tmp_path):
     (tmp_path / "x.csv").write_text("a,b,c\n1,2,3\n")
     with pytest.raises(ValueError, match="unknown landmark format"):

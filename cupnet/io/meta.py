@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -154,7 +155,8 @@ class GeometryInputs:
         """From :func:`add_geometry_arguments`' arguments, ``--meta`` read now.
 
         Raises:
-            OSError, ValueError: ``--meta`` cannot be read (:func:`read_meta`).
+            OSError, ValueError: ``--meta`` cannot be read (:func:`read_meta`), or a flag's
+                value is not positive (:func:`geometry_flags`).
         """
         return cls(read_meta(args.meta) if args.meta is not None else {},
                    geometry_flags(args), args.assume_defaults)
@@ -188,9 +190,17 @@ def add_geometry_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def geometry_flags(args: argparse.Namespace) -> dict[str, float]:
-    """The geometry values given on the command line, by meta.csv key (absent ones left out)."""
+    """The geometry values given on the command line, by meta.csv key (absent ones left out).
+
+    Raises:
+        ValueError: a distance or size that is not a positive number (naming its flag): it
+            would hold for every image, so the command stops before the first.
+    """
     flags = {"sdd_mm": args.sdd, "pixel_spacing_mm": args.pixel_spacing,
              "cup_diameter_mm": args.cup_diameter}
+    for key, value in flags.items():
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{REQUIRED[key][1]} must be a positive number of mm, got {value}")
     if args.principal_point is not None:
         flags["principal_u_px"], flags["principal_v_px"] = args.principal_point
     return {k: v for k, v in flags.items() if v is not None}
