@@ -666,11 +666,13 @@ class CupNet(nn.Module):
                       look: Look, fields: list[tuple[float, float, float] | None]) -> None:
         """The ``images`` ``(1, H, W)`` (with their ``geometry``, cup ``diameter`` ``(B,)``
         mm and round ``fields``) of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
-        error (and with ``look.empty_images`` those with no cup) detected again as ``look``
-        says; a flagged or failed cup takes the new look's detection of the same place
-        where that one is not flagged and is doubted less, and less than ``look.below``
-        where given; an image with no cup takes the new look's cups that pass those bars
-        (:func:`cupnet.detection.later_look_cups`). In place.
+        error (with ``look.empty_images`` those with no cup, with ``look.partners`` those
+        with fewer than ``max_cups``) detected again as ``look`` says; a flagged or failed
+        cup takes the new look's detection of the same place where that one is not flagged
+        and is doubted less, and less than ``look.below`` where given; an image with no cup
+        takes the new look's cups that pass those bars, and with ``look.partners`` one with
+        fewer cups adds such cups found elsewhere (:func:`cupnet.detection.later_look_cups`).
+        In place.
 
         The locator is neither mirror-symmetric nor blind to contrast, so its blob, and
         with it every crop, strip and landmark source after it, comes out a little
