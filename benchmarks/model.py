@@ -56,15 +56,16 @@ NEWER_SEEDS = [20_266_123, 20_267_123, 20_268_123, 20_269_123]
 BLIND_SEEDS = [20_270_123, 20_271_123, 20_272_123, 20_273_123]
 # docs/training.md's item -> the seeds whose missed cups it looked at.
 LOOKED_AT = {42: FRESH_SEEDS, 43: NEWER_SEEDS}
-# --parts name -> its section in the doc and its title.
-SEED_SECTIONS = {"fresh": ("model_fresh_seed", "CupNet on fresh seeds"),
-                 "newer": ("model_newer_seeds", "CupNet on newer fresh seeds"),
-                 "blind": ("model_blind_seeds", "CupNet on blind seeds")}
+# --parts name -> its section in the doc, its title and its seeds (None: --fresh-seeds).
+SEED_SECTIONS = {"fresh": ("model_fresh_seed", "CupNet on fresh seeds", None),
+                 "newer": ("model_newer_seeds", "CupNet on newer fresh seeds", NEWER_SEEDS),
+                 "blind": ("model_blind_seeds", "CupNet on blind seeds", BLIND_SEEDS)}
 
 
 def part_seeds(part: str, args: argparse.Namespace) -> list[int]:
     """The seeds of the fresh-seed ``part`` (one of :data:`SEED_SECTIONS`)."""
-    return {"fresh": args.fresh_seeds, "newer": NEWER_SEEDS, "blind": BLIND_SEEDS}[part]
+    seeds = SEED_SECTIONS[part][2]
+    return args.fresh_seeds if seeds is None else seeds
 
 
 def output_paths(checkpoint: str, doc: str | None = None,
@@ -651,7 +652,7 @@ def main() -> None:
         text = small_section(next(iter(shipped.values())), args)
         print(text)
         write("model_small", text, args)
-    for part, (section, _) in SEED_SECTIONS.items():
+    for part, (section, *_) in SEED_SECTIONS.items():
         if part in args.parts and args.fresh_images:
             text = fresh_seed_section(shipped, args, part)
             print(text)
