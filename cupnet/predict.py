@@ -621,7 +621,7 @@ def _run(args: argparse.Namespace) -> int:
         try:
             sources = gather_images(args.images, args.recursive, args.out)
             geometry_inputs = GeometryInputs.from_args(args)
-        except (FileNotFoundError, ValueError) as exc:
+        except (OSError, ValueError) as exc:  # as cupnet solve: an unreadable --meta too
             problem = str(exc)
     if problem is not None:
         print(f"cupnet predict: error: {problem}", file=sys.stderr)

@@ -213,6 +213,10 @@ def test_folder_without_images_and_bad_checkpoint(tmp_path: Path, capsys: pytest
                  "--sdd", "0"]) == 2
     assert "--sdd must be a positive number of mm, got 0.0" in capsys.readouterr().err
     assert not (tmp_path / "o3" / "results.csv").exists()
+    # A --meta that cannot be read (here a folder) is named, not a traceback.
+    assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o4"),
+                 "--meta", str(tmp_path / "empty")]) == 2
+    assert "Is a directory" in capsys.readouterr().err
 
 
 # Overlays over 768 px draw 2 px wide lines: the tolerance is half the width + 1 px.
