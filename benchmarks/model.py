@@ -2,11 +2,12 @@
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
 ...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh newer blind
-against small captures] [--against JSON]``. Writes the ``model`` (speed), ``model_accuracy``
+unseen against small captures] [--against JSON]``. Writes the ``model`` (speed), ``model_accuracy``
 (accuracy, ablation), ``model_oblong`` (oblong images), ``model_small`` (small images) and
 ``model_captures`` (screenshots; these two not by default),
-``model_fresh_seed`` (seeds no setting was chosen on), ``model_newer_seeds`` and
-``model_blind_seeds`` (seeds nobody had looked at when a rule was made; not by default) and
+``model_fresh_seed`` (seeds no setting was chosen on), ``model_newer_seeds``,
+``model_blind_seeds`` and ``model_unseen_seeds`` (seeds nobody had looked at when a rule was
+made; not by default) and
 ``model_against`` (other inference settings, timed in one process) sections of
 docs/benchmarks.md, and docs/model_failures.png (the shipped model's worst cases); for another
 ``--checkpoint``, benchmarks.md and model_failures.png beside it instead.
@@ -54,12 +55,16 @@ SELECTION_SEEDS = (777, 31337, 4242)
 # each set after the first tests the rule before it blind.
 NEWER_SEEDS = [20_266_123, 20_267_123, 20_268_123, 20_269_123]
 BLIND_SEEDS = [20_270_123, 20_271_123, 20_272_123, 20_273_123]
+UNSEEN_SEEDS = [20_274_123, 20_275_123, 20_276_123, 20_277_123]
 # docs/training.md's item -> the seeds whose missed cups it looked at.
-LOOKED_AT = {42: FRESH_SEEDS, 43: NEWER_SEEDS}
+LOOKED_AT = {42: FRESH_SEEDS, 43: NEWER_SEEDS, 44: BLIND_SEEDS}
+# The --parts name of the seeds nobody has looked at yet.
+UNLOOKED_PART = "unseen"
 # --parts name -> its section in the doc, its title and its seeds (None: --fresh-seeds).
 SEED_SECTIONS = {"fresh": ("model_fresh_seed", "CupNet on fresh seeds", None),
                  "newer": ("model_newer_seeds", "CupNet on newer fresh seeds", NEWER_SEEDS),
-                 "blind": ("model_blind_seeds", "CupNet on blind seeds", BLIND_SEEDS)}
+                 "blind": ("model_blind_seeds", "CupNet on blind seeds", BLIND_SEEDS),
+                 "unseen": ("model_unseen_seeds", "CupNet on unseen seeds", UNSEEN_SEEDS)}
 
 
 def part_seeds(part: str, args: argparse.Namespace) -> list[int]:
@@ -369,7 +374,7 @@ def fresh_seed_intro(args: argparse.Namespace, runtimes: list[str], part: str = 
         honesty += (" (but a session made a rule after looking at the missed cups of seeds "
                     + "; of seeds ".join(f"{', '.join(map(str, found))} (docs/training.md, "
                                          f"item {item})" for item, found in looked)
-                    + "; `--parts blind` measures seeds nobody had looked at)")
+                    + f"; `--parts {UNLOOKED_PART}` measures seeds nobody had looked at)")
     return (f"## {SEED_SECTIONS[part][1]}\n\n"
             f"`{command}`: {args.fresh_images} DRRs a seed from `{args.eval_config}` at "
             f"{', '.join(map(str, args.sizes))} px, {honesty}, seed by seed and pooled, with "
@@ -381,8 +386,8 @@ def fresh_seed_intro(args: argparse.Namespace, runtimes: list[str], part: str = 
 def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
                        part: str = "fresh") -> str:
     """The shipped model's accuracy on fresh DRRs of ``part``'s seeds (:func:`part_seeds`:
-    "fresh", by default seeds no setting was chosen on, "newer" or "blind"), each and
-    pooled (with 95 % bootstrap intervals over the cups), with the networks in each runtime
+    "fresh", by default seeds no setting was chosen on, "newer", "blind" or "unseen"), each
+    and pooled (with 95 % bootstrap intervals over the cups), with the networks in each runtime
     ``models`` holds (by name): that part's section (:data:`SEED_SECTIONS`)."""
     rows = []
     for runtime, model in models.items():

@@ -210,7 +210,13 @@ class CupNetConfig:
             other, so the mirrored locator sees the missed one much as it saw the found one;
             where it found no cup, the mirrored look is a second, nearly independent
             framing. Only blobs away from the believed cups get the cup stages
-            (docs/training.md, items 42 and 43).
+            (docs/training.md, items 42 and 43). The high gamma look
+            (``high_gamma_look``) does the same, without verifying the images it sees for
+            that alone (item 44): a power of 3 frames a pair's second cup that neither the
+            first look nor its mirror image framed.
+        partner_doubt: a cup a partner look adds beside the cups found must be doubted
+            less than this, too (None: any cup not flagged): a blob elsewhere on the
+            anatomy, believed only just, is a made-up cup (item 44).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -275,6 +281,7 @@ class CupNetConfig:
     fourth_look_turned: bool = False
     turned_look_doubt: float | None = None
     partner_look: bool = False
+    partner_doubt: float | None = None
 
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:

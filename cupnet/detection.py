@@ -105,42 +105,53 @@ def wants_another_look(cup: CupDetection) -> bool:
 
 
 def later_look_cups(first: list[CupDetection], second: list[CupDetection],
-                    below: float | None = None, up_to: int = 0) -> list[CupDetection]:
+                    below: float | None = None, up_to: int = 0,
+                    added_below: float | None = None) -> list[CupDetection]:
     """One image's cups ``first`` with each one that :func:`wants_another_look` replaced by
-    the least doubted cup of ``second`` at the same place (each centre within the other's
-    major semi-axis) that is believed (not flagged, doubted less than ``below``, None: any
-    doubt) and doubted less; the others as they are; then, while there are fewer than
-    ``up_to``, the least doubted believed cups of ``second`` at other places added (a
-    bilateral pair's other cup), each in place of a failed cup centred within its major
-    semi-axis where there is one. Where ``first`` is empty (no cup found), the believed
-    cups of ``second``."""
+    the least doubted cup of ``second`` that :func:`reaches` it, is believed (not flagged,
+    doubted less than ``below``, None: any doubt) and is doubted less, each cup of
+    ``second`` replacing one at most; the others as they are; then, while there are fewer
+    than ``up_to``, the least doubted believed cups of ``second`` at other places (a
+    bilateral pair's other cup) doubted less than ``added_below`` (None: any) added, each
+    in place of a failed cup it reaches where there is one. Where ``first`` is empty (no cup
+    found), the believed cups of ``second``.
+
+    Reaching, not :func:`same_place`: a flagged or failed cup's ellipse is often a piece of
+    its rim or of the anatomy beside it, short and off centre, so its major semi-axis may
+    not reach the cup's centre though the cup's reaches its own (docs/training.md, item
+    44)."""
     believed = [other for other in second if other.doubt is not None and not other.check
                 and (below is None or other.doubt < below)]
     if not first:
         return believed
-    out = []
+    out: list[CupDetection] = []
     for cup in first:
         if wants_another_look(cup):
-            shape = np.asarray(cup.ellipse, np.float64)
             better = [other for other in believed
                       if (cup.doubt is None or other.doubt < cup.doubt)
-                      and same_place(shape, np.asarray(other.ellipse, np.float64))]
+                      and reaches(other, cup) and not any(other is taken for taken in out)]
             cup = min(better, key=lambda other: other.doubt, default=cup)
         out.append(cup)
     for other in sorted(believed, key=lambda other: other.doubt) if up_to else []:
         shape = np.asarray(other.ellipse, np.float64)
+        if added_below is not None and other.doubt >= added_below:
+            break  # sorted: the rest are doubted more
         if any(same_place(shape, np.asarray(cup.ellipse, np.float64)) for cup in out):
             continue
-        # A failed cup's ellipse is often a piece of its rim, off centre and short: one
-        # centred within this cup's major semi-axis was this cup, and its row goes.
-        failed = [k for k, cup in enumerate(out) if cup.status.startswith("error")
-                  and np.hypot(*(np.asarray(cup.ellipse[:2], np.float64) - shape[:2]))
-                  <= shape[2]]
+        failed = [k for k, cup in enumerate(out)
+                  if cup.status.startswith("error") and reaches(other, cup)]
         if failed:
             out[failed[0]] = other
         elif len(out) < up_to:
             out.append(other)
     return out
+
+
+def reaches(cup: CupDetection, other: CupDetection) -> bool:
+    """Whether ``other``'s ellipse centre lies within ``cup``'s major semi-axis of
+    ``cup``'s ellipse centre (False where either is NaN): not symmetric."""
+    one, two = (np.asarray(det.ellipse, np.float64) for det in (cup, other))
+    return bool(np.hypot(*(one[:2] - two[:2])) <= one[2])
 
 
 def same_place(one: np.ndarray, other: np.ndarray) -> bool:

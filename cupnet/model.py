@@ -126,7 +126,10 @@ class Look(NamedTuple):
         empty_images: a later look looks at the images where no cup was found too, and
             adds the cups it finds there that it would let replace one.
         partners: ... and at every image with fewer cups than ``max_cups`` (none
-            included), adding such cups found elsewhere (``CupNetConfig.partner_look``).
+            included), adding such cups found elsewhere (``CupNetConfig.partner_look``) ...
+        partners_below: ... where doubted less than this (None: wherever not flagged) ...
+        partners_verified: ... verifying (where ``verified``) the images it sees for that
+            alone.
         verified: the verification of doubtful cups runs in this look ...
         searched: ... and the search of those it leaves doubtful.
     """
@@ -137,6 +140,8 @@ class Look(NamedTuple):
     below: float | None = None
     empty_images: bool = False
     partners: bool = False
+    partners_below: float | None = None
+    partners_verified: bool = True
     verified: bool = True
     searched: bool = True
 
@@ -640,7 +645,8 @@ class CupNet(nn.Module):
         """:meth:`detect`'s later looks at images with a flagged or failed cup, in order,
         those the config asks for: mirrored (``second_look``; with ``partner_look`` at
         images with fewer cups than ``max_cups`` too, none included), at
-        ``third_look_gamma``, at ``high_gamma_look`` (at images with no cup found too),
+        ``third_look_gamma``, at ``high_gamma_look`` (at images with no cup found too, and
+        with ``partner_look`` at images with fewer cups than ``max_cups``),
         turned over (``fourth_look_turned``, at images with no cup found too, without the
         verification: in the shipped JSON the cups it doubts enough to verify would not
         pass its bar, and on an image without a cup it would verify blobs on anatomy, at
@@ -649,13 +655,17 @@ class CupNet(nn.Module):
         None searches the cups its verification leaves doubtful: on the selection seeds
         the later looks' search changed no cup's pose, and it took a sixth of the
         default's time on the speed set (docs/training.md, item 35)."""
-        looks = ([Look(mirrored=True, searched=False, partners=self.config.partner_look)]
+        partners = {"partners": self.config.partner_look,
+                    "partners_below": self.config.partner_doubt}
+        looks = ([Look(mirrored=True, searched=False, **partners)]
                  if self.config.second_look else [])
         if self.config.third_look_gamma is not None:
             looks.append(Look(gamma=self.config.third_look_gamma, searched=False))
         if self.config.high_gamma_look is not None:
+            # Verifying the blobs on anatomy of images it sees only for a pair's other cup
+            # tripled its time and found no cup more (item 44).
             looks.append(Look(gamma=self.config.high_gamma_look, empty_images=True,
-                              searched=False))
+                              searched=False, partners_verified=False, **partners))
         if self.config.fourth_look_turned:
             looks.append(Look(turned=True, below=self.config.turned_look_doubt,
                               empty_images=True, verified=False, searched=False))
@@ -665,13 +675,15 @@ class CupNet(nn.Module):
                       geometry: Geometry, diameter: Tensor, return_masks: bool,
                       look: Look, fields: list[tuple[float, float, float] | None]) -> None:
         """The ``images`` ``(1, H, W)`` (with their ``geometry``, cup ``diameter`` ``(B,)``
-        mm and round ``fields``) of ``found`` (:meth:`detect`'s) with a cup flagged ``check`` or an
-        error (with ``look.empty_images`` those with no cup, with ``look.partners`` those
-        with fewer than ``max_cups``) detected again as ``look`` says; a flagged or failed
-        cup takes the new look's detection of the same place where that one is not flagged
-        and is doubted less, and less than ``look.below`` where given; an image with no cup
-        takes the new look's cups that pass those bars, and with ``look.partners`` one with
-        fewer cups adds such cups found elsewhere (:func:`cupnet.detection.later_look_cups`).
+        mm and round ``fields``) of ``found`` (:meth:`detect`'s) with a cup flagged
+        ``check`` or an error (with ``look.empty_images`` those with no cup) detected again
+        as ``look`` says, and with ``look.partners`` those with fewer than ``max_cups`` too
+        (without verification where that alone brings them and ``look.partners_verified``
+        is False). A flagged or failed cup takes a
+        new detection that reaches it, is not flagged and is doubted less (and less than
+        ``look.below`` where given); an image with no cup takes the new cups that pass those
+        bars; with ``look.partners`` one with fewer cups adds such cups found elsewhere,
+        doubted less than ``look.partners_below`` (:func:`cupnet.detection.later_look_cups`).
         In place.
 
         The locator is neither mirror-symmetric nor blind to contrast, so its blob, and
@@ -683,19 +695,23 @@ class CupNet(nn.Module):
         afresh from the new blobs, where the first look may have judged it wrong.
         """
         partners = self.config.max_cups if look.partners else 0
-        again = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))
-                 or (look.empty_images and not cups) or len(cups) < partners]
-        if not again:
-            return
+        wanted = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))
+                  or (look.empty_images and not cups)]
+        paired = [i for i, cups in enumerate(found) if len(cups) < partners and i not in wanted]
         rows = geometry_rows(geometry, len(images))
-        # A believed cup is neither replaced nor added again: its blob gets no cup stages.
-        known = [[cup.ellipse for cup in found[i] if not wants_another_look(cup)]
-                 for i in again]
-        second = self._detect([images[i] for i in again], Geometry.from_rows(rows[again]),
-                              diameter[again], return_masks, look, [fields[i] for i in again],
-                              known)
-        for i, cups in zip(again, second, strict=True):
-            found[i] = later_look_cups(found[i], cups, look.below, partners)
+        paired_look = look._replace(verified=look.verified and look.partners_verified)
+        for again, this_look in ((wanted, look), (paired, paired_look)):
+            if not again:
+                continue
+            # A believed cup is neither replaced nor added again: its blob gets no cup stages.
+            known = [[cup.ellipse for cup in found[i] if not wants_another_look(cup)]
+                     for i in again]
+            second = self._detect([images[i] for i in again],
+                                  Geometry.from_rows(rows[again]), diameter[again],
+                                  return_masks, this_look, [fields[i] for i in again], known)
+            for i, cups in zip(again, second, strict=True):
+                found[i] = later_look_cups(found[i], cups, look.below, partners,
+                                           look.partners_below)
 
     def _detect(self, image_list: list[Tensor], geometry: Geometry, diameter: Tensor,
                 return_masks: bool, look: Look = FIRST_LOOK,

@@ -55,7 +55,7 @@ def test_the_fresh_seed_prose_gives_its_command_and_says_when_its_seeds_chose_se
     assert f"of these seeds {SELECTION_SEEDS[0]} chose" in flattering
     assert "honest estimate" not in flattering
     # The fresh and the newer seeds' misses were looked at (items 42, 43): said, with the
-    # item; the blind seeds' were not.
+    # item; the unseen seeds' were not.
     assert f"missed cups of seeds {', '.join(map(str, FRESH_SEEDS))} (docs/training.md, " \
            "item 42)" in honest
     newer = fresh_seed_intro(shipped, ["onnx"], "newer")
@@ -65,4 +65,6 @@ def test_the_fresh_seed_prose_gives_its_command_and_says_when_its_seeds_chose_se
     blind = fresh_seed_intro(shipped, ["onnx"], "blind")
     assert blind.startswith("## CupNet on blind seeds\n\n`python benchmarks/model.py "
                             "--parts blind --runtimes onnx`:")
-    assert "the honest estimate" in blind and "looking at the missed" not in blind
+    assert "item 44" in blind and "`--parts unseen` measures seeds nobody" in blind
+    unseen = fresh_seed_intro(shipped, ["onnx"], "unseen")
+    assert "the honest estimate" in unseen and "looking at the missed" not in unseen

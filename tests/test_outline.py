@@ -6,14 +6,16 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from cup_cases import paper_poses, rim_landmarks
 
 from cupnet.config import SPEED_PRESETS
+from cupnet.detection import CupDetection
 from cupnet.ellipse import ellipse_points
 from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
-from cupnet.model import FIRST_LOOK, _doubtful, geometry_rows, load_model
+from cupnet.model import FIRST_LOOK, Look, _doubtful, geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.pose import PoseSolution, ellipse_of_pose, refine_pose, refine_pose_with_outline
 from data_synth import SynthConfig, synthesize
@@ -420,6 +422,47 @@ def test_the_second_look_takes_each_looked_at_images_own_geometry(shipped_on_drr
     assert not found[0].check
 
 
+@pytest.mark.parametrize("empty_images", [False, True])
+@pytest.mark.parametrize("partners_verified", [False, True])
+def test_images_looked_at_for_a_pairs_cup_alone_are_verified_as_the_look_says(
+        shipped_on_drr, monkeypatch, empty_images, partners_verified):
+    """A partner look sees the images with a flagged cup (and, with ``empty_images``, those
+    with none) as the look says, verified; the images it sees only because they have fewer
+    cups than ``max_cups`` (one believed cup, or none without ``empty_images``) it verifies
+    only with ``partners_verified`` (the shipped high gamma look does not); an image with
+    both cups believed it does not see. Each image's believed cups are passed as known, so
+    their blobs get no cup stages."""
+    model, _ = shipped_on_drr
+    monkeypatch.setattr(model.config, "max_cups", 2)
+
+    def cup(u: float, check: bool) -> CupDetection:
+        return CupDetection(pose=np.array([20.0, 40.0, 0.0, 0.0, 900.0]), alt_pose=None,
+                            ambiguous=False, ellipse=np.array([u, 100.0, 30.0, 20.0, 0.0]),
+                            landmarks=np.zeros((0, 2)), weights=np.zeros(0), residual_px=0.1,
+                            status="ok", doubt=2.5 if check else 0.5, check=check)
+
+    found = [[cup(100, False)], [cup(100, True)], [], [cup(100, False), cup(300, False)]]
+    calls: list[tuple[list[int], bool, list[list[float]]]] = []
+
+    def detected(image_list, geometry, diameter, return_masks, look, fields, known):
+        calls.append(([int(image[0, 0, 0]) for image in image_list], look.verified,
+                      [[float(e[0]) for e in k] for k in known]))
+        return [[] for _ in image_list]
+
+    monkeypatch.setattr(model, "_detect", detected)
+    images = [torch.full((1, 16, 16), float(i)) for i in range(4)]
+    geometry = Geometry(1000.0, 0.2, 8.0, 8.0)
+    look = Look(gamma=3.0, partners=True, empty_images=empty_images, searched=False,
+                partners_verified=partners_verified)
+    model._looked_again(found, images, geometry, torch.full((4,), 50.0), False, look,
+                        [None] * 4)
+    assert calls == ([([1, 2], True, [[], []]), ([0], partners_verified, [[100.0]])]
+                     if empty_images else
+                     [([1], True, [[]]), ([0, 2], partners_verified, [[100.0], []])])
+    assert [look.partners_verified for look in model.later_looks()] == [True, True, False,
+                                                                         True]
+
+
 @pytest.mark.parametrize("later", ["turned", "high gamma", None])
 def test_an_image_with_no_cup_found_is_looked_at_again(shipped_on_drr, monkeypatch, later):
     """In a batch of a blank image and the DRR, the DRR's cup hidden from the first look
@@ -517,12 +560,17 @@ def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_
     """The shipped model's first look verifies its cups and searches those left doubtful;
     the mirrored and the two gamma looks verify but do not search, and the turned look does
     neither (its bar keeps only cups doubted less than any it would verify). The high gamma
-    and the turned looks look at images with no cup found too."""
+    and the turned looks look at images with no cup found too; the mirrored and the high
+    gamma looks at images with one cup (``partner_look``)."""
     model, sample = shipped_on_drr
     looks = model.later_looks()
-    assert [(look.mirrored, look.gamma, look.turned, look.empty_images) for look in looks] == [
-        (True, None, False, False), (False, model.config.third_look_gamma, False, False),
-        (False, model.config.high_gamma_look, False, True), (False, None, True, True)]
+    assert model.config.partner_look
+    assert [(look.mirrored, look.gamma, look.turned, look.empty_images, look.partners)
+            for look in looks] == [
+        (True, None, False, False, True), (False, model.config.third_look_gamma, False, False,
+                                           False),
+        (False, model.config.high_gamma_look, False, True, True),
+        (False, None, True, True, False)]
     assert model.config.high_gamma_look > 1 > model.config.third_look_gamma
     assert looks[-1].below < model.config.verify_gate
     calls: list[str] = []
