@@ -148,8 +148,9 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
 
 
 def reaches(cup: CupDetection, other: CupDetection) -> bool:
-    """Whether ``other``'s ellipse centre lies within ``cup``'s major semi-axis of
-    ``cup``'s ellipse centre (False where either is NaN): not symmetric."""
+    """Whether ``other``'s ellipse centre lies no further from ``cup``'s than ``cup``'s
+    major semi-axis (False where either is NaN). Not symmetric: a rim's ellipse reaches a
+    short piece of it off its centre, not the other way."""
     one, two = (np.asarray(det.ellipse, np.float64) for det in (cup, other))
     return bool(np.hypot(*(one[:2] - two[:2])) <= one[2])
 

@@ -662,8 +662,8 @@ class CupNet(nn.Module):
         if self.config.third_look_gamma is not None:
             looks.append(Look(gamma=self.config.third_look_gamma, searched=False))
         if self.config.high_gamma_look is not None:
-            # Verifying the blobs on anatomy of images it sees only for a pair's other cup
-            # tripled its time and found no cup more (item 44).
+            # At images it sees only for a pair's other cup, verifying its blobs on anatomy
+            # took most of its time and found no cup more (item 44).
             looks.append(Look(gamma=self.config.high_gamma_look, empty_images=True,
                               searched=False, partners_verified=False, **partners))
         if self.config.fourth_look_turned:
@@ -679,11 +679,11 @@ class CupNet(nn.Module):
         ``check`` or an error (with ``look.empty_images`` those with no cup) detected again
         as ``look`` says, and with ``look.partners`` those with fewer than ``max_cups`` too
         (without verification where that alone brings them and ``look.partners_verified``
-        is False). A flagged or failed cup takes a
-        new detection that reaches it, is not flagged and is doubted less (and less than
-        ``look.below`` where given); an image with no cup takes the new cups that pass those
-        bars; with ``look.partners`` one with fewer cups adds such cups found elsewhere,
-        doubted less than ``look.partners_below`` (:func:`cupnet.detection.later_look_cups`).
+        is False). A flagged or failed cup takes a new detection that reaches it, is not
+        flagged and is doubted less (and less than ``look.below`` where given); an image with
+        no cup takes the new cups that pass those bars; with ``look.partners`` one with fewer
+        cups adds such cups found elsewhere, doubted less than ``look.partners_below``
+        (:func:`cupnet.detection.later_look_cups`).
         In place.
 
         The locator is neither mirror-symmetric nor blind to contrast, so its blob, and

@@ -42,9 +42,9 @@ def test_cups_apart_in_place_or_size_are_both_kept():
 
 def test_a_flagged_cup_takes_a_later_looks_believed_detection_of_its_place():
     """A flagged cup takes the least doubted unflagged cup of a later look within whose
-    major semi-axis its centre lies and which is doubted less; a
-    failed cup (no doubt) takes any such; an unflagged cup, and a flagged one with nothing
-    better at its place (further away, flagged, or doubted more), keep theirs."""
+    major semi-axis its centre lies and which is doubted less; a failed cup (no doubt)
+    takes any such; an unflagged cup, and a flagged one with nothing better at its place
+    (further away, flagged, or doubted more), keep theirs."""
     def cup(u: float, doubt: float | None, check: bool = False, status: str = "ok"
             ) -> CupDetection:
         return detection([u, 200.0, 40.0, 20.0, 0.0], status, doubt, check)

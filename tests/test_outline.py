@@ -571,6 +571,10 @@ def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_
                                            False),
         (False, model.config.high_gamma_look, False, True, True),
         (False, None, True, True, False)]
+    # A cup a partner look adds must be doubted less than partner_doubt.
+    assert [look.partners_below for look in looks] == [
+        model.config.partner_doubt, None, model.config.partner_doubt, None]
+    assert model.config.partner_doubt < model.config.check_doubt
     assert model.config.high_gamma_look > 1 > model.config.third_look_gamma
     assert looks[-1].below < model.config.verify_gate
     calls: list[str] = []
