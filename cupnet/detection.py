@@ -129,17 +129,17 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
         if wants_another_look(cup):
             better = [other for other in believed
                       if (cup.doubt is None or other.doubt < cup.doubt)
-                      and reaches(other, cup) and not any(other is taken for taken in out)]
+                      and reaches(other.ellipse, cup.ellipse)
+                      and not any(other is taken for taken in out)]
             cup = min(better, key=lambda other: other.doubt, default=cup)
         out.append(cup)
     for other in sorted(believed, key=lambda other: other.doubt) if up_to else []:
-        shape = np.asarray(other.ellipse, np.float64)
         if added_below is not None and other.doubt >= added_below:
             break  # sorted: the rest are doubted more
-        if any(same_place(shape, np.asarray(cup.ellipse, np.float64)) for cup in out):
+        if any(same_place(other.ellipse, cup.ellipse) for cup in out):
             continue
         failed = [k for k, cup in enumerate(out)
-                  if cup.status.startswith("error") and reaches(other, cup)]
+                  if cup.status.startswith("error") and reaches(other.ellipse, cup.ellipse)]
         if failed:
             out[failed[0]] = other
         elif len(out) < up_to:
@@ -147,18 +147,19 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
     return out
 
 
-def reaches(cup: CupDetection, other: CupDetection) -> bool:
-    """Whether ``other``'s ellipse centre lies no further from ``cup``'s than ``cup``'s
-    major semi-axis (False where either is NaN). Not symmetric: a rim's ellipse reaches a
-    short piece of it off its centre, not the other way."""
-    one, two = (np.asarray(det.ellipse, np.float64) for det in (cup, other))
-    return bool(np.hypot(*(one[:2] - two[:2])) <= one[2])
+def reaches(one: np.ndarray, other: np.ndarray) -> bool:
+    """Whether ellipse ``(5,)`` px ``one`` reaches ``other``: ``other``'s centre lies no
+    further from ``one``'s than ``one``'s major semi-axis (False where either is NaN). Not
+    symmetric: a rim's ellipse reaches a short piece of it off its centre, not the other
+    way."""
+    one, other = np.asarray(one, np.float64), np.asarray(other, np.float64)
+    return bool(np.hypot(*(one[:2] - other[:2])) <= one[2])
 
 
 def same_place(one: np.ndarray, other: np.ndarray) -> bool:
-    """Whether ellipses ``(5,)`` px ``one`` and ``other`` mark one place: each centre within
-    the other's major semi-axis (False where either is NaN)."""
-    return bool(np.hypot(*(one[:2] - other[:2])) <= min(one[2], other[2]))
+    """Whether ellipses ``(5,)`` px ``one`` and ``other`` mark one place: each
+    :func:`reaches` the other (False where either is NaN)."""
+    return reaches(one, other) and reaches(other, one)
 
 
 def _same_ellipse(one: np.ndarray, other: np.ndarray, tolerance: float) -> bool:
