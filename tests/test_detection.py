@@ -2,17 +2,9 @@
 cups replaced by a later look's."""
 
 import numpy as np
+from cup_cases import detection
 
 from cupnet.detection import CupDetection, distinct_cups, later_look_cups
-
-
-def detection(ellipse: list[float], status: str = "ok", doubt: float | None = 0.5,
-              check: bool = False) -> CupDetection:
-    pose = np.full(5, np.nan) if status.startswith("error") else np.array([20, 40, 0, 0, 900.0])
-    return CupDetection(pose=pose, alt_pose=None, ambiguous=False,
-                        ellipse=np.asarray(ellipse, np.float64), landmarks=np.zeros((0, 2)),
-                        weights=np.zeros(0), residual_px=0.1, status=status, doubt=doubt,
-                        check=check)
 
 
 def test_one_cup_found_twice_is_kept_once_by_its_better_detection():

@@ -6,10 +6,9 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
-from cup_cases import paper_poses, rim_landmarks
+from cup_cases import detection, paper_poses, rim_landmarks
 
 from cupnet.config import SPEED_PRESETS
 from cupnet.detection import CupDetection
@@ -436,10 +435,7 @@ def test_images_looked_at_for_a_pairs_cup_alone_are_verified_as_the_look_says(
     monkeypatch.setattr(model.config, "max_cups", 2)
 
     def cup(u: float, check: bool) -> CupDetection:
-        return CupDetection(pose=np.array([20.0, 40.0, 0.0, 0.0, 900.0]), alt_pose=None,
-                            ambiguous=False, ellipse=np.array([u, 100.0, 30.0, 20.0, 0.0]),
-                            landmarks=np.zeros((0, 2)), weights=np.zeros(0), residual_px=0.1,
-                            status="ok", doubt=2.5 if check else 0.5, check=check)
+        return detection([u, 100.0, 30.0, 20.0, 0.0], doubt=2.5 if check else 0.5, check=check)
 
     found = [[cup(100, False)], [cup(100, True)], [], [cup(100, False), cup(300, False)]]
     calls: list[tuple[list[int], bool, list[list[float]]]] = []
