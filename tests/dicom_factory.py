@@ -1,13 +1,20 @@
-"""DICOM test files written with pydicom, and re-encoded by GDCM (imported by the image and predict
-tests)."""
+"""DICOM test files written with pydicom, re-encoded by GDCM or given JPEG codestreams (imported by
+the image and predict tests)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+import pydicom
 from pydicom.dataset import Dataset, FileMetaDataset
-from pydicom.uid import ExplicitVRLittleEndian, SecondaryCaptureImageStorage, generate_uid
+from pydicom.encaps import encapsulate
+from pydicom.uid import (
+    ExplicitVRLittleEndian,
+    JPEGExtended12Bit,
+    SecondaryCaptureImageStorage,
+    generate_uid,
+)
 
 
 def write_dicom(path: Path, pixels: np.ndarray, photometric: str = "MONOCHROME2",
@@ -45,4 +52,15 @@ def transcoded(source: Path, path: Path, transfer_syntax: str) -> Path:
     writer.SetFile(reader.GetFile())
     writer.SetImage(change.GetOutput())
     assert writer.Write(), path
+    return path
+
+
+def with_jpeg_streams(source: Path, path: Path, streams: list[bytes]) -> Path:
+    """``source`` (a DICOM file) with its pixel data replaced by the JPEG codestreams
+    ``streams``, one a frame, as JPEG Extended (process 2 and 4), written to ``path``."""
+    ds = pydicom.dcmread(source)
+    ds.PixelData = encapsulate(streams)
+    ds["PixelData"].VR = "OB"
+    ds.file_meta.TransferSyntaxUID = JPEGExtended12Bit
+    ds.save_as(path, enforce_file_format=True)
     return path

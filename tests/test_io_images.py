@@ -5,11 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import cv2
+import imagecodecs
 import numpy as np
 import pydicom
 import pytest
-from dicom_factory import transcoded, write_dicom
+from dicom_factory import transcoded, with_jpeg_streams, write_dicom
 from pydicom.data import get_testdata_file
+from pydicom.pixels import pixel_array
 from pydicom.uid import JPEG2000Lossless, JPEGLosslessSV1, JPEGLSLossless
 
 from cupnet.io.images import (
@@ -116,12 +118,42 @@ def test_pydicoms_jpeg_ls_sample_matches_its_uncompressed_twin() -> None:
     np.testing.assert_array_equal(ours.image, reference.image)
 
 
-def test_a_compression_no_decoder_reads_is_named_not_called_corrupt() -> None:
-    # pydicom's own sample: 12-bit JPEG Extended, which neither GDCM's plugin nor Pillow reads.
+def test_twelve_bit_jpeg_extended_gives_pydicoms_reference_values() -> None:
+    # pydicom's own sample, 12-bit JPEG Extended, which neither GDCM's plugin nor Pillow
+    # reads; the values are those pydicom's reference tests assert (pylibjpeg's decode).
     path = Path(get_testdata_file("JPGExtended.dcm", download=False))
     (frame,) = read_frames(path)
-    if frame.error is None:
-        pytest.skip("a 12-bit JPEG decoder is installed here")
+    assert frame.error is None, frame.error
+    assert frame.image.shape == (1024, 256)
+    stored = pixel_array(path)  # after cupnet.io.images registered its decoder
+    assert (stored[420, 140], stored[230, 120]) == (244, 95)
+
+
+def test_twelve_bit_jpeg_extended_frames_decode_to_the_uncompressed_frames(
+        tmp_path: Path) -> None:
+    # 12-bit detector values in two distinct frames, each its own lossy 12-bit codestream.
+    v, u = np.mgrid[0:60, 0:70]
+    stored = np.stack([np.round(2000 + 1500 * np.sin(u / 9 + k) * np.cos(v / 7))
+                       for k in range(2)]).astype(np.uint16)
+    plain = write_dicom(tmp_path / "plain.dcm", stored, BitsStored=12, HighBit=11,
+                        DistanceSourceToDetector=1000.0, ImagerPixelSpacing=[0.2, 0.2])
+    streams = [imagecodecs.jpeg8_encode(frame, level=95, bitspersample=12) for frame in stored]
+    assert all(stream[stream.index(b"\xff\xc1") + 4] == 12 for stream in streams)  # SOF1, 12 bits
+    packed = with_jpeg_streams(plain, tmp_path / "packed.dcm", streams)
+    references = [frame.image for frame in read_frames(plain)]
+    for k, ours in enumerate(read_frames(packed)):
+        assert ours.error is None, ours.error
+        assert (ours.sdd_mm, ours.pixel_spacing_mm) == (1000.0, 0.2)
+        # Lossy: within a few counts of 3,000 of its own frame, far from the other.
+        assert np.abs(ours.image - references[k]).max() < 0.005
+        assert np.abs(ours.image - references[1 - k]).max() > 0.1
+
+
+def test_a_compression_no_decoder_reads_is_named_not_called_corrupt(tmp_path: Path) -> None:
+    plain = write_dicom(tmp_path / "plain.dcm", np.ones((32, 32), np.uint16))
+    damaged = with_jpeg_streams(plain, tmp_path / "damaged.dcm",
+                                [b"\xff\xd8\xff\xc1" + bytes(range(200)) + b"\xff\xd9"])
+    (frame,) = read_frames(damaged)
     assert frame.error.startswith("cannot decode DICOM pixel data compressed as JPEG Extended")
     assert "corrupt" not in frame.error
 

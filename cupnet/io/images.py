@@ -28,6 +28,10 @@ from PIL import Image, UnidentifiedImageError
 from pydicom.errors import InvalidDicomError
 from pydicom.pixels import apply_modality_lut, apply_voi_lut, pixel_array
 
+from cupnet.io import jpeg12
+
+jpeg12.register()  # 12-bit JPEG Extended, which pydicom's own plugins refuse
+
 MAX_SIDE = 4096
 RASTER_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 DICOM_SUFFIXES = (".dcm", ".dicom")
@@ -284,8 +288,9 @@ def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarr
             raise ImageReadError(f"cannot decode DICOM pixel data in transfer syntax "
                                  f"{syntax} ({exc})") from exc
         if compressed:
-            # Most often intact data no installed decoder reads (12-bit JPEG Extended), not
-            # a broken file: say which compression, and what the decoders said.
+            # Intact data no installed decoder reads (a colour JPEG Extended stream, HTJ2K
+            # where GDCM is old) or a damaged stream: say which compression, and what the
+            # decoders said.
             raise ImageReadError(f"cannot decode DICOM pixel data compressed as {syntax.name} "
                                  f"(unsupported or damaged: {exc})") from exc
         raise ImageReadError(f"corrupt or truncated DICOM pixel data ({exc})") from exc
