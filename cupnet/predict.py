@@ -523,13 +523,15 @@ class Predictor:
         return [batch.records[i] for i in range(batch.size)]
 
     def _detect(self, ready: list[tuple[int, Frame, ResolvedGeometry]]) -> list[list | str]:
-        """Cups per image; where the batch fails, image by image, a failure an error status."""
+        """Cups per image; where the batch fails, image by image, a failure an error status
+        (an unforeseen one named by its type: the run goes on past a bug an odd image hits)."""
         try:
             return self.detector([f for _, f, _ in ready], [g for _, _, g in ready])
-        except (RuntimeError, ValueError) as exc:
-            if len(ready) == 1:
-                return [f"error: detection failed ({exc})"]
-            return [cups for item in ready for cups in self._detect([item])]
+        except Exception as exc:  # noqa: BLE001 - one image's failure is its row, not the run's
+            if len(ready) > 1:
+                return [cups for item in ready for cups in self._detect([item])]
+            named = "" if isinstance(exc, RuntimeError | ValueError) else f"{type(exc).__name__}: "
+            return [f"error: detection failed ({named}{exc})"]
 
     def _record(self, frame: Frame, geometry: ResolvedGeometry, cups: list,
                 compute_seconds: float) -> dict:

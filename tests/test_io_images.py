@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -245,6 +247,53 @@ def test_size_limit(tmp_path: Path) -> None:
     assert "too large" in read_frames(tmp_path / "wide.png")[0].error
     cv2.imwrite(str(tmp_path / "max.png"), np.zeros((MAX_SIDE, MAX_SIDE), np.uint16))
     assert read_image(tmp_path / "max.png").shape == (MAX_SIDE, MAX_SIDE)
+
+
+def png_header_only(path: Path, width: int, height: int) -> Path:
+    """A PNG whose header gives ``width`` x ``height`` 8-bit gray pixels and whose data is a
+    few bytes: what a decompression bomb looks like before decoding."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data)))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header)
+                     + chunk(b"IDAT", zlib.compress(bytes(100))) + chunk(b"IEND", b""))
+    return path
+
+
+def test_a_header_past_pils_bomb_limit_is_an_error_row_not_a_crash(tmp_path: Path) -> None:
+    # 30,000 x 30,000 px: Pillow refuses to open it with its own error type.
+    bomb = png_header_only(tmp_path / "bomb.png", 30_000, 30_000)
+    cv2.imwrite(str(tmp_path / "fine.png"), np.zeros((16, 16), np.uint8))
+    sources = [ImageSource(bomb, "bomb.png"), ImageSource(tmp_path / "fine.png", "fine.png")]
+    bad, good = iter_frames(sources, workers=0)
+    assert bad.error.startswith("image too large: its header gives over")
+    assert good.error is None
+
+
+@pytest.mark.parametrize("stage", ["_probe", "_read_raster"])
+def test_a_readers_unforeseen_failure_ends_that_file_alone(tmp_path: Path, stage: str,
+                                                          monkeypatch: pytest.MonkeyPatch
+                                                          ) -> None:
+    import cupnet.io.images as images
+
+    real = getattr(images, stage)
+
+    def failing(source: ImageSource | Path, *args: object) -> object:
+        if source.name == "bad.png":  # the probe takes a source, the decoder a path
+            raise AttributeError("a decoder's own bug")
+        return real(source, *args)
+
+    monkeypatch.setattr(images, stage, failing)
+    sources = []
+    for name in ("a.png", "bad.png", "c.png"):
+        cv2.imwrite(str(tmp_path / name), np.zeros((16, 16), np.uint8))
+        sources.append(ImageSource(tmp_path / name, name))
+    frames = list(iter_frames(sources, workers=2))
+    assert [f.name for f in frames] == ["a.png", "bad.png", "c.png"]
+    assert frames[1].error == "unreadable file (AttributeError: a decoder's own bug)"
+    assert frames[0].error is None and frames[2].error is None
 
 
 def test_discovery_folder_recursive_glob_and_empty(tmp_path: Path) -> None:

@@ -186,6 +186,31 @@ def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
     assert [r["image"] for r in document["images"]] == [f"im{i}.png" for i in range(5)]
 
 
+def test_a_detection_that_fails_on_one_image_is_its_row_alone(
+        tmp_path: Path, blind_checkpoint: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    images = tmp_path / "images"
+    images.mkdir()
+    for i in range(3):
+        noise_png(images / f"im{i}.png")
+    real = predict.NetworkDetector.__call__
+
+    def failing_on_im1(self, frames, geometries):
+        if any(frame.name == "im1.png" for frame in frames):
+            raise IndexError("an odd image's bug")  # neither RuntimeError nor ValueError
+        return real(self, frames, geometries)
+
+    monkeypatch.setattr(predict.NetworkDetector, "__call__", failing_on_im1)
+    out = tmp_path / "out"
+    assert main(["predict", str(images), "--out", str(out), "--checkpoint",
+                 str(blind_checkpoint), "--sdd", "1000", "--pixel-spacing", "0.3",
+                 "--cup-diameter", "52", "--quiet", "--no-overlays"]) == 0
+    by_image = rows_by_image(read_csv(out / "results.csv"))
+    assert [row["status"] for row in by_image["im1.png"]] == [
+        "error: detection failed (IndexError: an odd image's bug)"]
+    for name in ("im0.png", "im2.png"):
+        assert not by_image[name][0]["status"].startswith("error"), by_image[name]
+
+
 def test_multiframe_dicom_gives_a_row_per_frame(tmp_path: Path, blind_checkpoint: Path) -> None:
     frames = (np.random.default_rng(2).random((3, 256, 256)) * 4000).astype(np.uint16)
     path = write_dicom(tmp_path / "run.dcm", frames, DistanceSourceToDetector=1000.0,

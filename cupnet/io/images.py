@@ -366,6 +366,10 @@ def _probe(source: ImageSource) -> list[_Unit]:
     except UnidentifiedImageError as exc:
         raise ImageReadError(f"not a readable {suffix.lstrip('.').upper()} image "
                              "(unknown or corrupt content)") from exc
+    except Image.DecompressionBombError as exc:  # PIL refuses sizes far over MAX_SIDE
+        raise ImageReadError(f"image too large: its header gives over "
+                             f"{2 * Image.MAX_IMAGE_PIXELS:,} pixels (at most {MAX_SIDE} x "
+                             f"{MAX_SIDE})") from exc
     except OSError as exc:
         raise ImageReadError(f"corrupt image header ({exc})") from exc
     _check_size(width, height)
@@ -390,6 +394,8 @@ def _decode(unit: _Unit) -> Frame:
         frame.error = str(exc)
     except (OSError, MemoryError) as exc:
         frame.error = f"cannot read file ({exc})"
+    except Exception as exc:  # noqa: BLE001 - a decoder's own failure ends this file only
+        frame.error = unreadable(exc)
     frame.seconds = perf_counter() - start
     return frame
 
@@ -415,13 +421,21 @@ def read_image(path: str | Path) -> np.ndarray:
     return frame.image  # type: ignore[return-value]
 
 
+def unreadable(error: Exception) -> str:
+    """The row of a file whose reader failed in a way no check foresaw: the failure named."""
+    return f"unreadable file ({type(error).__name__}: {error})"
+
+
 def _units(sources: Iterable[ImageSource]) -> Iterator[_Unit | Frame]:
     """Frames to decode, or a finished error frame for a file that fails its probe."""
     for source in sources:
         try:
-            yield from _probe(source)
+            units = _probe(source)
         except ImageReadError as exc:
-            yield Frame(source.name, source, error=str(exc))
+            units = [Frame(source.name, source, error=str(exc))]
+        except Exception as exc:  # noqa: BLE001 - a reader's own failure ends this file only
+            units = [Frame(source.name, source, error=unreadable(exc))]
+        yield from units
 
 
 def iter_frames(sources: Iterable[ImageSource], workers: int = 2, lookahead: int = 8,
