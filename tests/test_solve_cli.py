@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,7 @@ from cup_cases import rim_landmarks
 from cupnet.cli import main
 from cupnet.geometry import Geometry
 from cupnet.io.landmarks import read_landmarks
+from cupnet.io.results import MURRAY_COLUMNS
 
 TRUTH = torch.tensor([[30.0, 20.0, 10.0, -20.0, 300.0], [15.0, -40.0, -50.0, 30.0, 200.0]],
                      dtype=torch.float64)
@@ -39,12 +41,25 @@ def results(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def murray(theta: float, phi: float) -> list[float]:
+    """Murray's conversion formulas: operative then anatomic anteversion and inclination (deg),
+    the inclinations with the side's sign."""
+    ra, ri = math.radians(theta), math.radians(abs(phi))
+    side = math.copysign(1.0, phi)
+    return [math.degrees(v) for v in (math.atan(math.tan(ra) / math.cos(ri)),
+                                      side * math.asin(math.sin(ri) * math.cos(ra)),
+                                      math.atan(math.tan(ra) / math.sin(ri)),
+                                      side * math.acos(math.cos(ri) * math.cos(ra)))]
+
+
 def assert_poses(rows: list[dict[str, str]]) -> None:
     for row, truth in zip(rows, TRUTH[:len(rows)].tolist(), strict=True):
         got = [float(row[c]) for c in ("anteversion_deg", "inclination_deg", "k_mm", "l_mm",
                                        "h_mm")]
         assert got == pytest.approx(truth, abs=1e-3)
         assert row["status"] == "ok" and float(row["residual_px"]) < 1e-6
+        assert [float(row[c]) for c in MURRAY_COLUMNS] == pytest.approx(murray(*truth[:2]),
+                                                                        abs=1e-3)
 
 
 def test_paper_format_is_detected_and_solved_in_its_pixel_equals_mm_units(tmp_path):

@@ -14,6 +14,11 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import torch
+
+from cupnet.orientation import anatomic_angles, operative_angles
+
 POSE_COLUMNS = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
 ELLIPSE_COLUMNS = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_px",
                    "ellipse_angle_deg")
@@ -22,8 +27,12 @@ ALT_COLUMNS = tuple("alt_" + c for c in POSE_COLUMNS)
 # eye (blank where not measured: landmarks given, a model without a rim stage), and how the
 # model took the image to show metal (dark or bright; blank where not judged).
 CHECK_COLUMNS = ("doubt", "check")
+# Last, the pose's angles in Murray's operative and anatomic definitions (cupnet.orientation;
+# CONVENTIONS' are his radiographic ones).
+MURRAY_COLUMNS = ("operative_anteversion_deg", "operative_inclination_deg",
+                  "anatomic_anteversion_deg", "anatomic_inclination_deg")
 RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px",
-                  "seconds", *ALT_COLUMNS, *CHECK_COLUMNS, "metal")
+                  "seconds", *ALT_COLUMNS, *CHECK_COLUMNS, "metal", *MURRAY_COLUMNS)
 
 
 def _finite(values: Iterable[Any]) -> list[float | None]:
@@ -45,6 +54,10 @@ def cup_row(name: str, index: int, cup: Any, seconds: float) -> dict:
         row["check"] = int(cup.check)
     if cup.metal_bright is not None:
         row["metal"] = "bright" if cup.metal_bright else "dark"
+    pose = torch.as_tensor(np.asarray(cup.pose, dtype=np.float64))
+    if torch.isfinite(pose).all():
+        angles = torch.cat([operative_angles(pose), anatomic_angles(pose)])
+        row.update(zip(MURRAY_COLUMNS, angles.tolist(), strict=True))
     return row
 
 
