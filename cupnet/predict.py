@@ -43,11 +43,13 @@ from cupnet.io.images import (
     ImageSource,
     find_images,
     iter_frames,
+    turned_clockwise,
 )
 from cupnet.io.meta import (
     ASSUMED_CUP_DIAMETER_MM,
     ASSUMED_DETECTOR_WIDTH_MM,
     ASSUMED_SDD_MM,
+    PRINCIPAL_KEYS,
     REQUIRED,
     GeometryInputs,
     ResolvedGeometry,
@@ -121,6 +123,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "oblong frame look like cups to it; docs/training.md, item 23), "
                              "and look at a narrow field's whole frame, not its square "
                              "(item 41)")
+    parser.add_argument("--rotate", type=int, choices=ROTATIONS, default=0, metavar="DEGREES",
+                        help="turn every image clockwise by 90, 180 or 270 degrees before the "
+                             "model, to the upright AP display it learnt (the patient's head "
+                             "at the top): for files stored turned. Poses, ellipses and "
+                             "overlays then refer to the turned image; a principal point "
+                             "given is in the file's own pixels and turns with it")
     parser.add_argument("--landmarks", type=Path,
                         help="solve from manual landmarks in this file instead of the network")
     parser.add_argument("--overwrite", action="store_true", help="replace existing results")
@@ -147,6 +155,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # -- geometry ---------------------------------------------------------------------------------
+ROTATIONS = (0, 90, 180, 270)
+
+
+def turned_frame(frame: Frame, geometry: ResolvedGeometry, degrees: int) -> None:
+    """``frame``'s image turned clockwise by ``degrees`` and ``geometry``'s principal point
+    (resolved in the file's pixels) with it, in place."""
+    if degrees == 0:
+        return
+    u_key, v_key = PRINCIPAL_KEYS
+    frame.image, geometry.values[u_key], geometry.values[v_key] = turned_clockwise(
+        frame.image, geometry.values[u_key], geometry.values[v_key], degrees)
+    for key in PRINCIPAL_KEYS:
+        geometry.sources[key] += f", turned {degrees} deg clockwise with the image"
+
+
 def batch_geometry(geometries: list[ResolvedGeometry]) -> tuple[Geometry, torch.Tensor]:
     """``Geometry`` with ``(B,)`` float64 fields and ``(B,)`` cup diameters (mm)."""
     def column(key: str) -> torch.Tensor:
@@ -406,6 +429,8 @@ def _check_args(args: argparse.Namespace) -> str | None:
         return "--batch-size must be >= 1"
     if args.threads < 1:
         return "--threads must be >= 1"
+    if args.rotate and args.landmarks is not None:
+        return "--rotate turns the images for the network; --landmarks are solved as given"
     if args.landmarks is None:
         if args.runtime == "onnx":  # asked for by name: it must run
             if args.device.split(":")[0] != "cpu":  # the device's type, as torch reads it
@@ -502,6 +527,7 @@ class Predictor:
                 continue
             self._note_assumptions(geometry, frame.image.shape[1])
             self._note_implausible(frame.name, geometry)
+            turned_frame(frame, geometry, self.args.rotate)
             batch.ready.append((i, frame, geometry))
         return batch
 
@@ -545,6 +571,8 @@ class Predictor:
                                    c.status, c.outline, c.check)
                         for j, c in enumerate(cups)]
             title = f"{frame.name}: " + (f"{len(cups)} cup(s)" if cups else "no_cup")
+            if self.args.rotate:
+                title += f", turned {self.args.rotate} deg clockwise (--rotate)"
             if cups and cups[0].metal_bright:
                 title += ", metal shown bright (turned over)"
             record["overlay"] = f"overlays/{output_name(frame.name, '.png')}"

@@ -211,6 +211,45 @@ def test_a_detection_that_fails_on_one_image_is_its_row_alone(
         assert not by_image[name][0]["status"].startswith("error"), by_image[name]
 
 
+def test_rotate_turns_a_stored_turned_image_back_with_its_principal_point(
+        tmp_path: Path) -> None:
+    """An oblong DRR stored turned a quarter counterclockwise, with its principal point in
+    the file's pixels: ``--rotate 90`` gives the upright file's poses and ellipses exactly."""
+    from data_synth.config import SynthConfig
+    from data_synth.dataset import synthesize
+
+    config = SynthConfig(image_size=(640, 512), p_bilateral=0.0, p_no_cup=0.0)
+    sample = synthesize(config, 5, 0)
+    pixels = np.round(sample["image"][0].numpy() * 65535).astype(np.uint16)  # (512, 640)
+    sdd, spacing = sample["geometry"][:2].tolist()
+    u0, v0 = 300.0, 200.0  # off the centre, so a wrong turn of it shows
+    width = pixels.shape[1]
+    runs = {"upright": (pixels, [u0, v0], []),
+            "stored": (np.rot90(pixels), [v0, width - 1 - u0], ["--rotate", "90"])}
+    rows = {}
+    for name, (image, principal, flags) in runs.items():
+        (tmp_path / name).mkdir()
+        cv2.imwrite(str(tmp_path / name / "hip.png"), np.ascontiguousarray(image))
+        out = tmp_path / f"out_{name}"
+        assert main(["predict", str(tmp_path / name), "--out", str(out), "--sdd", str(sdd),
+                     "--pixel-spacing", str(spacing), "--principal-point",
+                     *map(str, principal), "--cup-diameter",
+                     str(float(sample["cup_diameter"][0])), "--quiet", *flags]) == 0
+        rows[name] = read_csv(out / "results.csv")
+    assert [r["status"] for r in rows["upright"]] == ["ok"]
+    columns = [*POSE_COLUMNS, "ellipse_cx_px", "ellipse_cy_px", "ellipse_angle_deg"]
+    assert ([[float(r[c]) for c in columns] for r in rows["stored"]]
+            == [[float(r[c]) for c in columns] for r in rows["upright"]])
+    assert abs(float(rows["upright"][0]["anteversion_deg"])
+               - float(sample["pose"][0, 0])) < 2.0
+    overlay = cv2.imread(str(tmp_path / "out_stored" / "overlays" / "hip.png.png"))
+    assert overlay.shape[1] > overlay.shape[0]  # drawn on the upright, wide image
+    document = json.loads((tmp_path / "out_stored" / "results.json").read_text())
+    (record,) = document["images"]
+    assert record["geometry"]["principal_u_px"]["source"].endswith(
+        "turned 90 deg clockwise with the image")
+
+
 def test_multiframe_dicom_gives_a_row_per_frame(tmp_path: Path, blind_checkpoint: Path) -> None:
     frames = (np.random.default_rng(2).random((3, 256, 256)) * 4000).astype(np.uint16)
     path = write_dicom(tmp_path / "run.dcm", frames, DistanceSourceToDetector=1000.0,

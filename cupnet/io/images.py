@@ -189,6 +189,19 @@ def to_unit_range(pixels: np.ndarray) -> np.ndarray:
     return _stretch(gray)
 
 
+def turned_clockwise(image: np.ndarray, u: float, v: float, degrees: int
+                     ) -> tuple[np.ndarray, float, float]:
+    """``image`` ``(H, W)`` turned clockwise by ``degrees`` (0, 90, 180 or 270), and the pixel
+    position ``(u, v)`` of the image moved with it (pixel centres at integers)."""
+    height, width = image.shape[:2]
+    position = {0: (u, v), 90: (height - 1 - v, u), 180: (width - 1 - u, height - 1 - v),
+                270: (v, width - 1 - u)}
+    if degrees not in position:
+        raise ValueError(f"turn by 0, 90, 180 or 270 degrees, not {degrees}")
+    # np.rot90 turns counterclockwise for positive k.
+    return np.ascontiguousarray(np.rot90(image, -degrees // 90)), *position[degrees]
+
+
 def _check_size(width: int, height: int) -> None:
     if width <= 0 or height <= 0:
         raise ImageReadError(f"image has no pixels ({width} x {height})")
