@@ -25,6 +25,7 @@ from cupnet.io.images import (
     iter_frames,
     read_frames,
     read_image,
+    turned_clockwise,
 )
 
 
@@ -294,6 +295,26 @@ def test_a_readers_unforeseen_failure_ends_that_file_alone(tmp_path: Path, stage
     assert [f.name for f in frames] == ["a.png", "bad.png", "c.png"]
     assert frames[1].error == "unreadable file (AttributeError: a decoder's own bug)"
     assert frames[0].error is None and frames[2].error is None
+
+
+@pytest.mark.parametrize(("degrees", "shape", "moved"),
+                         [(0, (3, 5), (4, 1)), (90, (5, 3), (1, 4)), (180, (3, 5), (0, 1)),
+                          (270, (5, 3), (1, 0))])
+def test_turning_clockwise_moves_a_pixel_position_with_the_image(
+        degrees: int, shape: tuple[int, int], moved: tuple[int, int]) -> None:
+    # A 5 x 3 image marked at (u, v) = (4, 1), the right end of its middle row. A quarter
+    # clockwise takes rows to columns, the top row to the right column: the middle row
+    # becomes the middle column, its right end the bottom (hand-derived, each turn).
+    image = np.zeros((3, 5))
+    image[1, 4] = 1.0
+    turned, u, v = turned_clockwise(image, 4.0, 1.0, degrees)
+    assert turned.shape == shape and (u, v) == moved
+    assert turned[int(v), int(u)] == 1.0
+
+
+def test_turning_by_another_angle_is_refused() -> None:
+    with pytest.raises(ValueError, match="0, 90, 180 or 270"):
+        turned_clockwise(np.zeros((3, 5)), 0.0, 0.0, 45)
 
 
 def test_discovery_folder_recursive_glob_and_empty(tmp_path: Path) -> None:
