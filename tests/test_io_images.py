@@ -325,11 +325,15 @@ def test_discovery_folder_recursive_glob_and_empty(tmp_path: Path) -> None:
         cv2.imwrite(str(tmp_path / rel), image)
     write_dicom(tmp_path / "sub" / "IM0001", np.zeros((8, 8), np.uint16))  # no suffix
     (tmp_path / "readme.txt").write_text("not an image")
+    (tmp_path / "moved.png").symlink_to(tmp_path / "gone.png")  # a broken link: a row
+    (tmp_path / "folder.png").mkdir()  # a folder named as an image: not one
     names = [s.name for s in find_images(tmp_path, exclude=tmp_path / "out")]
-    assert names == ["a.jpg", "b.png"]
+    assert names == ["a.jpg", "b.png", "moved.png"]
+    (moved,) = read_frames(tmp_path / "moved.png")
+    assert moved.error.startswith("cannot open file (No such file")
     names = [s.name for s in find_images(tmp_path, recursive=True, exclude=tmp_path / "out")]
-    assert names == ["a.jpg", "b.png", "sub/IM0001", "sub/c.tif"]
-    assert [s.name for s in find_images(f"{tmp_path}/*.png")] == ["b.png"]
+    assert names == ["a.jpg", "b.png", "moved.png", "sub/IM0001", "sub/c.tif"]
+    assert [s.name for s in find_images(f"{tmp_path}/*.png")] == ["b.png", "moved.png"]
     assert [s.name for s in find_images(f"{tmp_path}/**/*.tif", recursive=True)] == ["sub/c.tif"]
     assert [s.name for s in find_images(tmp_path / "b.png")] == ["b.png"]
     (tmp_path / "empty").mkdir()

@@ -97,9 +97,12 @@ def _is_dicom_without_suffix(path: Path) -> bool:
 
 
 def _wanted(path: Path) -> bool:
+    suffix = path.suffix.lower()
+    if path.is_symlink() and not path.exists():
+        # A broken link named as an image: its row says so, where skipping it would lose it.
+        return not path.name.startswith(".") and suffix in SUPPORTED_SUFFIXES
     if path.name.startswith(".") or not path.is_file():
         return False
-    suffix = path.suffix.lower()
     return suffix in SUPPORTED_SUFFIXES or (suffix == "" and _is_dicom_without_suffix(path))
 
 
