@@ -279,7 +279,10 @@ def _dicom_header(path: Path) -> pydicom.Dataset:
     try:
         ds = pydicom.dcmread(path, stop_before_pixels=True)
     except InvalidDicomError as exc:
-        raise ImageReadError(f"not a DICOM file ({exc})") from exc
+        # pydicom's message ends "Use force=True to force reading.", advice for its API
+        # that a predict user cannot take.
+        raise ImageReadError("not a DICOM file (no 'DICM' prefix and no file meta "
+                             "information header)") from exc
     except (EOFError, OSError, ValueError, KeyError, TypeError) as exc:
         raise ImageReadError(f"corrupt or truncated DICOM header ({exc})") from exc
     for keyword in ("Rows", "Columns"):
