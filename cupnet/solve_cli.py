@@ -63,11 +63,12 @@ def run(args: argparse.Namespace) -> int:
         rows = []
         for cup in cups:
             start = time.perf_counter()
+            if cup.error is not None:  # a bad row: no geometry to resolve for it
+                rows.append(status_row(image, f"error: {cup.error}", 0.0))
+                continue
             resolved = geometry_inputs.resolve(image, cup.size(),
                                                file_values=cup.geometry_values())
-            if cup.error is not None:
-                rows.append(status_row(image, f"error: {cup.error}", 0.0))
-            elif resolved.missing:
+            if resolved.missing:
                 rows.append(status_row(image, resolved.error(), 0.0))
             else:
                 for text in implausible_once(resolved.values, warned, image, resolved.sources):
