@@ -14,7 +14,6 @@ from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 
 from cupnet.orientation import anatomic_angles, operative_angles
@@ -54,7 +53,7 @@ def cup_row(name: str, index: int, cup: Any, seconds: float) -> dict:
         row["check"] = int(cup.check)
     if cup.metal_bright is not None:
         row["metal"] = "bright" if cup.metal_bright else "dark"
-    pose = torch.as_tensor(np.asarray(cup.pose, dtype=np.float64))
+    pose = torch.as_tensor(cup.pose, dtype=torch.float64)
     if torch.isfinite(pose).all():
         angles = torch.cat([operative_angles(pose), anatomic_angles(pose)])
         row.update(zip(MURRAY_COLUMNS, angles.tolist(), strict=True))
