@@ -39,6 +39,7 @@ from cupnet.errors import error_reason
 from cupnet.geometry import Geometry
 from cupnet.io.images import (
     PATIENT_SPACING_SOURCE,
+    TURNS,
     Frame,
     ImageSource,
     find_images,
@@ -123,7 +124,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "oblong frame look like cups to it; docs/training.md, item 23), "
                              "and look at a narrow field's whole frame, not its square "
                              "(item 41)")
-    parser.add_argument("--rotate", type=int, choices=ROTATIONS, default=0, metavar="DEGREES",
+    parser.add_argument("--rotate", type=int, choices=TURNS, default=0, metavar="DEGREES",
                         help="turn every image clockwise by 90, 180 or 270 degrees before the "
                              "model, to the upright AP display it learnt (the patient's head "
                              "at the top): for files stored turned. Poses, ellipses and "
@@ -155,9 +156,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 # -- geometry ---------------------------------------------------------------------------------
-ROTATIONS = (0, 90, 180, 270)
-
-
 def turned_frame(frame: Frame, geometry: ResolvedGeometry, degrees: int) -> None:
     """``frame``'s image turned clockwise by ``degrees`` and ``geometry``'s principal point
     (resolved in the file's pixels) with it, in place."""

@@ -192,15 +192,19 @@ def to_unit_range(pixels: np.ndarray) -> np.ndarray:
     return _stretch(gray)
 
 
+# The clockwise turns turned_clockwise takes, degrees.
+TURNS = (0, 90, 180, 270)
+
+
 def turned_clockwise(image: np.ndarray, u: float, v: float, degrees: int
                      ) -> tuple[np.ndarray, float, float]:
-    """``image`` ``(H, W)`` turned clockwise by ``degrees`` (0, 90, 180 or 270), and the pixel
-    position ``(u, v)`` of the image moved with it (pixel centres at integers)."""
+    """``image`` ``(H, W)`` turned clockwise by ``degrees`` (one of :data:`TURNS`), and the
+    pixel position ``(u, v)`` of the image moved with it (pixel centres at integers)."""
+    if degrees not in TURNS:
+        raise ValueError(f"turn by 0, 90, 180 or 270 degrees, not {degrees}")
     height, width = image.shape[:2]
     position = {0: (u, v), 90: (height - 1 - v, u), 180: (width - 1 - u, height - 1 - v),
                 270: (v, width - 1 - u)}
-    if degrees not in position:
-        raise ValueError(f"turn by 0, 90, 180 or 270 degrees, not {degrees}")
     # np.rot90 turns counterclockwise for positive k.
     return np.ascontiguousarray(np.rot90(image, -degrees // 90)), *position[degrees]
 
