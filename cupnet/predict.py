@@ -35,7 +35,7 @@ import torch
 from tqdm import tqdm
 
 from cupnet import __version__
-from cupnet.errors import error_reason
+from cupnet.errors import error_reason, named_error
 from cupnet.geometry import Geometry
 from cupnet.io.images import (
     PATIENT_SPACING_SOURCE,
@@ -554,8 +554,8 @@ class Predictor:
         except Exception as exc:  # noqa: BLE001 - one image's failure is its row, not the run's
             if len(ready) > 1:
                 return [cups for item in ready for cups in self._detect([item])]
-            named = "" if isinstance(exc, RuntimeError | ValueError) else f"{type(exc).__name__}: "
-            return [f"error: detection failed ({named}{exc})"]
+            reason = str(exc) if isinstance(exc, RuntimeError | ValueError) else named_error(exc)
+            return [f"error: detection failed ({reason})"]
 
     def _record(self, frame: Frame, geometry: ResolvedGeometry, cups: list,
                 compute_seconds: float) -> dict:

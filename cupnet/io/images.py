@@ -28,6 +28,7 @@ from PIL import Image, UnidentifiedImageError
 from pydicom.errors import InvalidDicomError
 from pydicom.pixels import apply_modality_lut, apply_voi_lut, pixel_array
 
+from cupnet.errors import named_error
 from cupnet.io import jpeg12
 
 jpeg12.register()  # 12-bit JPEG Extended, which pydicom's own plugins refuse
@@ -446,7 +447,7 @@ def read_image(path: str | Path) -> np.ndarray:
 
 def unreadable(error: Exception) -> str:
     """The row of a file whose reader failed in a way no check foresaw: the failure named."""
-    return f"unreadable file ({type(error).__name__}: {error})"
+    return f"unreadable file ({named_error(error)})"
 
 
 def _units(sources: Iterable[ImageSource]) -> Iterator[_Unit | Frame]:
