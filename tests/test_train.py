@@ -17,6 +17,8 @@ from cupnet.model import load_model, save_model
 from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule
 from train.losses import distill_loss, pose_errors, ramp, wrap_angle
+from train.merge import main as merge_main
+from train.merge import merged
 from train.module import CupNetModule, coarse_rim_starts, far_rim_starts, jittered_ellipses
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -350,42 +352,103 @@ def test_a_narrower_rim_network_is_taught_by_a_wider_one(tmp_path):
         CupNetModule(model=narrow, rim_teacher=str(weights))
 
 
-def _make_recipe(target: str) -> list[list[str]]:
-    """The ``python -m train fit`` arguments of each stage of a Makefile target."""
-    lines = (ROOT / "Makefile").read_text().splitlines()
-    train = next(line.split(":=", 1)[1].split() for line in lines if line.startswith("TRAIN :="))
-    body = lines[lines.index(next(x for x in lines if x.startswith(f"{target}:"))) + 1:]
-    stages = []
-    for line in body:
-        if not line.startswith("\t"):
-            break
-        words = line.split()
-        if words[0] == "$(TRAIN)":
-            stages.append(train[train.index("fit"):] + words[1:])
-    return stages
+def _make_rules() -> dict[str, tuple[list[str], list[list[str]]]]:
+    """Each Makefile rule: target -> (prerequisites, words of each recipe command, a
+    backslash-continued command joined into one)."""
+    rules: dict[str, tuple[list[str], list[list[str]]]] = {}
+    target = None
+    for line in (ROOT / "Makefile").read_text().replace("\\\n", " ").splitlines():
+        if line.startswith("\t") and target is not None:
+            rules[target][1].append(line.split())
+        elif ":" in line and not line.startswith(("#", ".", "\t")) and ":=" not in line:
+            target, prerequisites = line.split(":", 1)
+            rules[target] = (prerequisites.split(), [])
+        else:
+            target = None
+    return rules
 
 
-def test_hour_recipe_chains_its_stages_within_the_hour(capsys, monkeypatch):
-    """``make train-hour``: each stage parses, starts from the weights the one before
-    exported, the stages' time caps sum to at most 58.5 minutes (the hour less the four
-    processes' start-up), and the shipped inference settings land beside the last stage's
-    export."""
+def test_hour_recipe_runs_two_chains_then_merges_within_the_hour(capsys, monkeypatch):
+    """``make train-hour``: two chains of one-thread training processes run side by side
+    (``make -j2``); each stage parses and starts from the export of a stage it waits for;
+    the merge takes the rim networks of chain B into chain A's export, the last stage trains
+    on from the merged model; the time caps on the longest path sum to at most 58.5 minutes
+    (the hour less the processes' start-up and the merge), and the shipped inference
+    settings land beside the last stage's export."""
     monkeypatch.chdir(ROOT)  # the Makefile's paths are relative to the checkout
-    stages = _make_recipe("train-hour")
-    assert len(stages) == 4
-    configs, minutes = [], 0.0
-    for argv in stages:
+    rules = _make_rules()
+    lines = (ROOT / "Makefile").read_text().splitlines()
+    train = next(x.split(":=", 1)[1].split() for x in lines if x.startswith("TRAIN :="))
+    train = train[train.index("fit"):]
+
+    def config(words: list[str]) -> dict:
+        assert words[0] == "$(TRAIN)" and words[-1] == "$(HOUR_ARGS)"
         with pytest.raises(SystemExit):
-            main([*argv, "--print_config"])
-        config = yaml.safe_load(capsys.readouterr().out)
-        days, hours, mins, secs = map(int, config["trainer"]["max_time"].split(":"))
-        minutes += days * 1440 + hours * 60 + mins + secs / 60
-        configs.append(config)
-    assert minutes <= 58.5  # the four processes' start-up and export take about a minute
-    assert configs[0]["model"]["init_weights"] is None
-    for before, after in zip(configs[:-1], configs[1:], strict=True):
-        assert after["model"]["init_weights"] == before["model"]["export_path"]
-    export = Path(configs[-1]["model"]["export_path"])
-    assert export == Path("runs/hour_locator/cupnet.safetensors")
-    copy = f"\tcp cupnet/assets/cupnet_default.json {export.with_suffix('.json')}"
-    assert copy in (ROOT / "Makefile").read_text().splitlines()
+            main([*train, *words[1:-1], "--print_config"])
+        return yaml.safe_load(capsys.readouterr().out)
+
+    def minutes(cfg: dict) -> float:
+        days, hours, mins, secs = map(int, cfg["trainer"]["max_time"].split(":"))
+        return days * 1440 + hours * 60 + mins + secs / 60
+
+    chains = ("hour-unet", "hour-rim", "hour-locator", "hour-coarse")
+    stages = {name: config(rules[name][1][0]) for name in chains}
+    assert all(stages[name]["model"]["torch_threads"] == 1 for name in chains)
+    export = {name: stages[name]["model"]["export_path"] for name in chains}
+    assert stages["hour-unet"]["model"]["init_weights"] is None
+    assert stages["hour-rim"]["model"]["init_weights"] is None
+    for name in ("hour-locator", "hour-coarse"):
+        assert stages[name]["model"]["init_weights"] == export["hour-unet"]
+        assert "hour-unet" in rules[name][0]
+    # One chain a core: the coarse rim waits for the fine rim, so two processes at most.
+    assert rules["hour-coarse"][0] == ["hour-unet", "hour-rim"]
+
+    merge = rules["hour-merged"]
+    assert merge[0] == ["hour-locator", "hour-coarse"]
+    words = merge[1][0]
+    assert words[1:4] == ["-m", "train.merge", export["hour-locator"]]
+    takes = [words[i + 1] for i, word in enumerate(words) if word == "--take"]
+    assert takes == [f"rim={export['hour-rim']}", f"coarse_rim={export['hour-coarse']}"]
+    merged = words[words.index("--out") + 1]
+
+    recipe = rules["train-hour"][1]
+    assert recipe[0] == ["$(MAKE)", "-j2", "-O", "hour-merged"]
+    final = config(recipe[1])
+    assert final["model"]["init_weights"] == merged
+    assert final["model"]["locator_only"]
+    longest = (max(minutes(stages["hour-unet"]), minutes(stages["hour-rim"]))
+               + max(minutes(stages["hour-locator"]), minutes(stages["hour-coarse"]))
+               + minutes(final))
+    assert longest <= 58.5
+    beside = Path(final["model"]["export_path"]).with_suffix(".json")
+    assert beside == Path("runs/hour/cupnet.json")
+    assert recipe[2] == ["cp", "cupnet/assets/cupnet_default.json", str(beside)]
+
+
+def test_merge_takes_the_named_networks_and_keeps_the_rest(tmp_path):
+    """``python -m train.merge``: the output holds the donors' rim networks and the base's
+    U-Nets, tensor for tensor; a missing network or another width is a named error."""
+    model = {**RIM_MODEL, "coarse_rim_passes": 1}
+    torch.manual_seed(0)
+    base, fine, coarse = (CupNetModule(model=model).model for _ in range(3))
+    paths = {}
+    for name, net in (("base", base), ("fine", fine), ("coarse", coarse)):
+        paths[name] = save_model(net, tmp_path / f"{name}.safetensors")
+    out = merge_main([str(paths["base"]), "--take", f"rim={paths['fine']}",
+                      "--take", f"coarse_rim={paths['coarse']}",
+                      "--out", str(tmp_path / "merged.safetensors")])
+    state = load_model(out).state_dict()
+    donor = {"rim": fine, "coarse_rim": coarse}
+    for key, value in state.items():
+        source = donor.get(key.split(".", 1)[0], base)
+        assert torch.equal(value, source.state_dict()[key]), key
+    assert not torch.equal(base.rim.offset_head.weight, fine.rim.offset_head.weight)
+
+    no_coarse = CupNetModule(model=RIM_MODEL).model
+    with pytest.raises(ValueError, match="'coarse_rim': the donor has no such network"):
+        merged(base, {"coarse_rim": no_coarse})
+    wider = CupNetModule(model={**RIM_MODEL, "rim_channels": 12}).model
+    with pytest.raises(ValueError, match="'rim': its weights do not fit"):
+        merged(base, {"rim": wider})
+    with pytest.raises(SystemExit):
+        merge_main([str(paths["base"]), "--take", "rim", "--out", str(tmp_path / "x")])

@@ -1,0 +1,63 @@
+"""``python -m train.merge``: one checkpoint from networks trained in separate processes.
+
+The hour recipe (``make train-hour``) trains the fine and coarse rim networks in one chain of
+processes and the locator in another, side by side on the two cores; this puts the rim
+networks into the locator chain's export:
+
+    python -m train.merge runs/hour_locator/cupnet.safetensors \\
+        --take rim=runs/hour_rim/cupnet.safetensors \\
+        --take coarse_rim=runs/hour_coarse/cupnet.safetensors \\
+        --out runs/hour_merged/cupnet.safetensors
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from cupnet.model import CupNet, load_model, save_model
+
+
+def merged(base: CupNet, parts: dict[str, CupNet]) -> CupNet:
+    """``base`` with each named network (``"rim"``, ``"coarse_rim"``, ``"locator"``,
+    ``"refiner"``) replaced by the same network of ``parts[name]``, in place.
+
+    Raises ValueError naming a network that ``base`` or its donor lacks, or whose weights
+    do not fit (another width): a merge never half-loads.
+    """
+    for name, donor in parts.items():
+        mine, theirs = getattr(base, name, None), getattr(donor, name, None)
+        if mine is None or theirs is None:
+            owner = "the base model" if mine is None else "the donor"
+            raise ValueError(f"cannot take {name!r}: {owner} has no such network")
+        try:
+            mine.load_state_dict(theirs.state_dict())
+        except RuntimeError as error:
+            raise ValueError(f"cannot take {name!r}: its weights do not fit the base "
+                             f"model's ({str(error).splitlines()[0]})") from None
+    return base
+
+
+def _part(text: str) -> tuple[str, Path]:
+    name, sep, path = text.partition("=")
+    if not sep or not name or not path:
+        raise argparse.ArgumentTypeError(f"expected NETWORK=CHECKPOINT, got {text!r}")
+    return name, Path(path)
+
+
+def main(argv: list[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(prog="python -m train.merge", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("base", type=Path, help="checkpoint whose other networks are kept")
+    parser.add_argument("--take", type=_part, action="append", required=True,
+                        metavar="NETWORK=CHECKPOINT",
+                        help="take this network's weights from that checkpoint (repeatable)")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="merged safetensors (its JSON config is written beside it)")
+    args = parser.parse_args(argv)
+    parts = {name: load_model(path) for name, path in args.take}
+    return save_model(merged(load_model(args.base), parts), args.out)
+
+
+if __name__ == "__main__":
+    print(main())
