@@ -28,7 +28,7 @@ bench: $(STAMP)
 	$(BIN)/python -m benchmarks.model
 	$(BIN)/python -m benchmarks.predict
 
-# The one-hour CPU recipe (docs/training.md, items 36 and 46), 58 min on this 2-core machine:
+# The one-hour CPU recipe (docs/training.md, items 46-47), 58-59 min on this 2-core machine:
 # two chains of one-thread processes side by side (make -j2), A the U-Nets then the locator,
 # B the fine then the coarse rim network; the merge puts B's rim networks into A's export, and
 # the locator trains on alone for the rest of the hour. The model ends in
@@ -38,6 +38,8 @@ bench: $(STAMP)
 TRAIN := $(BIN)/python -m train fit -c configs/cpu.yaml
 HOUR_ARGS :=
 train-hour: $(STAMP)
+	@echo "train-hour: chain A (U-Nets, then locator) beside chain B (fine rim, then coarse" \
+		"rim), about 44 min, each stage's output printed when it ends; then the locator alone"
 	$(MAKE) -j2 -O hour-merged
 	$(TRAIN) -c configs/cpu_locator2.yaml -c configs/hour_final.yaml $(HOUR_ARGS)
 	cp cupnet/assets/cupnet_default.json runs/hour/cupnet.json
