@@ -45,9 +45,9 @@ train-hour: $(STAMP)
 	cp cupnet/assets/cupnet_default.json runs/hour/cupnet.json
 
 .PHONY: hour-unet hour-rim hour-locator hour-coarse hour-merged
-hour-unet:
+hour-unet: $(STAMP)
 	$(TRAIN) -c configs/hour_unet.yaml $(HOUR_ARGS)
-hour-rim:
+hour-rim: $(STAMP)
 	$(TRAIN) -c configs/cpu_rim.yaml -c configs/hour_rim.yaml $(HOUR_ARGS)
 hour-locator: hour-unet
 	$(TRAIN) -c configs/cpu_locator2.yaml -c configs/hour_locator.yaml $(HOUR_ARGS)
