@@ -409,12 +409,12 @@ def test_hour_recipe_runs_two_chains_then_merges_within_the_hour(capsys, monkeyp
     assert words[1:4] == ["-m", "train.merge", export["hour-locator"]]
     takes = [words[i + 1] for i, word in enumerate(words) if word == "--take"]
     assert takes == [f"rim={export['hour-rim']}", f"coarse_rim={export['hour-coarse']}"]
-    merged = words[words.index("--out") + 1]
+    merged_path = words[words.index("--out") + 1]
 
     recipe = [words for words in rules["train-hour"][1] if words[0] != "@echo"]
     assert recipe[0] == ["$(MAKE)", "-j2", "-O", "hour-merged"]
     final = config(recipe[1])
-    assert final["model"]["init_weights"] == merged
+    assert final["model"]["init_weights"] == merged_path
     assert final["model"]["locator_only"]
     longest = (max(minutes(stages["hour-unet"]), minutes(stages["hour-rim"]))
                + max(minutes(stages["hour-locator"]), minutes(stages["hour-coarse"]))
@@ -425,7 +425,7 @@ def test_hour_recipe_runs_two_chains_then_merges_within_the_hour(capsys, monkeyp
     assert recipe[2] == ["cp", "cupnet/assets/cupnet_default.json", str(beside)]
 
 
-def test_merge_takes_the_named_networks_and_keeps_the_rest(tmp_path):
+def test_merge_takes_the_named_networks_and_keeps_the_rest(tmp_path, capsys):
     """``python -m train.merge``: the output holds the donors' rim networks and the base's
     U-Nets, tensor for tensor; a missing network or another width is a named error."""
     model = {**RIM_MODEL, "coarse_rim_passes": 1}
@@ -447,8 +447,14 @@ def test_merge_takes_the_named_networks_and_keeps_the_rest(tmp_path):
     no_coarse = CupNetModule(model=RIM_MODEL).model
     with pytest.raises(ValueError, match="'coarse_rim': the donor has no such network"):
         merged(base, {"coarse_rim": no_coarse})
+    with pytest.raises(ValueError, match="'config': the base model has no such network"):
+        merged(base, {"config": fine})
     wider = CupNetModule(model={**RIM_MODEL, "rim_channels": 12}).model
     with pytest.raises(ValueError, match="'rim': its weights do not fit"):
         merged(base, {"rim": wider})
     with pytest.raises(SystemExit):
         merge_main([str(paths["base"]), "--take", "rim", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        merge_main([str(paths["base"]), "--take", f"rim={tmp_path / 'missing'}",
+                    "--out", str(tmp_path / "x")])
+    assert "checkpoint not found" in capsys.readouterr().err

@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from torch import nn
+
 from cupnet.model import CupNet, load_model, save_model
 
 
@@ -27,8 +29,8 @@ def merged(base: CupNet, parts: dict[str, CupNet]) -> CupNet:
     """
     for name, donor in parts.items():
         mine, theirs = getattr(base, name, None), getattr(donor, name, None)
-        if mine is None or theirs is None:
-            owner = "the base model" if mine is None else "the donor"
+        if not (isinstance(mine, nn.Module) and isinstance(theirs, nn.Module)):
+            owner = "the donor" if isinstance(mine, nn.Module) else "the base model"
             raise ValueError(f"cannot take {name!r}: {owner} has no such network")
         try:
             mine.load_state_dict(theirs.state_dict())
@@ -55,8 +57,11 @@ def main(argv: list[str] | None = None) -> Path:
     parser.add_argument("--out", type=Path, required=True,
                         help="merged safetensors (its JSON config is written beside it)")
     args = parser.parse_args(argv)
-    parts = {name: load_model(path) for name, path in args.take}
-    return save_model(merged(load_model(args.base), parts), args.out)
+    try:
+        parts = {name: load_model(path) for name, path in args.take}
+        return save_model(merged(load_model(args.base), parts), args.out)
+    except (OSError, ValueError) as error:  # a missing or unreadable checkpoint, a misfit
+        parser.exit(2, f"{parser.prog}: error: {error}\n")
 
 
 if __name__ == "__main__":
