@@ -450,8 +450,11 @@ def test_merge_takes_the_named_networks_and_keeps_the_rest(tmp_path, capsys):
     with pytest.raises(ValueError, match="'config': the base model has no such network"):
         merged(base, {"config": fine})
     wider = CupNetModule(model={**RIM_MODEL, "rim_channels": 12}).model
+    before = {k: v.clone() for k, v in base.state_dict().items()}
     with pytest.raises(ValueError, match="'rim': its weights do not fit"):
-        merged(base, {"rim": wider})
+        merged(base, {"coarse_rim": coarse, "rim": wider})
+    # Nothing loaded, not even the part that fits: the misfit is found first.
+    assert all(torch.equal(v, base.state_dict()[k]) for k, v in before.items())
     with pytest.raises(SystemExit):
         merge_main([str(paths["base"]), "--take", "rim", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):

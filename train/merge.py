@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from torch import nn
+from torch import Tensor, nn
 
 from cupnet.model import CupNet, load_model, save_model
 
@@ -25,19 +25,29 @@ def merged(base: CupNet, parts: dict[str, CupNet]) -> CupNet:
     ``"refiner"``) replaced by the same network of ``parts[name]``, in place.
 
     Raises ValueError naming a network that ``base`` or its donor lacks, or whose weights
-    do not fit (another width): a merge never half-loads.
+    do not fit (another width). Every part is checked before any is loaded, so a merge
+    never half-loads.
     """
     for name, donor in parts.items():
         mine, theirs = getattr(base, name, None), getattr(donor, name, None)
         if not (isinstance(mine, nn.Module) and isinstance(theirs, nn.Module)):
             owner = "the donor" if isinstance(mine, nn.Module) else "the base model"
             raise ValueError(f"cannot take {name!r}: {owner} has no such network")
-        try:
-            mine.load_state_dict(theirs.state_dict())
-        except RuntimeError as error:
+        misfit = _first_misfit(mine.state_dict(), theirs.state_dict())
+        if misfit is not None:
             raise ValueError(f"cannot take {name!r}: its weights do not fit the base "
-                             f"model's ({str(error).splitlines()[0]})") from None
+                             f"model's ({name}.{misfit})")
+    for name, donor in parts.items():
+        getattr(base, name).load_state_dict(getattr(donor, name).state_dict())
     return base
+
+
+def _first_misfit(mine: dict[str, Tensor], theirs: dict[str, Tensor]) -> str | None:
+    """The first tensor name that one state dict lacks or holds in another shape."""
+    for key in sorted(mine.keys() | theirs.keys()):
+        if key not in mine or key not in theirs or mine[key].shape != theirs[key].shape:
+            return key
+    return None
 
 
 def _part(text: str) -> tuple[str, Path]:
