@@ -554,7 +554,8 @@ class Predictor:
         except Exception as exc:  # noqa: BLE001 - one image's failure is its row, not the run's
             if len(ready) > 1:
                 return [cups for item in ready for cups in self._detect([item])]
-            reason = str(exc) if isinstance(exc, RuntimeError | ValueError) else named_error(exc)
+            reason = (error_reason(exc) if isinstance(exc, RuntimeError | ValueError)
+                      else named_error(exc))
             return [f"error: detection failed ({reason})"]
 
     def _record(self, frame: Frame, geometry: ResolvedGeometry, cups: list,
