@@ -189,7 +189,7 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
         total += len(cups)
         false_pos += fp
         matched = {id(det) for _, det, _ in cups if det is not None}
-        false_flagged += sum(det.check for det in dets if id(det) not in matched)
+        false_flagged += sum(bool(det.check) for det in dets if id(det) not in matched)
     errors = np.array(errors) if errors else np.full((1, 5), np.nan)
     out = {}
     for stat, values in (("mae", errors.mean(0)), ("median", np.median(errors, 0)),
@@ -212,7 +212,7 @@ def false_detections(model: CupNet, data: list[dict]) -> tuple[int, int]:
     """Detections (any status) in images that hold no cup, and how many are flagged
     ``check``."""
     dets = [det for s in data for det in detect_sample(model, s)]
-    return len(dets), sum(det.check for det in dets)
+    return len(dets), sum(bool(det.check) for det in dets)
 
 
 def scored(res: dict[str, float]) -> list:

@@ -37,8 +37,10 @@ class CupDetection:
             outline (:meth:`cupnet.model.CupNet.pose_doubt`; lower is better, true poses
             mostly below 1), or None where not measured (no rim stage, landmarks given).
         check: ``doubt`` is at or above the model's ``check_doubt``, or the pose lies beyond
-            its ``max_theta_deg``: look at this cup's overlay before trusting it (most gross
-            failures are flagged; see README).
+            its ``max_theta_deg`` (given landmarks: they lie off the solved rim, see
+            :data:`cupnet.solve_cli.OFF_RIM_CHECK`): look at this cup's overlay before
+            trusting it (most gross failures are flagged; see README). None where not
+            measured (a model without a rim stage or its dome-outline refinement).
         metal_bright: the model took the image to show metal bright and turned it over
             before placing the rims (``CupNetConfig.metal`` ``"bright"``, or ``"auto"``
             judging it so); False: used as given (metal dark); None where not judged
@@ -57,7 +59,7 @@ class CupDetection:
     score: float = 1.0
     outline: np.ndarray | None = None
     doubt: float | None = None
-    check: bool = False
+    check: bool | None = None
     metal_bright: bool | None = None
 
 

@@ -877,7 +877,7 @@ class CupNet(nn.Module):
                 score=float(scores[i, c]),
                 outline=None if outlines[k] is None else outlines[k].numpy(),
                 doubt=doubt,
-                check=doubt is not None and (
+                check=None if doubt is None else (
                     (self.config.check_doubt is not None and doubt >= self.config.check_doubt)
                     or not bool(self.in_theta_range(poses[k]))),
                 metal_bright=bright[i],

@@ -605,8 +605,9 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     lines += [f"  {n} x {reason}" for reason, n in sorted(summary["error_reasons"].items(),
                                                           key=lambda kv: -kv[1])[:5]]
     if summary["check"]:
-        lines.append(f"  {summary['check']} cup(s) the model doubts: check=1 in results.csv, "
-                     "drawn in magenta on the overlays; look before trusting them")
+        lines.append(f"  {summary['check']} cup(s) flagged (the model doubts them, or their given "
+                     "landmarks lie off the rim): check=1 in results.csv, drawn in magenta on "
+                     "the overlays; look before trusting them")
     if summary.get("patient_spacing"):
         lines.append(f"  {summary['patient_spacing']} image(s) with the detector's pixel spacing "
                      "taken from DICOM PixelSpacing, without a magnification factor (by the "

@@ -58,6 +58,7 @@ def assert_poses(rows: list[dict[str, str]]) -> None:
                                        "h_mm")]
         assert got == pytest.approx(truth, abs=1e-3)
         assert row["status"] == "ok" and float(row["residual_px"]) < 1e-6
+        assert row["doubt"] == "" and row["check"] == "0"
         assert [float(row[c]) for c in MURRAY_COLUMNS] == pytest.approx(murray(*truth[:2]),
                                                                         abs=1e-3)
 
@@ -163,3 +164,32 @@ def test_assume_defaults_fill_what_the_file_lacks_as_predict_does(tmp_path, caps
                  "--out", str(out), "--overwrite"]) == 0
     assert all(row["status"].startswith("error: missing principal point")
                and "--assume-defaults" not in row["status"] for row in results(out))
+
+
+def test_landmarks_that_are_no_rim_are_flagged_check(tmp_path):
+    """A noisy clicked rim passes; random points and two cups' rims in one set still give an
+    ``ok`` pose, and are flagged ``check`` (RMS distance to the rim over a tenth of its
+    semi-major axis); a set too small to solve has no flag at all."""
+    geometry = Geometry(1000.0, 0.4, 300.0, 250.0)
+    rims = rim_landmarks(TRUTH, geometry, n=40)
+    generator = torch.Generator().manual_seed(0)
+    sets = {"clicked.png": rims[0] + 1.5 * torch.randn(40, 2, generator=generator,
+                                                        dtype=torch.float64),
+            "random.png": 100 + 400 * torch.rand(40, 2, generator=generator,
+                                                 dtype=torch.float64),
+            "two_rims.png": torch.cat([rims[0][::2], rims[1][::2]])}
+    lines = ["image,u,v"] + [f"{name},{u},{v}" for name, points in sets.items()
+                             for u, v in points.tolist()] + ["few.png,1,2", "few.png,3,4"]
+    (tmp_path / "lm.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "r.csv"
+    assert main(["solve", str(tmp_path / "lm.csv"), "--sdd", "1000", "--pixel-spacing", "0.4",
+                 "--cup-diameter", "50", "--principal-point", "300", "250", "--out",
+                 str(out)]) == 0
+    rows = {row["image"]: row for row in results(out)}
+    clicked = rows["clicked.png"]
+    assert clicked["check"] == "0" and 1.0 < float(clicked["residual_px"]) < 2.0
+    for name in ("random.png", "two_rims.png"):
+        row = rows[name]
+        assert row["status"] in ("ok", "ambiguous") and row["check"] == "1", row
+        assert float(row["residual_px"]) > 0.1 * float(row["ellipse_a_px"])
+    assert rows["few.png"]["status"].startswith("error") and rows["few.png"]["check"] == ""

@@ -1,10 +1,11 @@
 """``review.html``: one page to check a ``cupnet predict`` run by eye, what needs a look first.
 
 The rows of ``results.csv`` in groups, each a table with the image's overlay beside its pose:
-the cups the model doubts (``check`` 1), the images that failed (``error: ...``), the
-ambiguous cups (two poses fit the ellipse; the second in ``alt_*``), the other cups, and the
-images without a cup. A static file (no script, nothing fetched) beside results.csv; the
-overlays load as the page is scrolled.
+the cups flagged ``check`` (the model doubts them, or their given landmarks lie off the
+rim), the images that failed (``error: ...``), the ambiguous cups (two poses fit the
+ellipse; the second in ``alt_*``), the other cups, and the images without a cup. A static
+file (no script, nothing fetched) beside results.csv; the overlays load as the page is
+scrolled.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from cupnet.io.results import ALT_COLUMNS, POSE_COLUMNS, atomic_write
 
 # Group title and which rows it holds, in the order the page shows them.
 GROUPS: tuple[tuple[str, str], ...] = (
-    ("check", "Cups the model doubts: look before trusting them"),
+    ("check", "Cups flagged check (the model doubts them, or their given landmarks lie off "
+               "the rim): look before trusting them"),
     ("error", "Images that failed"),
     ("ambiguous", "Ambiguous cups: two poses fit the ellipse (the second is alt_*)"),
     ("ok", "Cups found"),
