@@ -1,12 +1,14 @@
-"""Throughput and peak memory of ``cupnet predict`` on a folder of 1024 x 1024 16-bit PNGs.
+"""Throughput and peak memory of ``cupnet predict`` on a folder of 16-bit PNGs (1024 px).
 
 Rerun: ``.venv/bin/python -m benchmarks.predict [--images 200] [--checkpoint PATH]
-[--runtimes torch onnx]``.
+[--runtimes torch onnx] [--size 1024] [--synth-size 256] [--unique 20]``.
 
 The folder is made from ``cupnet synth`` images (CT anatomy, one or two cups or none)
-rendered at 256 px and upsampled to 1024 px, with meta.csv scaled to match; a few distinct
-images are repeated to reach the count (decoding, network and pose cost do not depend on
-which image it is). Each configuration (the default with overlays off, then on, then each
+rendered at ``--synth-size`` px and resized to ``--size`` px, with meta.csv scaled to match
+(``--synth-size`` equal to ``--size``: DRRs as rendered, as the accuracy benchmarks have
+them); a few distinct images are repeated to reach the count (decoding, network and pose
+cost depend little on which image it is). A ``--size`` other than 1024 writes its own
+section (``predict_<size>``). Each configuration (the default with overlays off, then on, then each
 speed preset, ``--fast`` and ``--fastest``, with overlays) runs ``cupnet predict`` in a
 fresh process, which first pays its one-off start (imports, model load, first-call set-up of
 PyTorch) on one image; the run itself is then timed end to end (reading, network, pose,
@@ -54,13 +56,15 @@ print(json.dumps({"startup_s": t1 - t0, "run_s": t2 - t1, "cpu_s": c2 - c1,
 """
 
 
-def make_folder(root: Path, n_images: int, n_unique: int, seed: int) -> tuple[Path, Path]:
-    """``root/images`` with ``n_images`` 1024 px 16-bit PNGs and ``root/meta.csv``."""
+def make_folder(root: Path, n_images: int, n_unique: int, seed: int, size: int = SIZE,
+                synth_size: int = SYNTH_SIZE) -> tuple[Path, Path]:
+    """``root/images`` with ``n_images`` ``size`` px 16-bit PNGs (rendered at ``synth_size``)
+    and ``root/meta.csv``."""
     synth = root / "synth"
     subprocess.run([sys.executable, "-m", "cupnet.cli", "synth", "--n", str(n_unique),
-                    "--seed", str(seed), "--out", str(synth), "--size", str(SYNTH_SIZE),
-                    str(SYNTH_SIZE)], check=True, stdout=subprocess.DEVNULL)
-    scale = SIZE / SYNTH_SIZE
+                    "--seed", str(seed), "--out", str(synth), "--size", str(synth_size),
+                    str(synth_size)], check=True, stdout=subprocess.DEVNULL)
+    scale = size / synth_size
     with (synth / "meta.csv").open(newline="") as f:
         meta = list(csv.DictReader(f))
     images = root / "images"
@@ -71,11 +75,11 @@ def make_folder(root: Path, n_images: int, n_unique: int, seed: int) -> tuple[Pa
         name = f"bench_{i:05d}.png"
         if i < len(meta):
             small = cv2.imread(str(synth / "images" / source["image"]), cv2.IMREAD_UNCHANGED)
-            cv2.imwrite(str(images / name), cv2.resize(small, (SIZE, SIZE),
-                                                       interpolation=cv2.INTER_CUBIC))
+            cv2.imwrite(str(images / name), small if scale == 1 else cv2.resize(
+                small, (size, size), interpolation=cv2.INTER_CUBIC))
         else:
             shutil.copyfile(images / f"bench_{i % len(meta):05d}.png", images / name)
-        # Same detector, pixels 4x smaller; pixel centres at integers in both grids.
+        # Same detector, pixels ``scale`` x smaller; pixel centres at integers in both grids.
         rows.append({**source, "image": name,
                      "pixel_spacing_mm": float(source["pixel_spacing_mm"]) / scale,
                      "principal_u_px": (float(source["principal_u_px"]) + 0.5) * scale - 0.5,
@@ -119,11 +123,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=7)
     parser.add_argument("--runtimes", nargs="+", choices=RUNTIMES, default=["torch"],
                         help="cupnet predict --runtime values to run each configuration with")
+    parser.add_argument("--size", type=int, default=SIZE, help="the images' side (px)")
+    parser.add_argument("--synth-size", type=int, default=SYNTH_SIZE,
+                        help="the side (px) the images are rendered at, then resized to --size")
     args = parser.parse_args()
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="cupnet-bench-") as tmp:
         root = Path(tmp)
-        images, meta = make_folder(root, args.images, min(args.unique, args.images), args.seed)
+        images, meta = make_folder(root, args.images, min(args.unique, args.images), args.seed,
+                                   args.size, args.synth_size)
         # (speed preset, overlays): the default both ways, then each preset with overlays
         runs = [(None, False), (None, True), *((preset, True) for preset in SPEED_PRESETS)]
         results = {}
@@ -144,13 +152,20 @@ def main() -> None:
                             "error rows", "run (s)", "images / s", "CPU s / image",
                             "images / s if cores were free",
                             "peak memory (MB)", "process start-up (s)"], rows)
+    command = (f"--images {args.images} --unique {args.unique} --runtimes "
+               f"{' '.join(args.runtimes)}")
+    if (args.size, args.synth_size) != (SIZE, SYNTH_SIZE):
+        command += f" --size {args.size} --synth-size {args.synth_size}"
+    rendered = ("as rendered" if args.size == args.synth_size
+                else f"rendered at {args.synth_size} px and resized")
     body = "\n".join([
-        "## cupnet predict: throughput and memory",
+        "## cupnet predict: throughput and memory"
+        + ("" if args.size == SIZE else f" at {args.size} px"),
         "",
-        f"`.venv/bin/python -m benchmarks.predict --images {args.images} --runtimes "
-        f"{' '.join(args.runtimes)}` on {machine()}; "
+        f"`.venv/bin/python -m benchmarks.predict {command}` on {machine()}; "
         f"load average {load:.1f} when started (the machine's cores may be shared). "
-        f"Folder: {args.images} PNGs, {SIZE} x {SIZE}, 16-bit (synthetic, CT anatomy); "
+        f"Folder: {args.images} PNGs ({args.unique} distinct), {args.size} x {args.size}, "
+        f"16-bit (synthetic, CT anatomy, {rendered}); "
         f"model: {args.checkpoint or 'shipped default'}; predict's defaults (batches of 8, "
         "two in flight, one PyTorch thread each). 'run' is end to end "
         "(reading, network, pose, CSV/JSON, overlays when on) after the process's one-off "
@@ -160,7 +175,7 @@ def main() -> None:
         table,
     ])
     print(body)
-    write_section("predict", body)
+    write_section("predict" if args.size == SIZE else f"predict_{args.size}", body)
 
 
 if __name__ == "__main__":
