@@ -79,6 +79,17 @@ def moved(cup: CupDetection, offset: tuple[int, int], shape: tuple[int, int]
                    outline=None if cup.outline is None else cup.outline + (du, dv))
 
 
+def found_cup_status(status: str) -> str:
+    """The status of a cup the model found, from its pose's ``status`` (the solver's): an
+    error then says that the cup was found and its rim gave no pose, before the solver's
+    reason. That reason's own hint (check the cup diameter, SDD and pixel spacing) fits a
+    run whose every cup fails so; for one odd cup the rim found is the likelier fault (a
+    femoral head's contour, a thin rim at the wrong angle)."""
+    if not status.startswith("error: "):
+        return status
+    return f"error: no pose from the rim found: {status.removeprefix('error: ')}"
+
+
 def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1
                   ) -> list[CupDetection]:
     """One image's ``detections`` less the repeats, in their order.

@@ -51,6 +51,7 @@ from cupnet.crops import (
 from cupnet.detection import (
     CupDetection,
     distinct_cups,
+    found_cup_status,
     later_look_cups,
     moved,
     same_place,
@@ -873,7 +874,7 @@ class CupNet(nn.Module):
                 weights=weights.numpy(),
                 residual_px=float(solution.residual_px[row]),
                 mask=mask,
-                status=solution.status[row],
+                status=found_cup_status(solution.status[row]),
                 score=float(scores[i, c]),
                 outline=None if outlines[k] is None else outlines[k].numpy(),
                 doubt=doubt,

@@ -348,6 +348,21 @@ def test_detect_finds_two_cups_in_original_pixels():
         assert det.landmarks.shape == (TINY.n_rays, 2)
 
 
+def test_a_found_cup_whose_rim_gives_no_pose_says_so():
+    """Four times the cup's diameter puts it behind the detector: both cups are found, and
+    each row says its rim gave no pose before the solver's reason (and its geometry hint)."""
+    model = CupNet(TINY)
+    model.locator, model.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
+    truth = [[22.0, 35.0, -90.0, 10.0, 250.0], [15.0, -30.0, 95.0, -5.0, 330.0]]
+    image, geometry, _ = scene(truth, 700, 1024, spacing=0.35)
+    found = model.detect(image.float()[None], geometry, 4 * 52.0)[0]
+    assert len(found) == 2
+    for det in found:
+        assert det.status.startswith("error: no pose from the rim found: solved h = -"), det
+        assert det.status.endswith("check cup diameter, SDD and pixel spacing")
+        assert np.isnan(det.pose).all()
+
+
 def test_detect_reports_no_cup_on_empty_image():
     model = CupNet(TINY)
     model.locator, model.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
