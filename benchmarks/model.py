@@ -362,6 +362,8 @@ def fresh_seed_intro(args: argparse.Namespace, runtimes: list[str], part: str = 
         command += f" --checkpoint {args.checkpoint}"
     if part == "fresh" and seeds != FRESH_SEEDS:
         command += f" --fresh-seeds {' '.join(map(str, seeds))}"
+    if args.seed_presets:
+        command += f" --seed-presets {' '.join(args.seed_presets)}"
     chosen_on = sorted(set(seeds) & {args.seed, *SELECTION_SEEDS})
     honesty = (f"of these seeds {', '.join(map(str, chosen_on))} chose inference settings, "
                "so these figures flatter the model" if chosen_on else
@@ -388,31 +390,32 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
     """The shipped model's accuracy on fresh DRRs of ``part``'s seeds (:func:`part_seeds`:
     "fresh", by default seeds no setting was chosen on, "newer", "blind" or "unseen"), each
     and pooled (with 95 % bootstrap intervals over the cups), with the networks in each runtime
-    ``models`` holds (by name): that part's section (:data:`SEED_SECTIONS`)."""
+    and under each speed preset ``models`` holds (by name): that part's section
+    (:data:`SEED_SECTIONS`)."""
     rows = []
-    for runtime, model in models.items():
+    for name, model in models.items():
         per_cup: list[np.ndarray | None] = []  # each true cup's, None where missed
         for seed in part_seeds(part, args):
             cases: list = []
             res = accuracy(model, samples(args.eval_config, seed, args.fresh_images,
                                           args.sizes), cases)
             per_cup += [err for *_, err in cases]  # not the samples: their images are big
-            print("fresh seed", seed, runtime, res)
-            rows.append([runtime, seed, *[f"{res[f'mae_{n}']:.3g}" for n in NAMES],
+            print("fresh seed", seed, name, res)
+            rows.append([name, seed, *[f"{res[f'mae_{n}']:.3g}" for n in NAMES],
                          f"{100 * res['detected']:.1f} % of {res['cups']}",
                          f"{res['false_positives']} ({res['false_positives_flagged']} flagged)"])
         errors = np.array([err for err in per_cup if err is not None])
         found = np.array([err is not None for err in per_cup], dtype=np.float64)
         low, high = interval(errors)
         found_low, found_high = 100 * interval(found)
-        rows.append([runtime, "all, 95 % interval",
+        rows.append([name, "all, 95 % interval",
                      *[f"{m:.3g} [{lo:.3g}, {hi:.3g}]" for m, lo, hi in
                        zip(errors.mean(0), low, high, strict=True)],
                      # The count and two decimals: at 99 % a cup is 0.13 points, and one
                      # decimal rounded 755 of 763 (98.95 %) up to the target.
                      f"{int(found.sum())} of {len(found)}, {100 * found.mean():.2f} % "
                      f"[{found_low:.1f}, {found_high:.1f}]", ""])
-    return (fresh_seed_intro(args, list(models), part)
+    return (fresh_seed_intro(args, args.runtimes, part)
             + markdown_table(["runtime", "seed", *[f"MAE {n}" for n in NAMES], "detected",
                               "false positives"], rows))
 
@@ -597,6 +600,9 @@ def main() -> None:
                         help="seeds of the fresh sets (default: seeds no setting was chosen "
                              "on; the section says which given seeds chose settings)")
     parser.add_argument("--fresh-images", type=int, default=180, help="images a fresh seed")
+    parser.add_argument("--seed-presets", nargs="*", default=[], choices=list(SPEED_PRESETS),
+                        help="speed presets to score on the seed sets too, beside the "
+                             "shipped model as it is (in each runtime)")
     parser.add_argument("--against", default='{"verify_gate": 1.0, "outline_settled": 0.05, '
                         '"search_screen": null}',
                         help="inference settings (JSON) to time the shipped model against, "
@@ -657,9 +663,12 @@ def main() -> None:
         text = small_section(next(iter(shipped.values())), args)
         print(text)
         write("model_small", text, args)
+    scored = dict(shipped)  # by row name: the runtime, then ", --PRESET" where one applies
+    scored.update({f"{runtime}, --{preset}": loaded(args.checkpoint, preset, runtime)
+                   for runtime in args.runtimes for preset in args.seed_presets})
     for part, (section, *_) in SEED_SECTIONS.items():
         if part in args.parts and args.fresh_images:
-            text = fresh_seed_section(shipped, args, part)
+            text = fresh_seed_section(scored, args, part)
             print(text)
             write(section, text, args)
     if "against" in args.parts:

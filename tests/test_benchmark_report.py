@@ -43,7 +43,7 @@ def test_a_table_is_its_header_a_rule_and_each_row_as_printed_alone():
 def test_the_fresh_seed_prose_gives_its_command_and_says_when_its_seeds_chose_settings():
     shipped = argparse.Namespace(checkpoint=str(DEFAULT_CHECKPOINT), fresh_seeds=FRESH_SEEDS,
                                  seed=20_261_123, fresh_images=180, sizes=[512, 768],
-                                 eval_config="configs/synth_eval.yaml")
+                                 eval_config="configs/synth_eval.yaml", seed_presets=[])
     honest = fresh_seed_intro(shipped, ["onnx"])
     assert "`python benchmarks/model.py --parts fresh --runtimes onnx`:" in honest
     assert "the honest estimate" in honest and "flatter" not in honest
@@ -68,3 +68,7 @@ def test_the_fresh_seed_prose_gives_its_command_and_says_when_its_seeds_chose_se
     assert "item 44" in blind and "`--parts unseen` measures seeds nobody" in blind
     unseen = fresh_seed_intro(shipped, ["onnx"], "unseen")
     assert "the honest estimate" in unseen and "looking at the missed" not in unseen
+    fast = fresh_seed_intro(argparse.Namespace(**{**vars(shipped), "seed_presets": ["fast"]}),
+                            ["onnx"], "unseen")
+    assert "`python benchmarks/model.py --parts unseen --runtimes onnx --seed-presets fast`:" \
+        in fast
