@@ -51,7 +51,7 @@ def solve_cup(cup: LandmarkSet, geometry: Geometry, diameter: float, refine: boo
     sol = solve_pose(torch.as_tensor(cup.points, dtype=torch.float64), geometry, diameter,
                      refine=refine, on_error="flag")
     ambiguous = bool(sol.ambiguous[0])
-    off_rim = float(sol.residual_px[0]) / float(sol.ellipse[0, 2])
+    off_rim = float(sol.residual_px[0] / sol.ellipse[0, 2])  # NaN where no pose, never raises
     return CupDetection(
         pose=sol.pose[0].numpy(), alt_pose=sol.alt_pose[0].numpy() if ambiguous else None,
         ambiguous=ambiguous, ellipse=sol.ellipse[0].numpy(), landmarks=cup.points,

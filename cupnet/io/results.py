@@ -23,8 +23,8 @@ ELLIPSE_COLUMNS = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_
                    "ellipse_angle_deg")
 ALT_COLUMNS = tuple("alt_" + c for c in POSE_COLUMNS)
 # CONVENTIONS' columns, then the model's doubt of the pose and whether to check the cup by
-# eye (blank where not measured: the doubt where landmarks are given, both for a model
-# without a rim stage; given landmarks are checked by their distance to the rim), and how the
+# eye (blank where not measured: both for a model without its dome-outline stage, the doubt
+# for given landmarks, whose check is their distance to the rim), and how the
 # model took the image to show metal (dark or bright; blank where not judged).
 CHECK_COLUMNS = ("doubt", "check")
 # Last, the pose's angles in Murray's operative and anatomic definitions (cupnet.orientation;
