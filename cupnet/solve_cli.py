@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         print(f"cupnet solve: {exc}", file=sys.stderr)
         return 2
-    records, failures, solved = [], 0, 0
+    records, failures, solved, flagged = [], 0, 0, 0
     warned: dict[str, str] = {}
     for image, cups in landmark_sets.items():
         rows = []
@@ -91,8 +91,13 @@ def run(args: argparse.Namespace) -> int:
                 rows.append(cup_row(image, cup.cup, detection, time.perf_counter() - start))
         failures += sum(str(r["status"]).startswith("error") for r in rows)
         solved += sum(not str(r["status"]).startswith("error") for r in rows)
+        flagged += sum(r.get("check") == 1 for r in rows)
         records.append({"rows": rows})
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_results_csv(args.out, records)
     print(f"{len(records)} images, {solved} cups solved, {failures} errors -> {args.out}")
+    if flagged:
+        print(f"  {flagged} cup(s) flagged check=1: their landmarks lie off the solved rim "
+              f"(RMS distance over {OFF_RIM_CHECK:g} of its semi-major axis); look before "
+              "trusting them")
     return 0

@@ -166,7 +166,7 @@ def test_assume_defaults_fill_what_the_file_lacks_as_predict_does(tmp_path, caps
                and "--assume-defaults" not in row["status"] for row in results(out))
 
 
-def test_landmarks_that_are_no_rim_are_flagged_check(tmp_path):
+def test_landmarks_that_are_no_rim_are_flagged_check(tmp_path, capsys):
     """A noisy clicked rim passes; random points and two cups' rims in one set still give an
     ``ok`` pose, and are flagged ``check`` (RMS distance to the rim over a tenth of its
     semi-major axis); a set too small to solve has no flag at all."""
@@ -193,3 +193,5 @@ def test_landmarks_that_are_no_rim_are_flagged_check(tmp_path):
         assert row["status"] in ("ok", "ambiguous") and row["check"] == "1", row
         assert float(row["residual_px"]) > 0.1 * float(row["ellipse_a_px"])
     assert rows["few.png"]["status"].startswith("error") and rows["few.png"]["check"] == ""
+    assert "2 cup(s) flagged check=1: their landmarks lie off the solved rim" in \
+        capsys.readouterr().out
