@@ -14,6 +14,7 @@ from cupnet.config import SPEED_PRESETS
 from cupnet.detection import CupDetection
 from cupnet.ellipse import ellipse_points
 from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, project_rim, rim_points
+from cupnet.io.results import cup_row
 from cupnet.model import FIRST_LOOK, Look, _doubtful, geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.pose import PoseSolution, ellipse_of_pose, refine_pose, refine_pose_with_outline
@@ -322,7 +323,8 @@ def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_dr
                                                                     preset):
     """With each speed preset the shipped model still solves the DRR's cup (within 2 deg and
     1 mm in the image plane); ``--fast`` still doubts its pose, ``--fastest``, which skips
-    the dome's outline that the doubt measures against, reports none and flags nothing."""
+    the dome's outline that the doubt measures against, reports none and leaves ``check``
+    unmeasured (blank in results.csv, not 0)."""
     model, sample = shipped_on_drr
     for key, value in SPEED_PRESETS[preset].items():
         monkeypatch.setattr(model.config, key, value)
@@ -333,7 +335,9 @@ def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_dr
     error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
     assert (error[:2] < 2.0).all() and (error[2:4] < 1.0).all()
     assert (found[0].doubt is None) == (preset == "fastest")
-    assert not found[0].check
+    assert (found[0].check is None) == (preset == "fastest") and not found[0].check
+    row = cup_row("hip.png", 0, found[0], 0.0)
+    assert ("doubt" in row) == ("check" in row) == (preset == "fast")
 
 
 def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = True,
