@@ -663,12 +663,17 @@ def main() -> None:
         text = small_section(next(iter(shipped.values())), args)
         print(text)
         write("model_small", text, args)
-    scored = dict(shipped)  # by row name: the runtime, then ", --PRESET" where one applies
-    scored.update({f"{runtime}, --{preset}": loaded(args.checkpoint, preset, runtime)
-                   for runtime in args.runtimes for preset in args.seed_presets})
+    # By row name: the runtime, then ", --PRESET" where one applies (loaded above where
+    # --presets timed it too).
+    seed_models = dict(shipped)
+    for runtime, suffix in shipped_names.items():
+        for preset in args.seed_presets:
+            name = f"shipped, --{preset}{suffix}"
+            seed_models[f"{runtime}, --{preset}"] = (
+                models[name] if name in models else loaded(args.checkpoint, preset, runtime))
     for part, (section, *_) in SEED_SECTIONS.items():
         if part in args.parts and args.fresh_images:
-            text = fresh_seed_section(scored, args, part)
+            text = fresh_seed_section(seed_models, args, part)
             print(text)
             write(section, text, args)
     if "against" in args.parts:
