@@ -8,6 +8,9 @@ same weights, inference settings only.
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from typing import Any
+
+import yaml
 
 from cupnet.polarity import METAL_DISPLAYS
 
@@ -300,12 +303,41 @@ class CupNetConfig:
         unknown = set(values) - known
         if unknown:
             raise ValueError(f"unknown CupNet config keys: {sorted(unknown)}")
-        values = dict(values)
-        # JSON has lists
-        for key in ("decoder_channels", "verify_anteversions", "search_anteversions"):
-            if key in values:
-                values[key] = tuple(values[key])
-        return cls(**values)
+        hints = {f.name: str(f.type) for f in fields(cls)}
+        return cls(**{key: _field_value(key, value, hints[key]) for key, value in values.items()})
+
+
+
+def _field_value(name: str, value: Any, hint: str) -> Any:
+    """``value`` of the config field ``name`` as its annotation ``hint`` (``"int"``,
+    ``"float | None"``, ``"tuple[float, ...]"``...) says, or a ValueError naming the field.
+
+    JSON and YAML give lists where the config holds tuples, and a training command line
+    (``--model.model.rim_channels 8``: the LightningModule takes the config as a dict, so
+    jsonargparse cannot type its keys) gives strings, read here as YAML values.
+    """
+    kinds = {part.strip() for part in hint.split("|")}
+    if isinstance(value, str) and "str" not in kinds:
+        try:
+            value = yaml.safe_load(value)
+        except yaml.YAMLError:
+            pass  # left a string: the check below names the field
+    if value is None and "None" in kinds:
+        return None
+    for kind in kinds:
+        if kind.startswith("tuple[") and isinstance(value, list | tuple):
+            element = kind[len("tuple["):].split(",")[0].strip()
+            return tuple(_field_value(name, item, element) for item in value)
+    if isinstance(value, bool):
+        if "bool" in kinds:
+            return value
+    elif "int" in kinds and isinstance(value, int | float) and float(value).is_integer():
+        return int(value)
+    elif "float" in kinds and isinstance(value, int | float):
+        return float(value)
+    elif "str" in kinds and isinstance(value, str):
+        return value
+    raise ValueError(f"CupNet config {name}: expected {hint}, got {value!r}")
 
 
 # Faster operating points of a trained model: inference settings only, the weights unchanged

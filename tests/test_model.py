@@ -574,6 +574,31 @@ def test_unknown_speed_preset_is_named_with_the_choices() -> None:
         apply_speed_preset(CupNetConfig(), "warp")
 
 
+@pytest.mark.parametrize(("values", "expected"), [
+    ({"rim_channels": "8"}, {"rim_channels": 8}),
+    ({"verify_gate": "null", "check_doubt": 2}, {"verify_gate": None, "check_doubt": 2.0}),
+    ({"decoder_channels": "[16, 8]", "search_anteversions": [3, 10]},
+     {"decoder_channels": (16, 8), "search_anteversions": (3.0, 10.0)}),
+    ({"second_look": "true", "encoder": "resnet18"}, {"second_look": True, "encoder": "resnet18"}),
+])
+def test_config_reads_each_field_as_its_type(values: dict, expected: dict) -> None:
+    """Command-line strings (a training config's ``--model.model.KEY VALUE`` reach the dict
+    untyped) and JSON's lists and integers become the fields' types."""
+    config = CupNetConfig.from_dict(values)
+    for key, value in expected.items():
+        assert getattr(config, key) == value
+        assert type(getattr(config, key)) is type(value)
+
+
+@pytest.mark.parametrize("values", [{"rim_channels": "eight"}, {"rim_channels": 8.5},
+                                    {"second_look": 1}, {"encoder": 3}, {"verify_gate": "x"},
+                                    {"decoder_channels": ["a"]}])
+def test_config_value_of_the_wrong_type_names_its_field(values: dict) -> None:
+    key = next(iter(values))
+    with pytest.raises(ValueError, match=f"CupNet config {key}: expected"):
+        CupNetConfig.from_dict(values)
+
+
 @pytest.mark.parametrize(("screen", "fails"), [(None, False), (6, False), (5, True)])
 def test_search_screen_below_the_poses_kept_is_refused(screen: int | None, fails: bool) -> None:
     """The search keeps search_keep + search_keep_settled grid poses (4 + 2 here), ranked by

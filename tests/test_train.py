@@ -39,6 +39,19 @@ def test_cupnet_train_hands_every_argument_to_lightning(argv):
     assert parser.parse_args(argv).argv == argv
 
 
+def test_a_network_setting_given_on_the_command_line_builds_that_network(capsys):
+    """``--model.model.rim_channels 8``: the module takes CupNet's config as a dict, whose
+    keys jsonargparse cannot type, so the value arrives as a string ('8'); the module
+    builds the 8-channel rim network it names (it had failed deep in torch)."""
+    with pytest.raises(SystemExit):
+        main(["fit", "-c", str(SMOKE), "--model.model.rim_channels", "8",
+              "--model.model.rim_passes", "1", "--print_config"])
+    settings = yaml.safe_load(capsys.readouterr().out)["model"]["model"]
+    assert settings["rim_channels"] == "8"
+    module = CupNetModule(model=settings)
+    assert module.model.rim.offset_head.in_channels == 8
+
+
 def test_phi_errors_wrap_at_180_degrees():
     pred = torch.tensor([[10.0, 89.0, 0, 0, 0], [10.0, -60.0, 1, 2, 3]], dtype=torch.float64)
     truth = torch.tensor([[12.0, -89.0, 0, 0, 0], [10.0, 60.0, 0, 0, 0]], dtype=torch.float64)
