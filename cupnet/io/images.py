@@ -38,7 +38,11 @@ RASTER_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 DICOM_SUFFIXES = (".dcm", ".dicom")
 SUPPORTED_SUFFIXES = RASTER_SUFFIXES + DICOM_SUFFIXES
 _DICOM_MAGIC_OFFSET = 128
-_JPEG_END = b"\xff\xd9"
+# The bytes a whole file of each kind ends with: JPEG's end-of-image marker, PNG's IEND chunk
+# (its empty length, type and CRC).
+_END_MARKERS = {".jpg": (b"\xff\xd9", "JPEG data (no end-of-image marker)"),
+                ".jpeg": (b"\xff\xd9", "JPEG data (no end-of-image marker)"),
+                ".png": (b"\x00\x00\x00\x00IEND\xaeB`\x82", "PNG data (no IEND end chunk)")}
 # Relative difference between row and column spacing below which pixels count as square.
 _SQUARE_TOL = 1e-3
 
@@ -340,10 +344,12 @@ def _read_raster(path: Path, page: int | None) -> np.ndarray:
         except (OSError, ValueError, EOFError) as exc:
             raise ImageReadError(f"corrupt or truncated TIFF ({exc})") from exc
         return to_unit_range(pixels)  # a decoded file's values: their own error, not "corrupt"
-    # libjpeg decodes a cut-off JPEG into a partly grey image without failing: require the
-    # end-of-image marker (some writers pad after it, so look at the last kilobyte).
-    if suffix in (".jpg", ".jpeg") and _JPEG_END not in _tail(path, 1024):
-        raise ImageReadError("truncated JPEG data (no end-of-image marker)")
+    # libjpeg decodes a cut-off JPEG into a partly grey image without failing, and libpng
+    # fails on a cut-off PNG with "libpng error: Read Error" on stderr: require the end
+    # marker (some writers pad after it, so look at the last kilobyte).
+    marker, missing = _END_MARKERS.get(suffix, (b"", ""))
+    if marker not in _tail(path, 1024):
+        raise ImageReadError(f"corrupt or truncated {missing}")
     decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # faster than imdecode of the bytes
     if decoded is None:
         raise ImageReadError(f"corrupt or truncated {suffix.lstrip('.').upper()} data")
