@@ -307,7 +307,6 @@ class CupNetConfig:
         return cls(**{key: _field_value(key, value, hints[key]) for key, value in values.items()})
 
 
-
 def _field_value(name: str, value: Any, hint: str) -> Any:
     """``value`` of the config field ``name`` as its annotation ``hint`` (``"int"``,
     ``"float | None"``, ``"tuple[float, ...]"``...) says, or a ValueError naming the field.

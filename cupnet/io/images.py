@@ -347,9 +347,8 @@ def _read_raster(path: Path, page: int | None) -> np.ndarray:
     # libjpeg decodes a cut-off JPEG into a partly grey image without failing, and libpng
     # fails on a cut-off PNG with "libpng error: Read Error" on stderr: require the end
     # marker (some writers pad after it, so look at the last kilobyte).
-    marker, missing = _END_MARKERS.get(suffix, (b"", ""))
-    if marker not in _tail(path, 1024):
-        raise ImageReadError(f"corrupt or truncated {missing}")
+    if suffix in _END_MARKERS and _END_MARKERS[suffix][0] not in _tail(path, 1024):
+        raise ImageReadError(f"corrupt or truncated {_END_MARKERS[suffix][1]}")
     decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # faster than imdecode of the bytes
     if decoded is None:
         raise ImageReadError(f"corrupt or truncated {suffix.lstrip('.').upper()} data")
