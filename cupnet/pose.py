@@ -895,6 +895,62 @@ def cramer_rao_bound(pose: Tensor, radius: Tensor | float, geometry: Geometry, t
     return torch.cat([torch.rad2deg(std[:, :2]), std[:, 2:]], -1)
 
 
+
+def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
+                         cup_diameter: Tensor | float, weights: Tensor | None = None,
+                         iterations: int = 3) -> Tensor:
+    """Standard errors of a pose solved from rim landmarks, with their noise measured from
+    the landmarks themselves: the Cramer-Rao bound :func:`cramer_rao_bound` at the solved
+    pose, with the unknown noise level estimated from the residuals.
+
+    At the ML pose the estimate's covariance is ``s^2 (J^T W J)^-1``, with ``J`` the rows of
+    the pose Jacobian of the rim along its normals at the landmarks' closest rim points
+    (tangential motion is absorbed by the landmarks' rim parameters), ``W`` the weights and
+    ``s^2 = sum w d^2 / (N - 5)`` the unit-weight noise variance from the normal distances
+    ``d`` (``N`` landmarks with a weight; the pose takes 5 degrees of freedom), so weights
+    ``1 / sigma_i^2`` of any common scale give the same errors. Random landmark noise
+    only: a bias the landmarks share (a rim network placing every landmark a little outside
+    the rim) moves the pose without widening these.
+
+    Args:
+        pose_deg: ``(B, 5)`` solved poses, public units (:attr:`PoseSolution.pose`).
+        points: ``(B, N, 2)`` or ``(N, 2)`` the landmarks they were solved from, px.
+        geometry: batch fields ``(B,)`` or scalars; cup_diameter: mm, scalar or ``(B,)``.
+        weights: ``(B, N)`` or ``(N,)`` the solve's landmark weights (None: equal).
+        iterations: Newton steps of each landmark's rim parameter to its closest rim point.
+    Returns:
+        ``(B, 5)`` standard deviations (deg, deg, mm, mm, mm); NaN where the pose is NaN or
+        fewer than 6 landmarks have a weight. Not differentiable.
+    """
+    if points.ndim == 2:
+        points = points[None]
+        weights = None if weights is None else weights[None]
+    with torch.no_grad():
+        batch, dtype, device = points.shape[0], points.dtype, points.device
+        weights = (torch.ones(points.shape[:2], dtype=dtype, device=device) if weights is None
+                   else weights.to(dtype))
+        usable = torch.isfinite(pose_deg).all(-1) & ((weights > 0).sum(-1) > 5)
+        # Stand-ins keep the batch finite (a NaN pose makes a singular system); masked below.
+        pose = torch.where(usable[:, None], pose_to_radians(pose_deg.to(dtype)),
+                           _stand_in_pose(batch, dtype, device))
+        geom = _batch_geometry(geometry, batch, dtype, device)
+        radius = torch.as_tensor(cup_diameter, dtype=dtype, device=device).expand(batch) / 2
+        u, v = torch.where(usable[:, None, None], points, 0.0).unbind(-1)
+        t = _initial_rim_parameters(pose, torch.stack([u, v], -1), radius, geom)
+        for _ in range(iterations):
+            t = _closest_rim_parameters(pose, t, (u, v), radius, geom)
+        dist, jac, *_ = _signed_distances(pose, t, (u, v), weights, radius, geom, False)
+        information = jac.transpose(-1, -2) @ (weights[..., None] * jac)
+        inverse, info = torch.linalg.inv_ex(information)
+        # The unit-weight variance (not _noise_variance's, which is per mean weight): the
+        # covariance then stays the same whatever scale the weights come in.
+        used = (weights > 0).sum(-1, keepdim=True)
+        variance = (weights * dist**2).sum(-1, keepdim=True) / (used - 5).clamp_min(1)
+        std = (variance * inverse.diagonal(dim1=-2, dim2=-1)).sqrt()
+        std = torch.cat([torch.rad2deg(std[:, :2]), std[:, 2:]], -1)
+        usable = usable & (info == 0) & torch.isfinite(std).all(-1)
+        return torch.where(usable[:, None], std, torch.full_like(std, math.nan))
+
 def ellipse_of_pose(pose_deg: Tensor, cup_diameter: Tensor | float, geometry: Geometry) -> Tensor:
     """Projected rim ellipse ``(B, 5)`` px of public-unit poses ``(B, 5)``."""
     return conic_to_params(rim_conic(pose_to_radians(pose_deg), torch.as_tensor(cup_diameter) / 2,

@@ -14,6 +14,7 @@ from cupnet.pose import (
     canonical_pose,
     cramer_rao_bound,
     orthographic_pose,
+    pose_standard_errors,
     poses_from_conic,
     range_violation,
     refine_pose,
@@ -100,6 +101,53 @@ def test_cramer_rao_bound_matches_the_spread_of_the_ml_estimate(generator):
     bound = cramer_rao_bound(pose_to_radians(truth), 25.0, GEOMETRY, t, 1.0)[0]
     ratio = est.std(0) / bound
     assert ((ratio > 0.85) & (ratio < 1.15)).all(), ratio
+
+
+@pytest.mark.parametrize("sigma", [1.0, 2.5])
+def test_standard_errors_from_the_residuals_match_the_bound_and_the_spread(generator, sigma):
+    """The errors a solve reports, with the noise measured from its own residuals, are the
+    Cramer-Rao bound at the true noise (jacfwd of the projection, an independent
+    derivation), and about 95 % of the poses lie within 1.96 of them of the truth."""
+    truth = torch.tensor([[40.0, 25.0, 30.0, -20.0, 300.0]], dtype=torch.float64)
+    t = torch.arange(100, dtype=torch.float64) * (2 * math.pi / 100)
+    points = rim_landmarks(truth, GEOMETRY) + sigma * torch.randn(
+        400, 100, 2, generator=generator, dtype=torch.float64)
+    sol = solve_pose(points, GEOMETRY, 50.0)
+    errors = pose_standard_errors(sol.pose, points, GEOMETRY, 50.0)
+    bound = cramer_rao_bound(pose_to_radians(truth), 25.0, GEOMETRY, t, sigma)[0]
+    assert ((errors.mean(0) / bound - 1).abs() < 0.02).all(), errors.mean(0) / bound
+    # Each solve's own: a noise level measured on 95 degrees of freedom varies by about
+    # 1 / sqrt(2 * 95) = 7 %, and the bound with the solved pose.
+    assert ((errors.std(0) / errors.mean(0)) < 0.15).all()
+    covered = ((sol.pose - truth).abs() < 1.96 * errors).double().mean(0)
+    assert ((covered > 0.92) & (covered < 0.98)).all(), covered
+
+
+def test_weighted_standard_errors_do_not_depend_on_the_weights_scale(generator):
+    """Landmarks of two noise levels, weighted 1 / sigma^2 at two scales: the same errors,
+    and they match the spread of the weighted solves."""
+    truth = torch.tensor([[40.0, 25.0, 30.0, -20.0, 300.0]], dtype=torch.float64)
+    sigma = torch.where(torch.arange(100) % 2 == 0, 0.5, 2.0).double()
+    points = rim_landmarks(truth, GEOMETRY) + sigma[None, :, None] * torch.randn(
+        400, 100, 2, generator=generator, dtype=torch.float64)
+    weights = (1 / sigma**2).expand(400, 100)
+    sol = solve_pose(points, GEOMETRY, 50.0, weights=weights)
+    errors = pose_standard_errors(sol.pose, points, GEOMETRY, 50.0, weights)
+    torch.testing.assert_close(pose_standard_errors(sol.pose, points, GEOMETRY, 50.0,
+                                                    7 * weights), errors)
+    ratio = errors.mean(0) / sol.pose.std(0)
+    assert ((ratio > 0.9) & (ratio < 1.1)).all(), ratio
+
+
+def test_standard_errors_are_nan_without_a_pose_or_with_too_few_landmarks():
+    truth = torch.tensor([[40.0, 25.0, 30.0, -20.0, 300.0]], dtype=torch.float64)
+    points = rim_landmarks(truth, GEOMETRY)[0]
+    no_pose = torch.full((1, 5), math.nan, dtype=torch.float64)
+    assert pose_standard_errors(no_pose, points, GEOMETRY, 50.0).isnan().all()
+    assert pose_standard_errors(truth, points[:5], GEOMETRY, 50.0).isnan().all()
+    # Six landmarks: one degree of freedom for the noise, still an estimate.
+    six = points[::17][:6] + 0.3
+    assert torch.isfinite(pose_standard_errors(truth, six, GEOMETRY, 50.0)).all()
 
 
 def test_curvature_correction_removes_most_of_the_thin_ellipse_bias(generator):
