@@ -45,6 +45,11 @@ class CupDetection:
             before placing the rims (``CupNetConfig.metal`` ``"bright"``, or ``"auto"``
             judging it so); False: used as given (metal dark); None where not judged
             (landmarks given).
+        pose_sd: ``(5,)`` standard errors of ``pose`` (deg, deg, mm, mm, mm) from the
+            scatter of given landmarks about the solved rim
+            (:func:`cupnet.pose.pose_standard_errors`), or None: not given for the network's
+            landmarks, whose errors are correlated along the rim, so that such errors would
+            cover 47-78 % of the real ones where they claim 95 % (docs/training.md, item 50).
     """
 
     pose: np.ndarray
@@ -61,6 +66,7 @@ class CupDetection:
     doubt: float | None = None
     check: bool | None = None
     metal_bright: bool | None = None
+    pose_sd: np.ndarray | None = None
 
 
 def moved(cup: CupDetection, offset: tuple[int, int], shape: tuple[int, int]

@@ -23,7 +23,7 @@ from cupnet.geometry import Geometry
 from cupnet.io.landmarks import LandmarkSet, read_landmarks
 from cupnet.io.meta import GeometryInputs, add_geometry_arguments, implausible_once
 from cupnet.io.results import cup_row, status_row, write_results_csv
-from cupnet.pose import solve_pose
+from cupnet.pose import pose_standard_errors, solve_pose
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -47,16 +47,18 @@ OFF_RIM_CHECK = 0.1
 def solve_cup(cup: LandmarkSet, geometry: Geometry, diameter: float, refine: bool
               ) -> CupDetection:
     """The pose of one cup's given landmarks, flagged ``check`` where they lie off the solved
-    rim by more than :data:`OFF_RIM_CHECK` of its semi-major axis."""
-    sol = solve_pose(torch.as_tensor(cup.points, dtype=torch.float64), geometry, diameter,
-                     refine=refine, on_error="flag")
+    rim by more than :data:`OFF_RIM_CHECK` of its semi-major axis, with its standard errors
+    from their scatter about that rim."""
+    points = torch.as_tensor(cup.points, dtype=torch.float64)
+    sol = solve_pose(points, geometry, diameter, refine=refine, on_error="flag")
     ambiguous = bool(sol.ambiguous[0])
     off_rim = float(sol.residual_px[0] / sol.ellipse[0, 2])  # NaN where no pose, never raises
     return CupDetection(
         pose=sol.pose[0].numpy(), alt_pose=sol.alt_pose[0].numpy() if ambiguous else None,
         ambiguous=ambiguous, ellipse=sol.ellipse[0].numpy(), landmarks=cup.points,
         weights=torch.ones(len(cup.points)).numpy(), residual_px=float(sol.residual_px[0]),
-        status=sol.status[0], check=None if math.isnan(off_rim) else off_rim > OFF_RIM_CHECK)
+        status=sol.status[0], check=None if math.isnan(off_rim) else off_rim > OFF_RIM_CHECK,
+        pose_sd=pose_standard_errors(sol.pose, points, geometry, diameter)[0].numpy())
 
 
 def run(args: argparse.Namespace) -> int:

@@ -18,7 +18,7 @@ from cupnet.config import CupNetConfig
 from cupnet.geometry import Geometry, pose_to_radians, project_rim
 from cupnet.io.images import PATIENT_SPACING_SOURCE
 from cupnet.io.meta import ASSUMED_DETECTOR_WIDTH_MM, resolve_geometry
-from cupnet.io.results import POSE_COLUMNS, RESULT_COLUMNS
+from cupnet.io.results import POSE_COLUMNS, RESULT_COLUMNS, SD_COLUMNS
 from cupnet.model import CupNet, save_model
 
 
@@ -353,6 +353,8 @@ def test_landmarks_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
         np.testing.assert_allclose(got, truth, atol=1e-3)
         assert row["doubt"] == ""  # no network measured it
         assert row["check"] == "0"  # the landmarks lie on the solved rim
+        # Standard errors from their scatter about it: none to speak of, exact as they are.
+        assert all(0 <= float(row[c]) < 1e-3 for c in SD_COLUMNS)
     overlay = cv2.imread(str(out / "overlays" / "pelvis.png.png"))
     assert overlay.shape == (768, 768, 3)
     document = json.loads((out / "results.json").read_text())
@@ -437,6 +439,7 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
     for row, u in zip(rows, true_u, strict=True):
         assert abs(float(row["ellipse_cx_px"]) - u) < 10
         assert float(row["doubt"]) < 1.8 and row["check"] == "0" and row["metal"] == "dark"
+        assert all(row[c] == "" for c in SD_COLUMNS)  # not for the network's landmarks
     turned = by_image["bilateral_bright.png"]
     assert [r["metal"] for r in turned] == ["bright", "bright"]
     # Not the same run as the dark image's: the locator saw the bright image, so the rims

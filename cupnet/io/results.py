@@ -31,8 +31,12 @@ CHECK_COLUMNS = ("doubt", "check")
 # CONVENTIONS' are his radiographic ones).
 MURRAY_COLUMNS = ("operative_anteversion_deg", "operative_inclination_deg",
                   "anatomic_anteversion_deg", "anatomic_inclination_deg")
+# Then the pose's standard errors where measured (given landmarks: their scatter about the
+# solved rim, cupnet.pose.pose_standard_errors; blank for the network's).
+SD_COLUMNS = ("anteversion_sd_deg", "inclination_sd_deg", "k_sd_mm", "l_sd_mm", "h_sd_mm")
 RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px",
-                  "seconds", *ALT_COLUMNS, *CHECK_COLUMNS, "metal", *MURRAY_COLUMNS)
+                  "seconds", *ALT_COLUMNS, *CHECK_COLUMNS, "metal", *MURRAY_COLUMNS,
+                  *SD_COLUMNS)
 
 
 def _finite(values: Iterable[Any]) -> list[float | None]:
@@ -59,6 +63,8 @@ def cup_row(name: str, index: int, cup: Any, seconds: float) -> dict:
     if torch.isfinite(pose).all():
         angles = torch.cat([operative_angles(pose), anatomic_angles(pose)])
         row.update(zip(MURRAY_COLUMNS, angles.tolist(), strict=True))
+    if cup.pose_sd is not None:
+        row.update(zip(SD_COLUMNS, _finite(cup.pose_sd), strict=True))
     return row
 
 
