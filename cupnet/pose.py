@@ -895,7 +895,6 @@ def cramer_rao_bound(pose: Tensor, radius: Tensor | float, geometry: Geometry, t
     return torch.cat([torch.rad2deg(std[:, :2]), std[:, 2:]], -1)
 
 
-
 def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
                          cup_diameter: Tensor | float, weights: Tensor | None = None,
                          iterations: int = 3) -> Tensor:
@@ -935,7 +934,9 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
                            _stand_in_pose(batch, dtype, device))
         geom = _batch_geometry(geometry, batch, dtype, device)
         radius = torch.as_tensor(cup_diameter, dtype=dtype, device=device).expand(batch) / 2
-        u, v = torch.where(usable[:, None, None], points, 0.0).unbind(-1)
+        # A landmark without weight may be padding (NaN, as a ragged batch has it): zeroed.
+        kept = usable[:, None, None] & (weights > 0)[..., None]
+        u, v = torch.where(kept, points, 0.0).unbind(-1)
         t = _initial_rim_parameters(pose, torch.stack([u, v], -1), radius, geom)
         for _ in range(iterations):
             t = _closest_rim_parameters(pose, t, (u, v), radius, geom)
@@ -950,6 +951,7 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         std = torch.cat([torch.rad2deg(std[:, :2]), std[:, 2:]], -1)
         usable = usable & (info == 0) & torch.isfinite(std).all(-1)
         return torch.where(usable[:, None], std, torch.full_like(std, math.nan))
+
 
 def ellipse_of_pose(pose_deg: Tensor, cup_diameter: Tensor | float, geometry: Geometry) -> Tensor:
     """Projected rim ellipse ``(B, 5)`` px of public-unit poses ``(B, 5)``."""

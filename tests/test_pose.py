@@ -135,6 +135,10 @@ def test_weighted_standard_errors_do_not_depend_on_the_weights_scale(generator):
     errors = pose_standard_errors(sol.pose, points, GEOMETRY, 50.0, weights)
     torch.testing.assert_close(pose_standard_errors(sol.pose, points, GEOMETRY, 50.0,
                                                     7 * weights), errors)
+    # Padding without weight (NaN, as in a ragged batch) changes nothing.
+    padded = torch.cat([points, torch.full((400, 3, 2), math.nan, dtype=torch.float64)], 1)
+    torch.testing.assert_close(pose_standard_errors(
+        sol.pose, padded, GEOMETRY, 50.0, torch.cat([weights, torch.zeros(400, 3)], 1)), errors)
     ratio = errors.mean(0) / sol.pose.std(0)
     assert ((ratio > 0.9) & (ratio < 1.1)).all(), ratio
 
