@@ -167,6 +167,20 @@ def test_assume_defaults_fill_what_the_file_lacks_as_predict_does(tmp_path, caps
                and "--assume-defaults" not in row["status"] for row in results(out))
 
 
+def solved_sets(tmp_path: Path, sets: dict[str, torch.Tensor]) -> dict[str, dict[str, str]]:
+    """``cupnet solve`` of landmark sets ``{image: (N, 2) px}`` and a two-point set
+    ``few.png``, in the geometry of :func:`rim_landmarks`'s cups below (SDD 1,000 mm,
+    0.4 mm a pixel, a 50 mm cup); the rows by image."""
+    lines = ["image,u,v"] + [f"{name},{u},{v}" for name, points in sets.items()
+                             for u, v in points.tolist()] + ["few.png,1,2", "few.png,3,4"]
+    (tmp_path / "lm.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "r.csv"
+    assert main(["solve", str(tmp_path / "lm.csv"), "--sdd", "1000", "--pixel-spacing", "0.4",
+                 "--cup-diameter", "50", "--principal-point", "300", "250", "--out",
+                 str(out)]) == 0
+    return {row["image"]: row for row in results(out)}
+
+
 def test_landmarks_that_are_no_rim_are_flagged_check(tmp_path, capsys):
     """A noisy clicked rim passes; random points and two cups' rims in one set still give an
     ``ok`` pose, and are flagged ``check`` (RMS distance to the rim over a tenth of its
@@ -179,14 +193,7 @@ def test_landmarks_that_are_no_rim_are_flagged_check(tmp_path, capsys):
             "random.png": 100 + 400 * torch.rand(40, 2, generator=generator,
                                                  dtype=torch.float64),
             "two_rims.png": torch.cat([rims[0][::2], rims[1][::2]])}
-    lines = ["image,u,v"] + [f"{name},{u},{v}" for name, points in sets.items()
-                             for u, v in points.tolist()] + ["few.png,1,2", "few.png,3,4"]
-    (tmp_path / "lm.csv").write_text("\n".join(lines) + "\n")
-    out = tmp_path / "r.csv"
-    assert main(["solve", str(tmp_path / "lm.csv"), "--sdd", "1000", "--pixel-spacing", "0.4",
-                 "--cup-diameter", "50", "--principal-point", "300", "250", "--out",
-                 str(out)]) == 0
-    rows = {row["image"]: row for row in results(out)}
+    rows = solved_sets(tmp_path, sets)
     clicked = rows["clicked.png"]
     assert clicked["check"] == "0" and 1.0 < float(clicked["residual_px"]) < 2.0
     for name in ("random.png", "two_rims.png"):
@@ -207,14 +214,7 @@ def test_clicked_landmarks_give_the_poses_standard_errors(tmp_path):
     generator = torch.Generator().manual_seed(1)
     clicks = rim_landmarks(TRUTH[:1], geometry, n=40)[0] + 1.5 * torch.randn(
         3, 40, 2, generator=generator, dtype=torch.float64)
-    lines = ["image,u,v"] + [f"c{i}.png,{u},{v}" for i, points in enumerate(clicks)
-                             for u, v in points.tolist()] + ["few.png,1,2", "few.png,3,4"]
-    (tmp_path / "lm.csv").write_text("\n".join(lines) + "\n")
-    out = tmp_path / "r.csv"
-    assert main(["solve", str(tmp_path / "lm.csv"), "--sdd", "1000", "--pixel-spacing", "0.4",
-                 "--cup-diameter", "50", "--principal-point", "300", "250", "--out",
-                 str(out)]) == 0
-    rows = {row["image"]: row for row in results(out)}
+    rows = solved_sets(tmp_path, {f"c{i}.png": points for i, points in enumerate(clicks)})
     t = torch.arange(40, dtype=torch.float64) * (2 * math.pi / 40)
     bound = cramer_rao_bound(pose_to_radians(TRUTH[:1]), 25.0, geometry, t, 1.5)[0].tolist()
     for i in range(3):
