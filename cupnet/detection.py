@@ -49,7 +49,7 @@ class CupDetection:
             scatter of given landmarks about the solved rim
             (:func:`cupnet.pose.pose_standard_errors`), or None: not given for the network's
             landmarks, whose errors are correlated along the rim, so that such errors would
-            cover 47-78 % of the real ones where they claim 95 % (docs/training.md, item 50).
+            cover 42-78 % of the real ones where they claim 95 % (docs/training.md, item 50).
     """
 
     pose: np.ndarray
