@@ -66,17 +66,21 @@ def display_image(image: np.ndarray) -> np.ndarray:
 
 def pose_lines(index: int, status: str, pose: Sequence[float], residual_px: float,
                alt_pose: Sequence[float] | None = None, doubt: float | None = None,
-               check: bool = False) -> list[str]:
-    """Text lines of one cup: its status (and the model's doubt), pose (deg, mm), residual
+               check: bool = False, pose_sd: Sequence[float] | None = None) -> list[str]:
+    """Text lines of one cup: its status (and the model's doubt), pose (deg, mm) with its
+    standard errors where given (``+-``: OpenCV's fonts have no plus-minus sign), residual
     and the second pose."""
     lines = [f"cup {index}: {status}"]
     if doubt is not None and math.isfinite(doubt):
         lines[0] += f", doubt {doubt:.2f}" + (" - CHECK BY EYE" if check else "")
     if all(math.isfinite(v) for v in pose):
-        theta, phi, k_mm, l_mm, h_mm = pose
-        lines.append(f"  anteversion {theta:.1f} deg, inclination {phi:.1f} deg")
-        lines.append(f"  k {k_mm:.1f}, l {l_mm:.1f}, h {h_mm:.1f} mm; "
-                     f"residual {residual_px:.2f} px")
+        sd = (pose_sd if pose_sd is not None and all(math.isfinite(v) for v in pose_sd)
+              else None)
+        theta, phi, k_mm, l_mm, h_mm = (f"{v:.1f}" + ("" if sd is None else f" +-{e:.1f}")
+                                        for v, e in zip(pose, pose if sd is None else sd,
+                                                        strict=True))
+        lines.append(f"  anteversion {theta} deg, inclination {phi} deg")
+        lines.append(f"  k {k_mm}, l {l_mm}, h {h_mm} mm; residual {residual_px:.2f} px")
     if alt_pose is not None and all(math.isfinite(v) for v in alt_pose):
         lines.append(f"  or: anteversion {alt_pose[0]:.1f} deg, inclination {alt_pose[1]:.1f} "
                      f"deg, h {alt_pose[4]:.1f} mm")

@@ -566,7 +566,7 @@ class Predictor:
         if not self.args.no_overlays:
             drawings = [CupDrawing(c.ellipse, c.landmarks, c.weights,
                                    pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose,
-                                              c.doubt, c.check),
+                                              c.doubt, c.check, c.pose_sd),
                                    c.status, c.outline, c.check)
                         for j, c in enumerate(cups)]
             title = f"{frame.name}: " + (f"{len(cups)} cup(s)" if cups else "no_cup")

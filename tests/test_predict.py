@@ -543,6 +543,20 @@ def test_overlay_marks_a_cup_to_check(check: bool) -> None:
     assert not (canvas == other).all(-1).any()
 
 
+def test_overlay_text_gives_the_standard_errors_where_there_are_any() -> None:
+    from cupnet.overlay import pose_lines
+
+    pose = [20.04, 30.0, 1.0, 2.0, 300.0]
+    plain = pose_lines(0, "ok", pose, 0.4)
+    assert plain[1:] == ["  anteversion 20.0 deg, inclination 30.0 deg",
+                         "  k 1.0, l 2.0, h 300.0 mm; residual 0.40 px"]
+    sd = np.array([0.43, 0.61, 0.12, 0.15, 3.4])
+    assert pose_lines(0, "ok", pose, 0.4, pose_sd=sd)[1:] == [
+        "  anteversion 20.0 +-0.4 deg, inclination 30.0 +-0.6 deg",
+        "  k 1.0 +-0.1, l 2.0 +-0.1, h 300.0 +-3.4 mm; residual 0.40 px"]
+    assert pose_lines(0, "ok", pose, 0.4, pose_sd=np.full(5, np.nan)) == plain
+
+
 @pytest.mark.parametrize(("flags", "preset", "changed"),
                          [([], None, {}), (["--fast"], "fast", {"verify_gate": None}),
                           (["--fastest"], "fastest",
