@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from cupnet.cli import main
+from cupnet.io.results import SD_COLUMNS
 from cupnet.io.review import GROUPS, review_page, row_group
 from cupnet.predict import summarise
 
@@ -51,6 +52,18 @@ def test_rows_are_grouped_in_order_of_need_and_each_shown_once() -> None:
     assert "blank.png" in tables["no_cup"]
     assert sum(t.count("<tr>") - 1 for t in tables.values()) == 6  # each row once
     assert "<h1>cupnet predict: 5 images, 4 cups</h1>" in page
+
+
+def test_given_landmarks_poses_show_their_standard_errors() -> None:
+    """A row with standard errors shows each after its value; a row without shows the
+    value alone, as does a blank error."""
+    errors = dict(zip(SD_COLUMNS, (0.43, 0.61, 0.12, 0.15, 3.4), strict=True))
+    records = [record("clicked.png", {"cup": 0, "status": "ok", "check": 0, **POSE, **errors}),
+               record("found.png", {"cup": 0, "status": "ok", "check": 0, **POSE,
+                                    "anteversion_sd_deg": None})]
+    rows = sections(review_page(records, summarise(records)))["ok"].split("<tr>")[2:]
+    assert "&plusmn; 0.43</td>" in rows[0] and "&plusmn; 3.40</td>" in rows[0]
+    assert "&plusmn;" not in rows[1]
 
 
 def test_rows_read_back_from_the_csv_group_the_same() -> None:

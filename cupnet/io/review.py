@@ -15,7 +15,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from urllib.parse import quote
 
-from cupnet.io.results import ALT_COLUMNS, POSE_COLUMNS, atomic_write
+from cupnet.io.results import ALT_COLUMNS, POSE_COLUMNS, SD_COLUMNS, atomic_write
 
 # Group title and which rows it holds, in the order the page shows them.
 GROUPS: tuple[tuple[str, str], ...] = (
@@ -56,6 +56,9 @@ def _cells(row: dict, overlay: str | None) -> str:
     picture = (f'<a href="{link}"><img loading="lazy" alt="overlay" src="{link}"></a>'
                if overlay else "")
     pose = [_number(row.get(c), 2) for c in POSE_COLUMNS]
+    # Standard errors where the row has them (given landmarks), after their values.
+    pose = [f"{p} &plusmn; {e}" if p and e else p
+            for p, e in zip(pose, (_number(row.get(c), 2) for c in SD_COLUMNS), strict=True)]
     if row.get("status") == "ambiguous":
         pose = [f"{p}<br>{_number(row.get(a), 2)}" for p, a in zip(pose, ALT_COLUMNS,
                                                                    strict=True)]
@@ -78,7 +81,8 @@ def review_page(records: Iterable[dict], summary: dict) -> str:
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>cupnet predict: "
              f"review</title><style>{STYLE}</style></head><body>",
              f"<h1>cupnet predict: {summary['images']} images, {summary['cups']} cups</h1>",
-             "<p>Poses in degrees (anteversion, inclination) and millimetres (k, l, h); "
+             "<p>Poses in degrees (anteversion, inclination) and millimetres (k, l, h), "
+             "with their standard errors where the landmarks were given; "
              "doubt: how little the rim network believes the pose (true poses mostly below "
              "1). Click an overlay for full size.</p>"]
     for key, title in GROUPS:
