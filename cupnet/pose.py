@@ -928,16 +928,18 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         batch, dtype, device = points.shape[0], points.dtype, points.device
         weights = (torch.ones(points.shape[:2], dtype=dtype, device=device) if weights is None
                    else weights.to(dtype))
-        usable = torch.isfinite(pose_deg).all(-1) & ((weights > 0).sum(-1) > 5)
+        active = weights > 0
+        used = active.sum(-1, keepdim=True)
+        usable = torch.isfinite(pose_deg).all(-1) & (used[:, 0] > 5)
         # Stand-ins keep the batch finite (a NaN pose makes a singular system); masked below.
         pose = torch.where(usable[:, None], pose_to_radians(pose_deg.to(dtype)),
                            _stand_in_pose(batch, dtype, device))
         geom = _batch_geometry(geometry, batch, dtype, device)
         radius = torch.as_tensor(cup_diameter, dtype=dtype, device=device).expand(batch) / 2
         # A landmark without weight may be padding (NaN, as a ragged batch has it): zeroed.
-        kept = usable[:, None, None] & (weights > 0)[..., None]
-        u, v = torch.where(kept, points, 0.0).unbind(-1)
-        t = _initial_rim_parameters(pose, torch.stack([u, v], -1), radius, geom)
+        points = torch.where(usable[:, None, None] & active[..., None], points, 0.0)
+        u, v = points.unbind(-1)
+        t = _initial_rim_parameters(pose, points, radius, geom)
         for _ in range(iterations):
             t = _closest_rim_parameters(pose, t, (u, v), radius, geom)
         dist, jac, *_ = _signed_distances(pose, t, (u, v), weights, radius, geom, False)
@@ -945,7 +947,6 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         inverse, info = torch.linalg.inv_ex(information)
         # The unit-weight variance (not _noise_variance's, which is per mean weight): the
         # covariance then stays the same whatever scale the weights come in.
-        used = (weights > 0).sum(-1, keepdim=True)
         variance = (weights * dist**2).sum(-1, keepdim=True) / (used - 5).clamp_min(1)
         std = (variance * inverse.diagonal(dim1=-2, dim2=-1)).sqrt()
         std = torch.cat([torch.rad2deg(std[:, :2]), std[:, 2:]], -1)
