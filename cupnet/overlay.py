@@ -74,11 +74,10 @@ def pose_lines(index: int, status: str, pose: Sequence[float], residual_px: floa
     if doubt is not None and math.isfinite(doubt):
         lines[0] += f", doubt {doubt:.2f}" + (" - CHECK BY EYE" if check else "")
     if all(math.isfinite(v) for v in pose):
-        sd = (pose_sd if pose_sd is not None and all(math.isfinite(v) for v in pose_sd)
-              else None)
-        theta, phi, k_mm, l_mm, h_mm = (f"{v:.1f}" + ("" if sd is None else f" +-{e:.1f}")
-                                        for v, e in zip(pose, pose if sd is None else sd,
-                                                        strict=True))
+        errors = (pose_sd if pose_sd is not None and all(math.isfinite(v) for v in pose_sd)
+                  else [None] * len(pose))
+        theta, phi, k_mm, l_mm, h_mm = (f"{v:.1f}" if e is None else f"{v:.1f} +-{e:.1f}"
+                                        for v, e in zip(pose, errors, strict=True))
         lines.append(f"  anteversion {theta} deg, inclination {phi} deg")
         lines.append(f"  k {k_mm}, l {l_mm}, h {h_mm} mm; residual {residual_px:.2f} px")
     if alt_pose is not None and all(math.isfinite(v) for v in alt_pose):
