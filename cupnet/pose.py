@@ -275,22 +275,25 @@ def _rim(pose: Tensor, t: Tensor, radius: Tensor, geom: Tensor) -> _Rim:
 
 
 def _closest_rim_parameters(pose: Tensor, t: Tensor, points: tuple[Tensor, Tensor],
-                            radius: Tensor, geom: Tensor) -> Tensor:
-    """One safeguarded Newton step of each landmark's rim parameter towards its closest rim
-    point. Newton, not Gauss-Newton: near the tips of a thin ellipse the rim's radius of
-    curvature falls below the landmark noise, where Gauss-Newton steps overshoot.
+                            radius: Tensor, geom: Tensor, steps: int = 1) -> Tensor:
+    """``steps`` safeguarded Newton steps of each landmark's rim parameter towards its
+    closest rim point. Newton, not Gauss-Newton: near the tips of a thin ellipse the rim's
+    radius of curvature falls below the landmark noise, where Gauss-Newton steps overshoot.
 
     Args: pose ``(B, 5)``, t ``(B, N)``, points ``(u, v)`` px, each ``(B, N)``, radius
     ``(B,)``, geom ``(B, 4)``.
     Returns: the new ``t``, ``(B, N)``.
     """
-    rim = _rim(pose, t, radius, geom)
-    off_u, off_v = points[0] - rim.u, points[1] - rim.v
-    # Half the Hessian of |x - rim(t)|^2 / 2; floored where the landmark lies beyond the
-    # centre of curvature (there the closest point is far and a bounded step is safer).
-    hessian = torch.maximum(rim.speed2 - (off_u * rim.ddu + off_v * rim.ddv), 0.25 * rim.speed2)
-    step = (off_u * rim.du + off_v * rim.dv) / hessian.clamp_min(1e-30)
-    return t + step.clamp(-0.5, 0.5)
+    for _ in range(steps):
+        rim = _rim(pose, t, radius, geom)
+        off_u, off_v = points[0] - rim.u, points[1] - rim.v
+        # Half the Hessian of |x - rim(t)|^2 / 2; floored where the landmark lies beyond the
+        # centre of curvature (there the closest point is far and a bounded step is safer).
+        hessian = torch.maximum(rim.speed2 - (off_u * rim.ddu + off_v * rim.ddv),
+                                0.25 * rim.speed2)
+        step = (off_u * rim.du + off_v * rim.dv) / hessian.clamp_min(1e-30)
+        t = t + step.clamp(-0.5, 0.5)
+    return t
 
 
 def _normal_jacobian(pose: Tensor, rim: _Rim) -> tuple[Tensor, Tensor, Tensor]:
@@ -663,8 +666,7 @@ def _newton_distances(pose: Tensor, t: Tensor, u: Tensor, v: Tensor, radius: Ten
                       geom: Tensor, iterations: int) -> Tensor:
     """Landmark distances ``(B, N)`` px to the rim after ``iterations`` Newton steps of
     their rim parameters ``t``; landmarks ``u, v`` ``(B, N)``."""
-    for _ in range(iterations):
-        t = _closest_rim_parameters(pose, t, (u, v), radius, geom)
+    t = _closest_rim_parameters(pose, t, (u, v), radius, geom, iterations)
     rim = _rim(pose, t, radius, geom)
     return torch.hypot(u - rim.u, v - rim.v)
 
@@ -940,8 +942,7 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         points = torch.where(usable[:, None, None] & active[..., None], points, 0.0)
         u, v = points.unbind(-1)
         t = _initial_rim_parameters(pose, points, radius, geom)
-        for _ in range(iterations):
-            t = _closest_rim_parameters(pose, t, (u, v), radius, geom)
+        t = _closest_rim_parameters(pose, t, (u, v), radius, geom, iterations)
         dist, jac, *_ = _signed_distances(pose, t, (u, v), weights, radius, geom, False)
         information = jac.transpose(-1, -2) @ (weights[..., None] * jac)
         inverse, info = torch.linalg.inv_ex(information)
