@@ -182,10 +182,21 @@ class CupNetConfig:
             flagged ``check`` (None: none is): the edges the network finds across its rim or
             dome outline lie off them, as they do for most gross failures (needs
             ``outline_passes``). A cup reported beyond ``max_theta_deg`` is flagged too.
-        second_look: an image with a cup flagged ``check`` or failed is detected again with
-            the locator on its mirror image, and such a cup takes the second look's
-            unflagged detection of the same place where that one is doubted less
-            (:meth:`CupNet._looked_again`; needs ``check_doubt``). This look verifies its
+            The flag alone: which cups the later looks look at again goes by
+            ``look_again_doubt``.
+        look_again_doubt: while :meth:`CupNet.detect` looks, a cup counts as flagged (one
+            the later looks look at again, and a later look's detection one they do not
+            believe) where doubted this much or more, or beyond ``max_theta_deg`` (None:
+            ``check_doubt``); ``check_doubt`` flags the cups reported once every look is
+            done. Above ``check_doubt``, more cups are flagged for a look by eye than are
+            looked at again: the flag catches most gross failures, and the later looks'
+            work and poses stay those of the threshold they were chosen with
+            (docs/training.md, item 51).
+        second_look: an image with a cup flagged (``look_again_doubt``) or failed is
+            detected again with the locator on its mirror image, and such a cup takes the
+            second look's unflagged detection of the same place where that one is doubted
+            less (:meth:`CupNet._looked_again`; needs ``look_again_doubt`` or
+            ``check_doubt``). This look verifies its
             doubtful cups but searches none (:meth:`CupNet.later_looks`).
         third_look_gamma: ... and an image with a cup still flagged or failed after that is
             detected again with the locator on the image raised to this power, the same rule
@@ -278,6 +289,7 @@ class CupNetConfig:
     search_rim_doubt: float | None = None
     search_screen: int | None = None
     check_doubt: float | None = None
+    look_again_doubt: float | None = None
     second_look: bool = False
     third_look_gamma: float | None = None
     high_gamma_look: float | None = None

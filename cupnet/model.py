@@ -27,7 +27,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -636,11 +636,35 @@ class CupNet(nn.Module):
                 for look in self.later_looks():
                     self._looked_again(found, image_list, geometry, diameter, return_masks,
                                        look, fields)
+            found = [[self._flagged_for_the_eye(cup) for cup in cups] for cups in found]
             return [cups if crop is None else [moved(cup, crop[:2], shape) for cup in cups]
                     for cups, crop, shape in zip(found, crops, shapes, strict=True)]
         finally:
             if was_training:
                 self.train()
+
+    @property
+    def look_again_doubt(self) -> float | None:
+        """The doubt from which a cup counts as flagged while :meth:`detect` looks
+        (``look_again_doubt``, else ``check_doubt``)."""
+        cfg = self.config
+        return cfg.check_doubt if cfg.look_again_doubt is None else cfg.look_again_doubt
+
+    def flagged(self, doubt: float | None, pose: Tensor, threshold: float | None
+                ) -> bool | None:
+        """Whether a cup of ``doubt`` and ``pose`` ``(5,)`` deg / mm is flagged at
+        ``threshold`` (None: beyond ``max_theta_deg`` alone); None where no doubt was
+        measured."""
+        if doubt is None:
+            return None
+        return (threshold is not None and doubt >= threshold) or not bool(
+            self.in_theta_range(pose))
+
+    def _flagged_for_the_eye(self, cup: CupDetection) -> CupDetection:
+        """``cup`` as :meth:`detect` reports it: flagged at ``check_doubt`` (the looks went
+        by ``look_again_doubt``); the same object where that changes nothing."""
+        check = self.flagged(cup.doubt, torch.from_numpy(cup.pose), self.config.check_doubt)
+        return cup if check == cup.check else replace(cup, check=check)
 
     def later_looks(self) -> list[Look]:
         """:meth:`detect`'s later looks at images with a flagged or failed cup, in order,
@@ -878,9 +902,7 @@ class CupNet(nn.Module):
                 score=float(scores[i, c]),
                 outline=None if outlines[k] is None else outlines[k].numpy(),
                 doubt=doubt,
-                check=None if doubt is None else (
-                    (self.config.check_doubt is not None and doubt >= self.config.check_doubt)
-                    or not bool(self.in_theta_range(poses[k]))),
+                check=self.flagged(doubt, poses[k], self.look_again_doubt),
                 metal_bright=bright[i],
             ))
         return [distinct_cups(cups) for cups in results]

@@ -103,9 +103,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                             "several times less accurate (docs/benchmarks.md)")
     parser.add_argument("--check-doubt", type=float, metavar="DOUBT",
                         help="flag a cup check=1 where the model's doubt of its pose reaches "
-                             "this (default: the model's check_doubt, 1.8 for the shipped "
-                             "one; lower flags more cups, more of them right, and looks "
-                             "at more of them again)")
+                             "this (default: the model's check_doubt, 1.4 for the shipped "
+                             "one; lower flags more cups, more of them right). The flag "
+                             "alone: which cups the model looks at again stays its own "
+                             "(look_again_doubt, 1.8 for the shipped one)")
     parser.add_argument("--metal", choices=METAL_DISPLAYS,
                         help="how the images show metal (default: the model's setting, "
                              "auto for the shipped one: judged per image from the cups the "
@@ -228,8 +229,12 @@ class NetworkDetector:
         elif runtime != "torch":
             self.model, runtime = _in_onnx_runtime(self.model, strict=runtime == "onnx")
         apply_speed_preset(self.model.config, preset)
+        config = self.model.config
+        if "check_doubt" in (settings or {}) and config.look_again_doubt is None:
+            # A flag set for the eye alone: the later looks keep the checkpoint's threshold.
+            config.look_again_doubt = config.check_doubt
         for name, value in (settings or {}).items():
-            setattr(self.model.config, name, value)
+            setattr(config, name, value)
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),

@@ -406,6 +406,41 @@ def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, turned, s
     assert found[0].metal_bright == shown_bright
 
 
+@pytest.mark.parametrize(("check_below", "look_below", "looked_again", "flagged"), [
+    (True, None, True, True), (True, False, False, True), (False, True, True, False)])
+def test_the_flag_and_the_later_looks_go_by_their_own_doubts(shipped_on_drr, monkeypatch,
+                                                             check_below, look_below,
+                                                             looked_again, flagged):
+    """``check_doubt`` flags the reported cups and ``look_again_doubt`` (None: the same)
+    picks the cups looked at again: each set just below the DRR's cup's doubt (so it
+    counts) or just above it. The flag changes no pose: set below the cup's doubt alone,
+    the cup comes out as without it, flagged."""
+    model, sample = shipped_on_drr
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+
+    def detected():
+        return model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
+                            return_masks=False)[0]
+
+    looks = _first_look_turned(model, monkeypatch, second_look=True, turned=False)
+    (plain,) = detected()
+    assert looks == [("first", 1)] and not plain.check
+    looks.clear()
+    doubt = plain.doubt
+
+    def near(below: bool | None) -> float | None:
+        return None if below is None else doubt + (-0.01 if below else 0.01)
+
+    monkeypatch.setattr(model.config, "check_doubt", near(check_below))
+    monkeypatch.setattr(model.config, "look_again_doubt", near(look_below))
+    (cup,) = detected()
+    assert [kind for kind, _ in looks] == (["first", "mirrored"] if looked_again else ["first"])
+    assert cup.check == flagged
+    if not looked_again:
+        assert cup.doubt == doubt
+        assert (cup.pose == plain.pose).all()
+
+
 def test_the_second_look_takes_each_looked_at_images_own_geometry(shipped_on_drr,
                                                                    monkeypatch):
     """A batch of a blank image (other geometry, no cup) and the DRR whose first look is
@@ -574,7 +609,7 @@ def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_
     # A cup a partner look adds must be doubted less than partner_doubt.
     assert [look.partners_below for look in looks] == [
         model.config.partner_doubt, None, model.config.partner_doubt, None]
-    assert model.config.partner_doubt < model.config.check_doubt
+    assert model.config.partner_doubt < model.look_again_doubt
     assert model.config.high_gamma_look > 1 > model.config.third_look_gamma
     assert looks[-1].below < model.config.verify_gate
     calls: list[str] = []

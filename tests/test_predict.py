@@ -561,7 +561,8 @@ def test_overlay_text_gives_the_standard_errors_where_there_are_any() -> None:
                          [([], None, {}), (["--fast"], "fast", {"verify_gate": None}),
                           (["--fastest"], "fastest",
                            {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None}),
-                          (["--check-doubt", "0.5"], None, {"check_doubt": 0.5}),
+                          (["--check-doubt", "0.5"], None,
+                           {"check_doubt": 0.5, "look_again_doubt": 1.8}),
                           (["--metal", "bright"], None, {"metal": "bright"}),
                           (["--keep-outside-field"], None, {"round_field": False}),
                           (["--min-score", "0"], None, {"min_score": 0.0})])
@@ -569,7 +570,8 @@ def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
         tmp_path: Path, flags: list[str], preset: str | None, changed: dict) -> None:
     """``--fast`` turns the model's verification off, ``--fastest`` also its outline
     refinement and thin-rim hypotheses (the recorded config shows it, and the preset's name
-    is recorded); ``--check-doubt`` sets the flag's threshold, ``--metal`` how the images
+    is recorded); ``--check-doubt`` sets the flag's threshold (the later looks keep the
+    checkpoint's, which was the flag's), ``--metal`` how the images
     show metal, ``--keep-outside-field`` keeps cups outside a round field, ``--min-score``
     sets the weakest locator blob kept; every other setting is the checkpoint's."""
     stored = {"detect_threshold": 2.0, "verify_gate": 1.0, "check_doubt": 1.8,
