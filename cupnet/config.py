@@ -196,8 +196,8 @@ class CupNetConfig:
             detected again with the locator on its mirror image, and such a cup takes the
             second look's unflagged detection of the same place where that one is doubted
             less (:meth:`CupNet._looked_again`; needs ``look_again_doubt`` or
-            ``check_doubt``). This look verifies its
-            doubtful cups but searches none (:meth:`CupNet.later_looks`).
+            ``check_doubt``). This look verifies its doubtful cups but searches none
+            (:meth:`CupNet.later_looks`).
         third_look_gamma: ... and an image with a cup still flagged or failed after that is
             detected again with the locator on the image raised to this power, the same rule
             taking its detections, verified but not searched (None: no third look).
