@@ -44,6 +44,7 @@ from cupnet.runtime import RUNTIMES, networks_in_onnx_runtime  # noqa: E402
 from train.data import synth_config  # noqa: E402
 from train.losses import POSE_NAMES as NAMES  # noqa: E402
 from train.losses import POSE_SCALE as TARGETS  # noqa: E402  (the issue's target MAEs)
+from train.losses import pose_errors  # noqa: E402
 from train.module import cup_errors  # noqa: E402
 
 # Seeds of fresh DRRs no inference setting was chosen on, and those that chose them (with the
@@ -176,15 +177,20 @@ def failure_gallery(cases: list[tuple[dict, int, CupDetection | None, np.ndarray
 def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict[str, float]:
     """Pose MAE of matched cups and the fraction of true cups detected with a pose; appends
     ``(sample, cup index, detection, errors)`` of each true cup to ``cases`` when given."""
-    errors, check, found, total, false_pos, false_flagged = [], [], 0, 0, 0, 0
+    errors, check, alt_right, found, total, false_pos, false_flagged = [], [], [], 0, 0, 0, 0
     for s in data:
         dets = detect_sample(model, s)
-        cups, fp = cup_errors(dets, s["pose"].double().numpy(), s["ellipse"].numpy(),
+        truth = s["pose"].double()
+        cups, fp = cup_errors(dets, truth.numpy(), s["ellipse"].numpy(),
                               s["cup_valid"].numpy().astype(bool))
         if cases is not None:
             cases += [(s, c, det, err) for c, det, err in cups]
         errors += [err for _, _, err in cups if err is not None]
         check += [det.check for _, det, err in cups if err is not None]
+        # An ambiguous pair reported in the wrong order: its second pose is right.
+        alt_right += [det.alt_pose is not None and bool(
+            (pose_errors(torch.from_numpy(det.alt_pose)[None], truth[c:c + 1])[0, :2].abs()
+             <= GROSS_DEG).all()) for c, det, err in cups if err is not None]
         found += sum(err is not None for _, _, err in cups)
         total += len(cups)
         false_pos += fp
@@ -201,8 +207,10 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
     check = np.array(check or [False] * len(errors), dtype=bool)
     gross = errors[:, :2].max(1) > GROSS_DEG
     rest = errors[~check] if (~check).any() else np.full((1, 5), np.nan)
+    alt_right = np.array(alt_right or [False] * len(errors), dtype=bool)
     out.update(flagged=int(check.sum()), gross=int(gross.sum()),
                gross_flagged=int((gross & check).sum()),
+               gross_alt_right=int((gross & alt_right).sum()),
                **{f"unflagged_mae_{n}": float(v) for n, v in zip(NAMES, rest.mean(0),
                                                                  strict=True)})
     return out
@@ -545,7 +553,9 @@ def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> Non
                        f"doubt >= `check_doubt` {net.config.check_doubt}), "
                        f"{res['gross_flagged']} of the {res['gross']} gross failures "
                        f"(anteversion or inclination off by more than {GROSS_DEG:g} deg) "
-                       "among them.")
+                       f"among them; {res['gross_alt_right']} of those {res['gross']} are "
+                       "ambiguous pairs reported in the wrong order (status `ambiguous`, "
+                       "the second pose right), which no doubt flags.")
         no_cup, no_cup_flagged = false_detections(net, no_cup_set)
         table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
                       f"{res['false_positives']} ({res['false_positives_flagged']} flagged)",
