@@ -893,8 +893,7 @@ def cramer_rao_bound(pose: Tensor, radius: Tensor | float, geometry: Geometry, t
     normal = normal / torch.linalg.vector_norm(normal, dim=-1, keepdim=True)
     rows = torch.einsum("bnk,bnkp->bnp", normal, jac)
     fisher = rows.transpose(-1, -2) @ rows / sigma_px**2
-    std = torch.linalg.inv(fisher).diagonal(dim1=-2, dim2=-1).sqrt()
-    return torch.cat([torch.rad2deg(std[:, :2]), std[:, 2:]], -1)
+    return pose_to_degrees(torch.linalg.inv(fisher).diagonal(dim1=-2, dim2=-1).sqrt())
 
 
 def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
@@ -949,8 +948,7 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         # The unit-weight variance (not _noise_variance's, which is per mean weight): the
         # covariance then stays the same whatever scale the weights come in.
         variance = (weights * dist**2).sum(-1, keepdim=True) / (used - 5).clamp_min(1)
-        std = (variance * inverse.diagonal(dim1=-2, dim2=-1)).sqrt()
-        std = torch.cat([torch.rad2deg(std[:, :2]), std[:, 2:]], -1)
+        std = pose_to_degrees((variance * inverse.diagonal(dim1=-2, dim2=-1)).sqrt())
         usable = usable & (info == 0) & torch.isfinite(std).all(-1)
         return torch.where(usable[:, None], std, torch.full_like(std, math.nan))
 
