@@ -14,6 +14,7 @@ from typing import Literal
 
 import torch
 from torch import Tensor
+from torch.autograd.function import FunctionCtx
 
 from cupnet.geometry import normalize_conic
 
@@ -154,8 +155,8 @@ class _PencilEigenvector(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, scatter: Tensor, constraint: Tensor, vec: Tensor,  # type: ignore[override]
-                steps: int) -> Tensor:
+    def forward(ctx: FunctionCtx, scatter: Tensor, constraint: Tensor,  # type: ignore[override]
+                vec: Tensor, steps: int) -> Tensor:
         for _ in range(steps):
             rayleigh = (vec.transpose(-1, -2) @ scatter @ vec) / (
                 vec.transpose(-1, -2) @ constraint @ vec)
@@ -169,7 +170,8 @@ class _PencilEigenvector(torch.autograd.Function):
         return vec
 
     @staticmethod
-    def backward(ctx, grad_vec: Tensor):  # type: ignore[override]
+    def backward(ctx: FunctionCtx, grad_vec: Tensor  # type: ignore[override]
+                 ) -> tuple[Tensor, None, None, None]:
         scatter, constraint, vec = ctx.saved_tensors
         vt = vec.transpose(-1, -2)
         c_vec = constraint @ vec

@@ -29,6 +29,7 @@ from typing import Any, Literal, NamedTuple
 
 import torch
 from torch import Tensor
+from torch.autograd.function import FunctionCtx
 from torch.func import jacfwd, vmap
 
 from cupnet.ellipse import conic_to_params, fit_ellipse
@@ -474,7 +475,9 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
     pts = points.unbind(-1)  # contiguous u and v: strided views slow every elementwise op
     outline_points, outline_weights = (None, None) if outline is None else outline
 
-    def evaluate(p, tt, x, w, rw, g, r, active):
+    def evaluate(p: Tensor, tt: Tensor, x: tuple[Tensor, Tensor], w: Tensor, rw: Tensor,
+                 g: Tensor, r: Tensor, active: Tensor
+                 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         jtj, rhs, cost, tt = _run(_normal_equations, compiled, p, tt, x[0], x[1], w, rw, g, r,
                                   corrected)
         if outline_points is not None:
@@ -539,8 +542,9 @@ class _RefinePose(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, start, points, weights, geom, radius, max_iter, tol,  # type: ignore[override]
-                corrected, compiled):
+    def forward(ctx: FunctionCtx, start: Tensor, points: Tensor,  # type: ignore[override]
+                weights: Tensor, geom: Tensor, radius: Tensor, max_iter: int, tol: float,
+                corrected: bool, compiled: bool) -> tuple[Tensor, Tensor]:
         with torch.no_grad():
             t0 = _initial_rim_parameters(start, points, radius, geom)
             pose, t = _levenberg_marquardt(start, t0, points, weights, geom, radius, max_iter,
@@ -551,7 +555,8 @@ class _RefinePose(torch.autograd.Function):
         return pose, t
 
     @staticmethod
-    def backward(ctx, grad_pose, _grad_t):  # type: ignore[override]
+    def backward(ctx: FunctionCtx, grad_pose: Tensor,  # type: ignore[override]
+                 _grad_t: Tensor | None) -> tuple[Tensor | None, ...]:
         pose, t, points, weights, geom, radius = ctx.saved_tensors
 
         def equations(p: Tensor, tt: Tensor, x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:

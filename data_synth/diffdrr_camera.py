@@ -15,6 +15,8 @@ off CONVENTIONS; the subject's ``reorient`` matrix is composed before the pose.
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from diffdrr.drr import DRR
 from diffdrr.pose import RigidTransform
@@ -30,7 +32,8 @@ def camera_from_detector(sdd: float) -> Tensor:
                         dtype=torch.float64)
 
 
-def make_drr(subject: Subject, geometry: Geometry, width: int, height: int, **kwargs) -> DRR:
+def make_drr(subject: Subject, geometry: Geometry, width: int, height: int,
+             **kwargs: Any) -> DRR:
     """A DiffDRR renderer whose image pixel ``[i, j]`` is the CONVENTIONS pixel ``(u=j, v=i)``.
 
     ``geometry`` must be one image's (scalar fields); the pixels are square. ``kwargs`` go to

@@ -10,13 +10,18 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import lightning as L
 from torch.utils.data import DataLoader, IterableDataset, default_collate
 
+if TYPE_CHECKING:  # data_synth loads where a config is made
+    from data_synth import SynthConfig
+
 
 def synth_config(source: str | dict | None,
-                 image_size: int | tuple[int, int] | list[int] | None = None):
+                 image_size: int | tuple[int, int] | list[int] | None = None
+                 ) -> SynthConfig:
     """A ``data_synth.SynthConfig`` from a YAML path, a dict of fields, or None (defaults),
     with ``image_size`` when given: a square side, or ``(width, height)`` pixels."""
     from data_synth import SynthConfig

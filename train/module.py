@@ -573,7 +573,7 @@ class CupNetModule(L.LightningModule):
         self.log("val/score", relative + 10 * (1 - detected), batch_size=size, prog_bar=True,
                  sync_dist=True)
 
-    def configure_optimizers(self):
+    def configure_optimizers(self) -> dict[str, object]:
         optimizer = torch.optim.AdamW((p for p in self.parameters() if p.requires_grad),
                                       lr=self.hparams.lr,
                                       weight_decay=self.hparams.weight_decay)
