@@ -17,8 +17,10 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(BIN)/cupnet demo
 
-test: $(STAMP)
+lint: $(STAMP)
 	$(BIN)/ruff check .
+
+test: lint
 	$(BIN)/python -m pytest
 
 bench: $(STAMP)
