@@ -19,7 +19,8 @@ class CupDetection:
     Attributes:
         pose: ``(5,)`` (theta_deg, phi_deg, k_mm, l_mm, h_mm); NaN where ``status`` is an error.
         alt_pose: ``(5,)`` the second in-range pose where ``ambiguous``, else None.
-        ambiguous: both poses of the ellipse lie in range.
+        ambiguous: both circle poses of the ellipse lie in range: of the landmarks' fit, or
+            (from the network) of ``pose``'s rim (:func:`cupnet.model.with_second_poses`).
         ellipse: ``(5,)`` (cx, cy, a, b, alpha_deg) original-image pixels: the rim ellipse
             of ``pose`` where the model refined it with the dome's outline, else the
             landmarks' weighted fit.

@@ -667,6 +667,32 @@ def _select(solutions: Tensor, ambiguity_tol: float) -> tuple[Tensor, Tensor, Te
     return canonical_pose(chosen), canonical_pose(other), ambiguous
 
 
+def other_circle_pose(pose: Tensor, radius: Tensor, geometry: Geometry,
+                      ambiguity_tol_deg: float = 1.0) -> tuple[Tensor, Tensor]:
+    """The second circle pose of the rim ellipse that ``pose`` projects to (the two poses of
+    :func:`poses_from_conic`), and whether it lies in the CONVENTIONS ranges (within
+    ``ambiguity_tol_deg``, as :func:`solve_pose` judges its candidates).
+
+    A pose refined by more than its rim's landmarks (the dome's outline, say) projects to a
+    slightly different ellipse than the landmarks' fit; this tells whether that ellipse, the
+    one reported, could as well be the rim of another pose in range.
+
+    Args:
+        pose: ``(B, 5)`` deg / mm (public units); radius: ``(B,)`` mm; geometry: fields
+        ``(B,)`` or scalars.
+    Returns:
+        ``(B, 5)`` the other pose, deg / mm, in range (or clamped to it,
+        :func:`canonical_pose`); ``(B,)`` bool, in range.
+    """
+    rad = pose_to_radians(pose)
+    candidates = poses_from_conic(rim_conic(rad, radius, geometry), geometry, radius)
+    # The candidate whose rim normal lies farther from the pose's is the other one.
+    alignment = (cup_axis(candidates) * cup_axis(rad)[:, None]).sum(-1).abs()
+    other = candidates[torch.arange(len(pose), device=pose.device), alignment.argmin(-1)]
+    in_range = range_violation(other) <= math.radians(ambiguity_tol_deg)
+    return pose_to_degrees(canonical_pose(other)), in_range
+
+
 def _newton_distances(pose: Tensor, t: Tensor, u: Tensor, v: Tensor, radius: Tensor,
                       geom: Tensor, iterations: int) -> Tensor:
     """Landmark distances ``(B, N)`` px to the rim after ``iterations`` Newton steps of

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from cup_cases import detection, rim_landmarks
 from torch import nn
 
 from cupnet.config import SPEED_PRESETS, CupNetConfig, apply_speed_preset
@@ -28,8 +30,14 @@ from cupnet.ellipse import ellipse_points, fit_ellipse
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry
 from cupnet.landmarks import component_moments, ellipse_coverage, ray_landmarks, soft_moments
-from cupnet.model import CupNet, load_model, mirrored_ellipses, save_model
-from cupnet.pose import ellipse_of_pose
+from cupnet.model import (
+    CupNet,
+    load_model,
+    mirrored_ellipses,
+    save_model,
+    with_second_poses,
+)
+from cupnet.pose import ellipse_of_pose, solve_pose
 from data_synth import SynthConfig, synthesize
 
 TINY = CupNetConfig(encoder="resnet18", decoder_channels=(8, 8), n_rays=48, ray_samples=96)
@@ -634,3 +642,26 @@ def test_detect_names_a_cup_diameter_of_the_wrong_shape():
     with pytest.raises(ValueError, match=r"cup_diameter must be a scalar or \(2,\), got \(3,\)"):
         CupNet(TINY).detect(torch.rand(2, 1, 256, 256), Geometry(1000.0, 0.3, 128.0, 128.0),
                             torch.full((3,), 50.0))
+
+
+def test_a_reported_rim_with_a_second_pose_in_range_makes_its_cup_ambiguous() -> None:
+    """with_second_poses: an ``ok`` cup whose pose's rim has a second pose in range becomes
+    ``ambiguous`` with that pose (as solve_pose finds it from the rim's exact landmarks); its
+    pose and everything else stay. One without, a failed one, and one already ambiguous are
+    left as they are."""
+    geometry = Geometry(1040.0, 1.0, 0.0, 0.0)
+    poses = torch.tensor([[0.3, 20.0, 0.0, 0.0, 300.0],   # nearly edge-on: two poses
+                          [25.0, 40.0, 30.0, 20.0, 250.0]], dtype=torch.float64)
+    reference = solve_pose(rim_landmarks(poses, geometry), geometry, 50.0)
+    assert reference.ambiguous.tolist() == [True, False]
+    edge_on, typical = (replace(detection([700.0, 650.0, 60.0, 5.0, 0.0]), pose=p.numpy())
+                        for p in reference.pose)
+    failed = detection([100.0, 100.0, 30.0, 20.0, 0.0], status="error: no pose")
+    already = replace(edge_on, ambiguous=True, alt_pose=np.zeros(5), status="ambiguous")
+    found = [[edge_on, typical], [failed, already]]
+    out = with_second_poses(found, geometry, torch.full((2,), 50.0, dtype=torch.float64))
+    made = out[0][0]
+    assert made.ambiguous and made.status == "ambiguous" and made.pose is edge_on.pose
+    np.testing.assert_allclose(made.alt_pose, reference.alt_pose[0].numpy(), atol=1e-4)
+    assert replace(made, ambiguous=False, alt_pose=None, status="ok") == edge_on
+    assert out[0][1] is typical and out[1][0] is failed and out[1][1] is already

@@ -14,6 +14,7 @@ from cupnet.pose import (
     canonical_pose,
     cramer_rao_bound,
     orthographic_pose,
+    other_circle_pose,
     pose_standard_errors,
     poses_from_conic,
     range_violation,
@@ -66,6 +67,31 @@ def test_edge_on_and_face_on_cups():
     assert err[[0, 2]].max() < 1e-5
     # Face-on: phi is ill-defined, the rest is exact.
     assert (sol.pose[1, [0, 2, 3, 4]] - truth[1, [0, 2, 3, 4]]).abs().max() < 1e-3
+
+
+def test_other_circle_pose_is_the_solvers_second_pose(generator):
+    """From a pose alone: the second pose of its rim's ellipse, and whether it is in range,
+    as solve_pose finds them from exact landmarks of that rim (an independent path: a fit,
+    the closed form, the ML refinement); the other pose's other pose is the pose again."""
+    truth = paper_poses(400, generator)
+    geometry = Geometry(1040.0, 0.4, 700.0, 650.0)
+    radius = torch.full((len(truth),), 25.0, dtype=torch.float64)
+    sol = solve_pose(rim_landmarks(truth, geometry), geometry, 50.0)
+    other, in_range = other_circle_pose(sol.pose, radius, geometry)
+    # Away from the range's 1 deg margin, where round-off could tip either judgement.
+    raw = poses_from_conic(rim_conic(pose_to_radians(sol.pose), radius, geometry), geometry,
+                           radius)
+    # (The pose's own violation is 0: the larger one is the other pose's.)
+    margin = (torch.rad2deg(range_violation(raw)).max(-1).values - 1.0).abs() > 1e-3
+    assert (in_range == sol.ambiguous)[margin].all() and 20 < int(sol.ambiguous.sum()) < 380
+    # 1e-4: nearly edge-on rims are ill-conditioned (as in the round trip above).
+    torch.testing.assert_close(other[sol.ambiguous], sol.alt_pose[sol.ambiguous],
+                               atol=1e-4, rtol=0)
+    # Where the other pose lies strictly in range (not clamped to it), its other is the pose.
+    inside = torch.rad2deg(range_violation(raw)).max(-1).values < 1e-9
+    back, _ = other_circle_pose(other[inside], radius[inside], geometry)
+    torch.testing.assert_close(back, sol.pose[inside], atol=1e-4, rtol=0)
+    assert int(inside.sum()) > 20
 
 
 def test_range_violation_and_canonical_pose():

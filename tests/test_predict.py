@@ -243,7 +243,10 @@ def test_rotate_turns_a_stored_turned_image_back_with_its_principal_point(
                      *map(str, principal), "--cup-diameter",
                      str(float(sample["cup_diameter"][0])), "--quiet", *flags]) == 0
         rows[name] = read_csv(out / "results.csv")
-    assert [r["status"] for r in rows["upright"]] == ["ok"]
+    # One cup found, the same way in both (nearly edge-on, inclination near 90: its rim's
+    # second pose lies in range too).
+    assert [r["status"] for r in rows["upright"]] == [r["status"] for r in rows["stored"]]
+    assert rows["upright"][0]["status"] in ("ok", "ambiguous") and len(rows["upright"]) == 1
     columns = [*POSE_COLUMNS, "ellipse_cx_px", "ellipse_cy_px", "ellipse_angle_deg"]
     assert ([[float(r[c]) for c in columns] for r in rows["stored"]]
             == [[float(r[c]) for c in columns] for r in rows["upright"]])
