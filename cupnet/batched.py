@@ -37,7 +37,7 @@ from torch import Tensor
 from cupnet.geometry import Geometry
 from cupnet.model import CupNet, geometry_rows, takes_pick
 from cupnet.polarity import metals_show_bright
-from cupnet.pose import PoseSolution, ellipse_of_pose
+from cupnet.pose import PoseSolution, ellipse_of_pose, other_circle_pose
 
 
 class BatchedCups(NamedTuple):
@@ -49,7 +49,7 @@ class BatchedCups(NamedTuple):
         ellipse: ``(K, 5)`` (cx, cy, a, b, alpha_deg) original-image pixels.
         valid: ``(K,)`` bool, whether ``pose`` is a solved pose.
         alt_pose: ``(K, 5)`` the second pose of an ambiguous cup (the same rim from the
-            other side), NaN for the others.
+            other side; of the landmarks' fit, or of ``pose``'s rim), NaN for the others.
     """
 
     cup_index: Tensor
@@ -112,6 +112,16 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
         picks.take(todo[took], again, took, points[took], weights[took])
     if outline and model.rim is not None and cfg.outline_passes:
         outlined(model, images, index, picks, geometry, cup_diameter)
+    # As detect (cupnet.model.with_second_poses): a solved cup whose pose's rim has a second
+    # pose in range is ambiguous, with that pose.
+    single = (picks.valid & ~torch.isfinite(picks.alt_pose).all(-1)).nonzero()[:, 0]
+    if len(single):
+        rows = geometry_rows(geometry, len(images)).to(images.device)[index[single]]
+        diameter = torch.as_tensor(cup_diameter, dtype=torch.float64,
+                                   device=images.device).expand(len(images))[index[single]]
+        other, in_range = other_circle_pose(picks.pose[single], diameter / 2,
+                                            Geometry.from_rows(rows))
+        picks.alt_pose[single[in_range]] = other[in_range].to(picks.alt_pose)
     return BatchedCups(cup_index, picks.pose, picks.ellipse, picks.valid, picks.alt_pose)
 
 
