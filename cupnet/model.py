@@ -233,8 +233,8 @@ def with_second_poses(found: list[list[CupDetection]], geometry: Geometry,
     Ambiguity is first judged on the landmarks' fit, before the dome's outline moves the
     pose. Nearly edge-on, a rim whose fit's second pose fell just out of range can be moved
     to one whose second pose is in range, and on the four seed sets that second pose was the
-    true one for 4 of the 7 gross failures the ``check`` flag missed (docs/training.md,
-    item 54): reported ``ok``, they gave no sign of it.
+    true one for 4 of the 6 gross failures reported ``ok`` that the ``check`` flag missed
+    (docs/training.md, item 54): they gave no sign of it.
     """
     todo = [(i, j) for i, cups in enumerate(found) for j, cup in enumerate(cups)
             if cup.status == "ok" and np.isfinite(cup.pose).all()]
