@@ -35,9 +35,9 @@ import torch
 from torch import Tensor
 
 from cupnet.geometry import Geometry
-from cupnet.model import CupNet, geometry_rows, takes_pick
+from cupnet.model import CupNet, geometry_rows, rim_second_poses, takes_pick
 from cupnet.polarity import metals_show_bright
-from cupnet.pose import PoseSolution, ellipse_of_pose, other_circle_pose
+from cupnet.pose import PoseSolution, ellipse_of_pose
 
 
 class BatchedCups(NamedTuple):
@@ -116,11 +116,9 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
     # pose in range is ambiguous, with that pose.
     single = (picks.valid & ~torch.isfinite(picks.alt_pose).all(-1)).nonzero()[:, 0]
     if len(single):
-        rows = geometry_rows(geometry, len(images)).to(images.device)[index[single]]
-        diameter = torch.as_tensor(cup_diameter, dtype=torch.float64,
-                                   device=images.device).expand(len(images))[index[single]]
-        other, in_range = other_circle_pose(picks.pose[single], diameter / 2,
-                                            Geometry.from_rows(rows))
+        other, in_range = rim_second_poses(
+            picks.pose[single], index[single], geometry,
+            torch.as_tensor(cup_diameter, dtype=torch.float64).expand(len(images)))
         picks.alt_pose[single[in_range]] = other[in_range].to(picks.alt_pose)
     return BatchedCups(cup_index, picks.pose, picks.ellipse, picks.valid, picks.alt_pose)
 

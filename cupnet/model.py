@@ -242,15 +242,21 @@ def with_second_poses(found: list[list[CupDetection]], geometry: Geometry,
         return found
     image = torch.tensor([i for i, _ in todo])
     pose = torch.from_numpy(np.stack([found[i][j].pose for i, j in todo])).double()
-    other, in_range = other_circle_pose(
-        pose, diameter[image].double() / 2,
-        Geometry.from_rows(geometry_rows(geometry, len(found))[image]))
+    other, in_range = rim_second_poses(pose, image, geometry, diameter)
     out = [list(cups) for cups in found]
     for (i, j), alt, take in zip(todo, other, in_range.tolist(), strict=True):
         if take:
             out[i][j] = replace(out[i][j], ambiguous=True, alt_pose=alt.numpy(),
                                 status="ambiguous")
     return out
+
+
+def rim_second_poses(pose: Tensor, image: Tensor, geometry: Geometry,
+                     diameter: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`other_circle_pose` of cups' poses ``(K, 5)`` deg / mm (float64), each in the
+    image ``image`` ``(K,)`` of a batch of ``geometry`` and cup ``diameter`` ``(B,)`` mm."""
+    rows = geometry_rows(geometry, len(diameter)).to(pose.device)[image]
+    return other_circle_pose(pose, diameter.to(pose)[image] / 2, Geometry.from_rows(rows))
 
 
 def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
