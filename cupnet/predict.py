@@ -230,9 +230,9 @@ class NetworkDetector:
             self.model, runtime = _in_onnx_runtime(self.model, strict=runtime == "onnx")
         apply_speed_preset(self.model.config, preset)
         config = self.model.config
-        if "check_doubt" in (settings or {}) and config.look_again_doubt is None:
+        if "check_doubt" in (settings or {}):
             # A flag set for the eye alone: the later looks keep the checkpoint's threshold.
-            config.look_again_doubt = config.check_doubt
+            config.look_again_doubt = self.model.look_again_doubt
         for name, value in (settings or {}).items():
             setattr(config, name, value)
         self.save_masks = save_masks
