@@ -2,9 +2,10 @@
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
 ...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh newer blind
-unseen against small captures] [--against JSON]``. Writes the ``model`` (speed), ``model_accuracy``
-(accuracy, ablation), ``model_oblong`` (oblong images), ``model_small`` (small images) and
-``model_captures`` (screenshots; these two not by default),
+unseen against small captures degraded] [--against JSON]``. Writes the ``model`` (speed),
+``model_accuracy`` (accuracy, ablation), ``model_oblong`` (oblong images), ``model_small`` (small
+images), ``model_captures`` (screenshots) and ``model_degraded`` (JPEG, halved, noisier and
+blurrier images; these three not by default),
 ``model_fresh_seed`` (seeds no setting was chosen on), ``model_newer_seeds``,
 ``model_blind_seeds`` and ``model_unseen_seeds`` (seeds nobody had looked at when a rule was
 made; not by default) and
@@ -21,7 +22,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from unittest import mock
 
@@ -284,6 +285,95 @@ def captured(sample: dict) -> dict:
     ellipse[:, :2] += torch.tensor([left, top], dtype=ellipse.dtype)
     return dict(sample, image=torch.from_numpy(capture.astype(np.float32) / 255)[None],
                 geometry=geometry, ellipse=ellipse)
+
+
+def as_8_bit(sample: dict) -> np.ndarray:
+    """``sample``'s image as an 8-bit export holds it: ``(H, W)`` uint8."""
+    return np.round(sample["image"][0].numpy().clip(0, 1) * 255).astype(np.uint8)
+
+
+def with_image(sample: dict, image: np.ndarray) -> dict:
+    """``sample`` holding the 8-bit ``image`` ``(H, W)`` (as a reader gives it, in [0, 1])."""
+    return dict(sample, image=torch.from_numpy(image.astype(np.float32) / 255)[None])
+
+
+def jpeg_exported(sample: dict, quality: int) -> dict:
+    """``sample`` exported as an 8-bit JPEG of ``quality`` (OpenCV's libjpeg) and read back."""
+    ok, data = cv2.imencode(".jpg", as_8_bit(sample), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError(f"OpenCV could not encode a JPEG of quality {quality}")
+    return with_image(sample, cv2.imdecode(data, cv2.IMREAD_GRAYSCALE))
+
+
+def halved(sample: dict) -> dict:
+    """``sample`` exported at half its size (area-averaged, 8 bits): the pixel spacing
+    doubles, and pixel centres at integers put the old ``u`` at ``(u + 0.5) / 2 - 0.5``, so
+    the principal point and the true ellipses' centres move so and their axes halve."""
+    image = cv2.resize(as_8_bit(sample), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+    geometry, ellipse = sample["geometry"].clone(), sample["ellipse"].clone()
+    geometry[1] *= 2
+    geometry[2:] = (geometry[2:] + 0.5) / 2 - 0.5
+    ellipse[:, :2] = (ellipse[:, :2] + 0.5) / 2 - 0.5
+    ellipse[:, 2:4] /= 2
+    return dict(with_image(sample, image), geometry=geometry, ellipse=ellipse)
+
+
+def noisier(sample: dict, sigma: float, rng: np.random.Generator) -> dict:
+    """``sample`` with white Gaussian noise of standard deviation ``sigma`` (of the display
+    range [0, 1]) added, clipped and exported at 8 bits."""
+    image = sample["image"][0].numpy() + rng.normal(0.0, sigma, sample["image"].shape[1:])
+    return with_image(sample, as_8_bit(dict(sample, image=torch.from_numpy(image)[None])))
+
+
+def blurrier(sample: dict, sigma: float) -> dict:
+    """``sample`` blurred by a Gaussian of ``sigma`` px on top of its own blur, at 8 bits."""
+    return with_image(sample, cv2.GaussianBlur(as_8_bit(sample), (0, 0), sigma))
+
+
+# --parts degraded: each row's label and what it does to a sample (with its own noise).
+DEGRADATIONS: dict[str, Callable[[dict, np.random.Generator], dict]] = {
+    "as rendered": lambda s, _: s,
+    "8-bit PNG": lambda s, _: with_image(s, as_8_bit(s)),
+    "JPEG, quality 90": lambda s, _: jpeg_exported(s, 90),
+    "JPEG, quality 75": lambda s, _: jpeg_exported(s, 75),
+    "JPEG, quality 50": lambda s, _: jpeg_exported(s, 50),
+    "half the size (spacing doubled)": lambda s, _: halved(s),
+    "noise, sigma 0.01 more": lambda s, rng: noisier(s, 0.01, rng),
+    "noise, sigma 0.03 more": lambda s, rng: noisier(s, 0.03, rng),
+    "blur, sigma 1 px more": lambda s, _: blurrier(s, 1.0),
+    "blur, sigma 2 px more": lambda s, _: blurrier(s, 2.0),
+}
+
+
+def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
+    """The shipped model (and ``models``' presets) on the same fresh DRRs as exported,
+    compressed, shrunk, noisier and blurrier than any training image: the
+    ``model_degraded`` section."""
+    data = samples(args.eval_config, args.seed + 41, args.degraded_images, args.sizes)
+    rows = []
+    for label, degrade in DEGRADATIONS.items():
+        rng = np.random.default_rng(args.seed + 41)  # each row's noise, the same for each model
+        images = [degrade(s, rng) for s in data]
+        for name, model in models.items():
+            res = accuracy(model, images)
+            print("degraded", label, name, res)
+            rows.append([label, name, *scored(res), f"{res['gross']} ({res['gross_flagged']})"])
+    return ("## CupNet on degraded images\n\n"
+            f"`python benchmarks/model.py --parts degraded --runtimes {' '.join(args.runtimes)}"
+            + "".join(f" --seed-presets {p}" for p in args.seed_presets)
+            + f"`: {args.degraded_images} fresh DRRs from `{args.eval_config}` at "
+            f"{', '.join(map(str, args.sizes))} px in equal shares (seeds {args.seed + 41} "
+            "on), each row the same images degraded as a user's export may be "
+            "(`benchmarks/model.py`, `DEGRADATIONS`): 8-bit, JPEG (OpenCV), halved in size "
+            "(area-averaged, the pixel spacing and principal point given accordingly), "
+            "more white noise (standard deviation of the display range [0, 1]) or more "
+            "Gaussian blur. Training saw a focal-spot blur of sigma 0.2-1.0 px, quantum and "
+            "electronic noise at 300-20,000 photons a pixel, 8 or 16 bits, and no JPEG "
+            "(docs/synth.md). MAE over detected true cups (deg, deg, mm, mm, mm), false "
+            "positives as in the accuracy table; gross: cups whose theta or phi is off by "
+            f"more than {GROSS_DEG:g} deg (of them flagged `check`).\n\n"
+            + markdown_table(["images", "settings", *[f"MAE {n}" for n in NAMES], "detected",
+                              "false positives", "gross (flagged)"], rows))
 
 
 def captures_section(model: CupNet, args: argparse.Namespace) -> str:
@@ -604,6 +694,8 @@ def main() -> None:
     parser.add_argument("--small-images", type=int, default=30, help="images a small side")
     parser.add_argument("--capture-images", type=int, default=60,
                         help="frames shown as screenshots (--parts captures)")
+    parser.add_argument("--degraded-images", type=int, default=180,
+                        help="images a degradation (--parts degraded)")
     parser.add_argument("--seed", type=int, default=20_261_123)
     parser.add_argument("--fresh-seeds", type=int, nargs="+",
                         default=FRESH_SEEDS,
@@ -629,7 +721,7 @@ def main() -> None:
                              "model of the first is the shipped one of the gallery")
     parser.add_argument("--parts", nargs="+", default=["speed", "accuracy", "oblong", "fresh"],
                         choices=["speed", "accuracy", "oblong", *SEED_SECTIONS, "against",
-                                 "small", "captures"],
+                                 "small", "captures", "degraded"],
                         help="the sections to measure; the others are left as they are "
                              "(speed alone: for a change that keeps every pose)")
     args = parser.parse_args()
@@ -686,6 +778,10 @@ def main() -> None:
             text = fresh_seed_section(seed_models, args, part)
             print(text)
             write(section, text, args)
+    if "degraded" in args.parts and args.degraded_images:
+        text = degraded_section(seed_models, args)
+        print(text)
+        write("model_degraded", text, args)
     if "against" in args.parts:
         other = loaded(args.checkpoint, None, args.runtimes[0])
         for key, value in json.loads(args.against).items():

@@ -1,0 +1,75 @@
+"""benchmarks/model.py's degraded exports: what each does to a DRR, its geometry and truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from benchmarks.model import DEGRADATIONS, as_8_bit, blurrier, halved, jpeg_exported, noisier
+from cupnet.ellipse import conic_to_params
+from cupnet.geometry import Geometry, pose_to_radians, project_rim, rim_conic
+from data_synth import SynthConfig, synthesize
+
+
+def _sample() -> dict:
+    return synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0), 4, 0)
+
+
+def test_a_halved_export_keeps_its_rims_where_the_halved_geometry_projects_them():
+    sample = _sample()
+    half = halved(sample)
+    assert half["image"].shape == (1, 256, 256)
+    pose = pose_to_radians(sample["pose"].double())
+    radius = sample["cup_diameter"].double() / 2
+    t = torch.linspace(0, 2 * np.pi, 37, dtype=torch.float64)
+    full_geometry, half_geometry = (Geometry(*(float(v) for v in s["geometry"]))
+                                    for s in (sample, half))
+    # A rim point's pixel in the halved image, from pixel centres at integers: the
+    # projection under the halved geometry (spacing doubled, principal point moved).
+    torch.testing.assert_close(project_rim(pose, radius, half_geometry, t),
+                               (project_rim(pose, radius, full_geometry, t) + 0.5) / 2 - 0.5)
+    # Its true ellipses: those of the rim's conic under that geometry.
+    conic = torch.stack([rim_conic(pose[c:c + 1], radius[c], half_geometry)[0]
+                         for c in range(len(pose))])
+    truth = conic_to_params(conic)
+    valid = sample["cup_valid"].bool()
+    torch.testing.assert_close(half["ellipse"][valid, :4].double(), truth[valid, :4],
+                               atol=1e-3, rtol=0)
+    # Area averaging: the halved image's mean is the 8-bit image's.
+    assert abs(float(half["image"].mean()) - as_8_bit(sample).mean() / 255) < 1 / 255
+
+
+def test_jpeg_loses_more_the_lower_its_quality_and_keeps_the_image_in_place():
+    sample = _sample()
+    exact = as_8_bit(sample).astype(np.float64) / 255
+    errors = [np.abs(jpeg_exported(sample, quality)["image"][0].numpy() - exact).mean()
+              for quality in (95, 75, 50)]
+    assert 0 < errors[0] < errors[1] < errors[2] < 0.02
+    assert jpeg_exported(sample, 50)["geometry"] is sample["geometry"]
+
+
+def test_added_noise_has_the_asked_deviation_and_each_rng_draws_it_again():
+    sample = _sample()
+    first = noisier(sample, 0.03, np.random.default_rng(5))["image"][0].numpy()
+    again = noisier(sample, 0.03, np.random.default_rng(5))["image"][0].numpy()
+    np.testing.assert_array_equal(first, again)
+    exact = sample["image"][0].numpy()
+    unclipped = (exact > 0.15) & (exact < 0.85)
+    # The 8-bit rounding adds 1 / (255 sqrt 12) in quadrature.
+    assert abs((first - exact)[unclipped].std() - np.hypot(0.03, 1 / 255 / 12**0.5)) < 0.002
+
+
+def test_added_blur_keeps_the_mean_and_smooths_the_detail():
+    sample = _sample()
+    exact, blurred = as_8_bit(sample) / 255, blurrier(sample, 2.0)["image"][0].numpy()
+    assert abs(blurred.mean() - exact.mean()) < 1 / 255
+    detail = [np.abs(np.diff(image, axis=1)).mean() for image in (exact, blurred)]
+    assert detail[1] < 0.8 * detail[0]
+
+
+def test_every_degradation_gives_an_image_detect_takes():
+    sample = _sample()
+    for label, degrade in DEGRADATIONS.items():
+        image = degrade(sample, np.random.default_rng(0))["image"]
+        assert image.dtype == torch.float32 and image.ndim == 3, label
+        assert float(image.min()) >= 0 and float(image.max()) <= 1, label
