@@ -357,7 +357,8 @@ def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
         for name, model in models.items():
             res = accuracy(model, images)
             print("degraded", label, name, res)
-            rows.append([label, name, *scored(res), f"{res['gross']} ({res['gross_flagged']})"])
+            rows.append([label, name, *scored(res), f"{res['median_theta']:.2f}",
+                         f"{res['median_phi']:.2f}", f"{res['gross']} ({res['gross_flagged']})"])
     return ("## CupNet on degraded images\n\n"
             f"`python benchmarks/model.py --parts degraded --runtimes {' '.join(args.runtimes)}"
             + "".join(f" --seed-presets {p}" for p in args.seed_presets)
@@ -370,10 +371,12 @@ def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
             "Gaussian blur. Training saw a focal-spot blur of sigma 0.2-1.0 px, quantum and "
             "electronic noise at 300-20,000 photons a pixel, 8 or 16 bits, and no JPEG "
             "(docs/synth.md). MAE over detected true cups (deg, deg, mm, mm, mm), false "
-            "positives as in the accuracy table; gross: cups whose theta or phi is off by "
+            "positives as in the accuracy table, the angles' medians (deg: the typical cup, "
+            "where a few gross failures move the MAE); gross: cups whose theta or phi is off by "
             f"more than {GROSS_DEG:g} deg (of them flagged `check`).\n\n"
             + markdown_table(["images", "settings", *[f"MAE {n}" for n in NAMES], "detected",
-                              "false positives", "gross (flagged)"], rows))
+                              "false positives", "median theta", "median phi",
+                              "gross (flagged)"], rows))
 
 
 def captures_section(model: CupNet, args: argparse.Namespace) -> str:
