@@ -83,6 +83,10 @@ class CupNetConfig:
             networks find and place rims best with metal dark), or ``"auto"`` (turned over
             after the locator where :func:`cupnet.polarity.metal_shows_bright` finds the
             cups it found brighter than their surroundings; wrong on about 1 % of images).
+        denoise_above: an image whose noise (:func:`cupnet.denoise.noise_sigma`, display
+            units) exceeds this is taken through non-local means (:func:`cupnet.denoise.denoised`)
+            before anything else (None: no image is): noisier than nearly every training
+            image, its cups fail grossly more often.
         max_theta_deg: a pose with a larger anteversion (deg) counts as a failure of its
             landmarks: the cup goes on to :meth:`CupNet.detect`'s next landmark source and
             keeps that pose only where none gives one within range (None: any anteversion).
@@ -265,6 +269,7 @@ class CupNetConfig:
     locator_retry_gamma: float | None = None
     round_field: bool = False
     metal: str = "dark"
+    denoise_above: float | None = None
     max_theta_deg: float | None = None
     grown_rim_scale: float | None = None
     reframe_min_scale: float | None = None

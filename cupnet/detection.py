@@ -51,6 +51,11 @@ class CupDetection:
             (:func:`cupnet.pose.pose_standard_errors`), or None: not given for the network's
             landmarks, whose errors are correlated along the rim, so that such errors would
             cover 42-78 % of the real ones where they claim 95 % (docs/training.md, item 50).
+        noise: the image's noise (:func:`cupnet.denoise.noise_sigma`, display units [0, 1]),
+            or None where not measured (the model's ``denoise_above`` is None; landmarks
+            given).
+        denoised: the image was taken through non-local means first, its noise exceeding
+            the model's ``denoise_above``; None where not measured.
     """
 
     pose: np.ndarray
@@ -68,6 +73,8 @@ class CupDetection:
     check: bool | None = None
     metal_bright: bool | None = None
     pose_sd: np.ndarray | None = None
+    noise: float | None = None
+    denoised: bool | None = None
 
 
 def moved(cup: CupDetection, offset: tuple[int, int], shape: tuple[int, int]

@@ -48,6 +48,7 @@ from cupnet.crops import (
     square_windows,
     to_image,
 )
+from cupnet.denoise import denoised, noise_sigma
 from cupnet.detection import (
     CupDetection,
     distinct_cups,
@@ -655,6 +656,9 @@ class CupNet(nn.Module):
             # Checked and converted once: every look takes these, or a subset of them.
             image_list = _as_image_list(images, self.dtype)
             diameter = _cup_diameters(cup_diameter, len(image_list))
+            noises = self.image_noises(image_list)
+            image_list = [image if not cleaned else denoised(image, noise)
+                          for image, (noise, cleaned) in zip(image_list, noises, strict=True)]
             shapes = [tuple(image.shape[-2:]) for image in image_list]
             # Found once: the crops come from them, and the later looks keep them (mirrored
             # where the look is; a turned look's locator finds its field afresh).
@@ -672,13 +676,25 @@ class CupNet(nn.Module):
                 for look in self.later_looks():
                     self._looked_again(found, image_list, geometry, diameter, return_masks,
                                        look, fields)
-            found = [[self._flagged_for_the_eye(cup) for cup in cups] for cups in found]
+            found = [[replace(self._flagged_for_the_eye(cup), noise=noise, denoised=cleaned)
+                      for cup in cups] for cups, (noise, cleaned) in zip(found, noises,
+                                                                           strict=True)]
             found = with_second_poses(found, geometry, diameter)
             return [cups if crop is None else [moved(cup, crop[:2], shape) for cup in cups]
                     for cups, crop, shape in zip(found, crops, shapes, strict=True)]
         finally:
             if was_training:
                 self.train()
+
+    def image_noises(self, images: list[Tensor]) -> list[tuple[float | None, bool | None]]:
+        """Each image's noise (:func:`cupnet.denoise.noise_sigma`, display units) and whether
+        it exceeds ``denoise_above``, so that :meth:`detect` takes the image through
+        non-local means first; ``(None, None)`` each where ``denoise_above`` is None."""
+        above = self.config.denoise_above
+        if above is None:
+            return [(None, None)] * len(images)
+        noises = [noise_sigma(image) for image in images]
+        return [(noise, noise > above) for noise in noises]  # NaN (a flat image): not above
 
     @property
     def look_again_doubt(self) -> float | None:

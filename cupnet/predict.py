@@ -114,6 +114,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "bright): dark (the usual fluoroscopy display, used as given) "
                              "or bright (radiograph-style, metal white: every image turned "
                              "over); docs/training.md, item 20")
+    parser.add_argument("--denoise-above", type=float, metavar="SIGMA",
+                        help="take an image whose noise estimate (the noise column, display "
+                             "units [0, 1]) exceeds this through non-local means before the "
+                             "networks (default: the model's denoise_above, 0.008 for the "
+                             "shipped one; inf: never); docs/training.md, item 55")
     parser.add_argument("--min-score", type=float, metavar="PROBABILITY",
                         help="drop a cup whose locator blob's mean probability is below this "
                              "(default: the model's min_score, 0.8 for the shipped one; 0 "
@@ -380,7 +385,7 @@ def _json(value: object) -> object:
 def summarise(records: Iterable[dict]) -> dict:
     """Counts over image records: images, cups found, statuses, failures by reason."""
     statuses: Counter[str] = Counter()
-    images = cups = check = bright = patient_spacing = 0
+    images = cups = check = bright = cleaned = patient_spacing = 0
     seconds = 0.0
     for record in records:
         images += 1
@@ -391,11 +396,12 @@ def summarise(records: Iterable[dict]) -> dict:
             cups += row["status"] in ("ok", "ambiguous")
             check += str(row.get("check")) == "1"  # rows read back on --resume are strings
         bright += record["rows"][0].get("metal") == "bright"
+        cleaned += str(record["rows"][0].get("denoised")) == "1"
         seconds += float(record["rows"][0].get("seconds") or 0.0)
     errors = {k: v for k, v in statuses.items() if k.startswith("error")}
     return {"images": images, "cups": cups, "ok": statuses["ok"],
             "ambiguous": statuses["ambiguous"], "check": check, "no_cup": statuses["no_cup"],
-            "metal_bright": bright, "patient_spacing": patient_spacing,
+            "metal_bright": bright, "denoised": cleaned, "patient_spacing": patient_spacing,
             "errors": sum(errors.values()), "error_reasons": errors,
             "seconds_per_image": seconds / images if images else None}
 
@@ -579,6 +585,8 @@ class Predictor:
                 title += f", turned {self.args.rotate} deg clockwise (--rotate)"
             if cups and cups[0].metal_bright:
                 title += ", metal shown bright (turned over)"
+            if cups and cups[0].denoised:
+                title += f", denoised (noise {cups[0].noise:.3f})"
             record["overlay"] = f"overlays/{output_name(frame.name, '.png')}"
             write_png(out / record["overlay"], draw_overlay(frame.image, drawings, title))
         if self.args.save_masks:
@@ -621,6 +629,9 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     if summary["metal_bright"]:
         lines.append(f"  {summary['metal_bright']} image(s) taken to show metal bright and "
                      "turned over for the networks: metal=bright in results.csv")
+    if summary.get("denoised"):
+        lines.append(f"  {summary['denoised']} image(s) noisier than the networks' training, "
+                     "denoised first: denoised=1 and their noise in results.csv")
     lines += [f"  warning: {text}" for text in warnings.values()]
     lines.append(f"results: {out / 'results.csv'}, results.json and review.html"
                  + (f"; overlays: {out / 'overlays'}" if overlays else "")
@@ -645,7 +656,7 @@ def run(args: argparse.Namespace) -> int:
 def _model_settings(args: argparse.Namespace) -> dict[str, object]:
     """The model settings the command line overrides (flags not given keep the model's)."""
     given = {"check_doubt": args.check_doubt, "metal": args.metal,
-             "min_score": args.min_score,
+             "min_score": args.min_score, "denoise_above": args.denoise_above,
              "round_field": False if args.keep_outside_field else None}
     return {name: value for name, value in given.items() if value is not None}
 

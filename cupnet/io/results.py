@@ -34,9 +34,12 @@ MURRAY_COLUMNS = ("operative_anteversion_deg", "operative_inclination_deg",
 # Then the pose's standard errors where measured (given landmarks: their scatter about the
 # solved rim, cupnet.pose.pose_standard_errors; blank for the network's).
 SD_COLUMNS = ("anteversion_sd_deg", "inclination_sd_deg", "k_sd_mm", "l_sd_mm", "h_sd_mm")
+# Then the image's noise (display units) and whether the model denoised it first (blank
+# where not measured: the model's denoise_above is None, or landmarks given).
+NOISE_COLUMNS = ("noise", "denoised")
 RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px",
                   "seconds", *ALT_COLUMNS, *CHECK_COLUMNS, "metal", *MURRAY_COLUMNS,
-                  *SD_COLUMNS)
+                  *SD_COLUMNS, *NOISE_COLUMNS)
 
 
 def _finite(values: Iterable[Any]) -> list[float | None]:
@@ -65,6 +68,10 @@ def cup_row(name: str, index: int, cup: Any, seconds: float) -> dict:
         row.update(zip(MURRAY_COLUMNS, angles.tolist(), strict=True))
     if cup.pose_sd is not None:
         row.update(zip(SD_COLUMNS, _finite(cup.pose_sd), strict=True))
+    if cup.noise is not None:
+        row["noise"] = _finite([cup.noise])[0]
+    if cup.denoised is not None:
+        row["denoised"] = int(cup.denoised)
     return row
 
 
