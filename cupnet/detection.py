@@ -51,9 +51,8 @@ class CupDetection:
             (:func:`cupnet.pose.pose_standard_errors`), or None: not given for the network's
             landmarks, whose errors are correlated along the rim, so that such errors would
             cover 42-78 % of the real ones where they claim 95 % (docs/training.md, item 50).
-        noise: the image's noise (:func:`cupnet.denoise.noise_sigma`, display units [0, 1]),
-            or None where not measured (the model's ``denoise_above`` is None; landmarks
-            given).
+        noise: the image's noise (:func:`cupnet.denoise.noise_sigma`, display units [0, 1])
+            where it exceeds the model's ``denoise_above``, else None.
         denoised: the image was taken through non-local means first, its noise exceeding
             the model's ``denoise_above``; None where not measured.
     """

@@ -48,7 +48,7 @@ from cupnet.crops import (
     square_windows,
     to_image,
 )
-from cupnet.denoise import denoised, noise_sigma
+from cupnet.denoise import denoised, noise_sigma, noisier_than
 from cupnet.detection import (
     CupDetection,
     distinct_cups,
@@ -687,14 +687,16 @@ class CupNet(nn.Module):
                 self.train()
 
     def image_noises(self, images: list[Tensor]) -> list[tuple[float | None, bool | None]]:
-        """Each image's noise (:func:`cupnet.denoise.noise_sigma`, display units) and whether
-        it exceeds ``denoise_above``, so that :meth:`detect` takes the image through
-        non-local means first; ``(None, None)`` each where ``denoise_above`` is None."""
+        """Whether each image's noise exceeds ``denoise_above``, so that :meth:`detect`
+        takes it through non-local means first, and that noise (display units; None under
+        the bar: the median that gives it costs more than the decision), as ``(noise,
+        noisy)``; ``(None, None)`` each where ``denoise_above`` is None or infinite (never)."""
         above = self.config.denoise_above
-        if above is None:
+        if above is None or math.isinf(above):
             return [(None, None)] * len(images)
-        noises = [noise_sigma(image) for image in images]
-        return [(noise, noise > above) for noise in noises]  # NaN (a flat image): not above
+        noisy = [noisier_than(image, above) for image in images]
+        return [(noise_sigma(image) if flag else None, flag)
+                for image, flag in zip(images, noisy, strict=True)]
 
     @property
     def look_again_doubt(self) -> float | None:

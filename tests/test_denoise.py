@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from cupnet.denoise import denoised, noise_sigma
+from cupnet.denoise import denoised, noise_sigma, noisier_than
 
 
 def _scene(size: int = 256) -> np.ndarray:
@@ -57,3 +57,17 @@ def test_non_local_means_takes_the_noise_and_keeps_the_edge() -> None:
     smooth = out[0, row - 2:row + 3].double().numpy().mean(0)  # five rows against the rest
     assert len(crossings(smooth)) == len(clean_edges) == 2
     assert np.abs(crossings(smooth) - clean_edges).max() <= 1
+
+
+def test_noisier_than_decides_as_the_median_does() -> None:
+    rng = np.random.default_rng(4)
+    for sigma in (0.004, 0.008, 0.02):
+        noisy = _scene(64) + rng.normal(0, sigma, (64, 64))
+        estimate = noise_sigma(noisy)
+        for bar in (0.5 * estimate, estimate * (1 - 1e-9), estimate, estimate * (1 + 1e-9),
+                    2 * estimate):
+            assert noisier_than(noisy, bar) == (estimate > bar)
+    # An odd count of pixels inside, and an image with none.
+    odd = _scene(65) + rng.normal(0, 0.01, (65, 65))
+    assert noisier_than(odd, noise_sigma(odd) * 0.999) and not noisier_than(odd, noise_sigma(odd))
+    assert not noisier_than(np.zeros((32, 32)), 0.0)
