@@ -21,7 +21,7 @@ refined with the dome's outline, each ambiguous pair ordered by the rim network'
 The metal's display is judged per image as ``detect`` judges it (``metal: auto``,
 :func:`cupnet.polarity.metals_show_bright`). No verification, search, later looks, cut of a
 narrow round field to its square (the batch keeps one image size) or non-local means for noisy
-images (``denoise_above``, on the CPU at 0.1-0.5 s an image), so it is less accurate
+images (``denoise_above``, on the CPU at 0.07-0.25 s an image), so it is less accurate
 than ``detect`` (docs/benchmarks.md, `CupNet throughput`); ``detect``'s
 grown-rim source made it no better (64 DRRs, session 30: theta MAE 3.48 -> 3.51 deg) and is
 left out.
