@@ -34,8 +34,9 @@ MURRAY_COLUMNS = ("operative_anteversion_deg", "operative_inclination_deg",
 # Then the pose's standard errors where measured (given landmarks: their scatter about the
 # solved rim, cupnet.pose.pose_standard_errors; blank for the network's).
 SD_COLUMNS = ("anteversion_sd_deg", "inclination_sd_deg", "k_sd_mm", "l_sd_mm", "h_sd_mm")
-# Then the image's noise (display units) and whether the model denoised it first (blank
-# where not measured: the model's denoise_above is None, or landmarks given).
+# Then the image's noise (display units) where the model denoised it first, and whether it
+# did (blank where not judged: the model's denoise_above is None or infinite, or landmarks
+# given; the noise blank too under the bar).
 NOISE_COLUMNS = ("noise", "denoised")
 RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px",
                   "seconds", *ALT_COLUMNS, *CHECK_COLUMNS, "metal", *MURRAY_COLUMNS,
