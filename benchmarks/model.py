@@ -254,6 +254,16 @@ def small_section(model: CupNet, args: argparse.Namespace) -> str:
                              rows))
 
 
+def as_8_bit(sample: dict) -> np.ndarray:
+    """``sample``'s image as an 8-bit export holds it: ``(H, W)`` uint8."""
+    return np.round(sample["image"][0].numpy().clip(0, 1) * 255).astype(np.uint8)
+
+
+def with_image(sample: dict, image: np.ndarray) -> dict:
+    """``sample`` holding the 8-bit ``image`` ``(H, W)`` (as a reader gives it, in [0, 1])."""
+    return dict(sample, image=torch.from_numpy(image.astype(np.float32) / 255)[None])
+
+
 def in_a_disc(sample: dict, radius: float = 0.49) -> dict:
     """``sample`` with its image masked to a centred disc of ``radius`` of its width (a flat
     black surround), as an intensifier frame shows it, quantised to 8 bits."""
@@ -269,7 +279,7 @@ def captured(sample: dict) -> dict:
     """:func:`in_a_disc`'s frame as a screenshot shows it: in a capture 40 % wider and 16 %
     higher, its flat margins holding patient text, a side marker on the disc's corner; the
     geometry and true ellipses moved with it."""
-    frame = np.round(in_a_disc(sample)["image"][0].numpy() * 255).astype(np.uint8)
+    frame = as_8_bit(in_a_disc(sample))
     height, width = frame.shape
     left, top = int(0.2 * width), int(0.08 * height)
     capture = np.zeros((height + 2 * top, width + 2 * left), np.uint8)
@@ -285,16 +295,6 @@ def captured(sample: dict) -> dict:
     ellipse[:, :2] += torch.tensor([left, top], dtype=ellipse.dtype)
     return dict(sample, image=torch.from_numpy(capture.astype(np.float32) / 255)[None],
                 geometry=geometry, ellipse=ellipse)
-
-
-def as_8_bit(sample: dict) -> np.ndarray:
-    """``sample``'s image as an 8-bit export holds it: ``(H, W)`` uint8."""
-    return np.round(sample["image"][0].numpy().clip(0, 1) * 255).astype(np.uint8)
-
-
-def with_image(sample: dict, image: np.ndarray) -> dict:
-    """``sample`` holding the 8-bit ``image`` ``(H, W)`` (as a reader gives it, in [0, 1])."""
-    return dict(sample, image=torch.from_numpy(image.astype(np.float32) / 255)[None])
 
 
 def jpeg_exported(sample: dict, quality: int) -> dict:
