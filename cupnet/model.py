@@ -676,9 +676,8 @@ class CupNet(nn.Module):
                 for look in self.later_looks():
                     self._looked_again(found, image_list, geometry, diameter, return_masks,
                                        look, fields)
-            found = [[replace(self._flagged_for_the_eye(cup), noise=noise, denoised=cleaned)
-                      for cup in cups] for cups, (noise, cleaned) in zip(found, noises,
-                                                                           strict=True)]
+            found = [[self._as_reported(cup, noise, cleaned) for cup in cups]
+                     for cups, (noise, cleaned) in zip(found, noises, strict=True)]
             found = with_second_poses(found, geometry, diameter)
             return [cups if crop is None else [moved(cup, crop[:2], shape) for cup in cups]
                     for cups, crop, shape in zip(found, crops, shapes, strict=True)]
@@ -715,11 +714,13 @@ class CupNet(nn.Module):
         return (threshold is not None and doubt >= threshold) or not bool(
             self.in_theta_range(pose))
 
-    def _flagged_for_the_eye(self, cup: CupDetection) -> CupDetection:
+    def _as_reported(self, cup: CupDetection, noise: float | None,
+                     cleaned: bool | None) -> CupDetection:
         """``cup`` as :meth:`detect` reports it: flagged at ``check_doubt`` (the looks went
-        by ``look_again_doubt``); the same object where that changes nothing."""
+        by ``look_again_doubt``), with its image's ``noise`` and whether it was ``cleaned``
+        (:meth:`image_noises`)."""
         check = self.flagged(cup.doubt, torch.from_numpy(cup.pose), self.config.check_doubt)
-        return cup if check == cup.check else replace(cup, check=check)
+        return replace(cup, check=check, noise=noise, denoised=cleaned)
 
     def later_looks(self) -> list[Look]:
         """:meth:`detect`'s later looks at images with a flagged or failed cup, in order,
