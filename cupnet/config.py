@@ -87,6 +87,11 @@ class CupNetConfig:
             units) exceeds this is taken through non-local means (:func:`cupnet.denoise.denoised`)
             before anything else (None: no image is): noisier than nearly every training
             image, its cups fail grossly more often.
+        enlarge_below: an image (or, with ``round_field``, its field's square) whose shorter
+            side is under this many pixels is enlarged to it (Lanczos,
+            :func:`cupnet.crops.enlarged`) after the noise check and before the networks, its
+            cups reported in its own pixels (None: none is): the networks learnt images of
+            512 px and more, and place a smaller image's rims worse.
         max_theta_deg: a pose with a larger anteversion (deg) counts as a failure of its
             landmarks: the cup goes on to :meth:`CupNet.detect`'s next landmark source and
             keeps that pose only where none gives one within range (None: any anteversion).
@@ -270,6 +275,7 @@ class CupNetConfig:
     round_field: bool = False
     metal: str = "dark"
     denoise_above: float | None = None
+    enlarge_below: int | None = None
     max_theta_deg: float | None = None
     grown_rim_scale: float | None = None
     reframe_min_scale: float | None = None

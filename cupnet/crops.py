@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import math
 
+import cv2
+import numpy as np
 import torch
 import torch.nn.functional as F
 from kornia.geometry.transform import invert_affine_transform, warp_affine
@@ -39,6 +41,29 @@ def letterbox_affine(height: int, width: int, size: int, dtype: torch.dtype = to
     off_v = (height - 1) / 2 - step * centre
     return similarity(torch.tensor(step, dtype=dtype), torch.tensor(off_u, dtype=dtype),
                       torch.tensor(off_v, dtype=dtype))
+
+
+def enlargement(height: int, width: int, min_side: int | None) -> float:
+    """The factor (>= 1) that brings an ``height x width`` image's shorter side to
+    ``min_side`` px: 1 where it is that long already or ``min_side`` is None."""
+    if min_side is None or min(height, width) >= min_side:
+        return 1.0
+    return min_side / min(height, width)
+
+
+def enlarged(image: Tensor, factor: float) -> Tensor:
+    """``image`` ``(C, H, W)`` in [0, 1] enlarged ``factor`` (> 1) times, Lanczos (OpenCV's
+    8 x 8 kernel), clipped to [0, 1]: ``(C, round(H f), round(W f))``.
+
+    Pixel centres at integers in both: the image's ``u`` lies at ``(u + 0.5) f - 0.5``, with
+    ``f`` the factor itself whatever the sizes' rounding (OpenCV scales so where it is given
+    ``fx`` and no size), so a principal point and a pixel spacing map exactly.
+    """
+    dtype = np.float64 if image.dtype == torch.float64 else np.float32
+    planes = [cv2.resize(plane.numpy().astype(dtype, copy=False), None, fx=factor, fy=factor,
+                         interpolation=cv2.INTER_LANCZOS4)
+              for plane in image.detach().cpu()]
+    return torch.from_numpy(np.stack(planes).clip(0, 1)).to(image.device, image.dtype)
 
 
 def square_windows(height: int, width: int, size: int, overlap: float = 0.5,

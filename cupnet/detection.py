@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 
 
@@ -55,6 +56,9 @@ class CupDetection:
             where it exceeds the model's ``denoise_above``, else None.
         denoised: the image was taken through non-local means first, its noise exceeding
             the model's ``denoise_above``; None where not measured.
+        enlarged: the factor the image (or its round field's square) was enlarged by before
+            the networks, its shorter side under the model's ``enlarge_below``; None where
+            it was not.
     """
 
     pose: np.ndarray
@@ -74,6 +78,7 @@ class CupDetection:
     pose_sd: np.ndarray | None = None
     noise: float | None = None
     denoised: bool | None = None
+    enlarged: float | None = None
 
 
 def moved(cup: CupDetection, offset: tuple[int, int], shape: tuple[int, int]
@@ -90,6 +95,23 @@ def moved(cup: CupDetection, offset: tuple[int, int], shape: tuple[int, int]
         mask[dv:dv + cup.mask.shape[0], du:du + cup.mask.shape[1]] = cup.mask
     return replace(cup, ellipse=ellipse, landmarks=cup.landmarks + (du, dv), mask=mask,
                    outline=None if cup.outline is None else cup.outline + (du, dv))
+
+
+def shrunk(cup: CupDetection, factor: float, shape: tuple[int, int]) -> CupDetection:
+    """``cup`` found in an image enlarged ``factor`` times (:func:`cupnet.crops.enlarged`),
+    in the pixels of that image before, of ``shape`` ``(H, W)``: a pixel ``u`` there lies at
+    ``(u + 0.5) / factor - 0.5`` here, lengths divide by ``factor`` (the pose, in mm, is the
+    same in both), the mask is area-averaged to ``shape``; ``enlarged`` says ``factor``."""
+    def back(points: np.ndarray) -> np.ndarray:
+        return (points + 0.5) / factor - 0.5
+
+    ellipse = cup.ellipse.copy()
+    ellipse[:2], ellipse[2:4] = back(ellipse[:2]), ellipse[2:4] / factor
+    mask = (None if cup.mask is None
+            else cv2.resize(cup.mask, shape[::-1], interpolation=cv2.INTER_AREA))
+    return replace(cup, ellipse=ellipse, landmarks=back(cup.landmarks),
+                   residual_px=cup.residual_px / factor, mask=mask,
+                   outline=None if cup.outline is None else back(cup.outline), enlarged=factor)
 
 
 def found_cup_status(status: str) -> str:

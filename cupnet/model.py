@@ -42,6 +42,8 @@ from torch.nn.utils.rnn import pad_sequence
 from cupnet.config import TARGET_ACCURACY, CupNetConfig
 from cupnet.crops import (
     ellipse_crop_affine,
+    enlarged,
+    enlargement,
     frame_ellipse,
     letterbox_affine,
     resample_batch,
@@ -56,6 +58,7 @@ from cupnet.detection import (
     later_look_cups,
     moved,
     same_place,
+    shrunk,
     wants_another_look,
 )
 from cupnet.ellipse import fit_ellipse
@@ -670,6 +673,12 @@ class CupNet(nn.Module):
                 fields = [field if crop is None else (field[0] - crop[0], field[1] - crop[1],
                                                       field[2])
                           for field, crop in zip(fields, crops, strict=True)]
+            # An image (or field) smaller than the networks' training images is enlarged
+            # to their smallest side first (docs/training.md, item 56).
+            sides = [tuple(image.shape[-2:]) for image in image_list]
+            factors = [enlargement(*side, self.config.enlarge_below) for side in sides]
+            if any(factor > 1 for factor in factors):
+                image_list, geometry, fields = _enlarged(image_list, geometry, fields, factors)
             with memoised_strips():
                 found = self._detect(image_list, geometry, diameter, return_masks,
                                      fields=fields)
@@ -679,6 +688,8 @@ class CupNet(nn.Module):
             found = [[self._as_reported(cup, noise, cleaned) for cup in cups]
                      for cups, (noise, cleaned) in zip(found, noises, strict=True)]
             found = with_second_poses(found, geometry, diameter)
+            found = [cups if factor == 1 else [shrunk(cup, factor, side) for cup in cups]
+                     for cups, factor, side in zip(found, factors, sides, strict=True)]
             return [cups if crop is None else [moved(cup, crop[:2], shape) for cup in cups]
                     for cups, crop, shape in zip(found, crops, shapes, strict=True)]
         finally:
@@ -1645,6 +1656,25 @@ def _cropped(images: list[Tensor], geometry: Geometry,
         out.append(image[:, v0:v0 + side, u0:u0 + side].contiguous())
         rows[i, 2:] -= rows.new_tensor([u0, v0])
     return out, Geometry.from_rows(rows)
+
+
+def _enlarged(images: list[Tensor], geometry: Geometry,
+              fields: list[tuple[float, float, float] | None], factors: list[float]
+              ) -> tuple[list[Tensor], Geometry, list[tuple[float, float, float] | None]]:
+    """``images`` ``(1, H, W)`` enlarged by their ``factors`` (1: kept;
+    :func:`cupnet.crops.enlarged`), with ``geometry`` and the round ``fields`` ``(cx, cy, r)``
+    where the enlargement puts them: the pixel spacing divided by the factor, a point ``u``
+    at ``(u + 0.5) f - 0.5``."""
+    rows = geometry_rows(geometry, len(images))  # a new tensor: the caller's is kept
+    scale = rows.new_tensor(factors)
+    rows[:, 1] /= scale
+    rows[:, 2:] = (rows[:, 2:] + 0.5) * scale[:, None] - 0.5
+    fields = [field if field is None else ((field[0] + 0.5) * f - 0.5,
+                                           (field[1] + 0.5) * f - 0.5, field[2] * f)
+              for field, f in zip(fields, factors, strict=True)]
+    return ([image if f == 1 else enlarged(image, f)
+             for image, f in zip(images, factors, strict=True)],
+            Geometry.from_rows(rows), fields)
 
 
 def _source_from(method: Callable, images: list[Tensor] | Tensor, index: Tensor, start: Tensor

@@ -119,6 +119,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "units [0, 1]) exceeds this through non-local means before the "
                              "networks (default: the model's denoise_above, 0.008 for the "
                              "shipped one; inf: never); docs/training.md, item 55")
+    parser.add_argument("--enlarge-below", type=int, metavar="PX",
+                        help="enlarge an image (or its round field's square) whose shorter "
+                             "side is under this many pixels to it before the networks "
+                             "(default: the model's enlarge_below, 512 for the shipped one; "
+                             "0: never); the enlarged column says by how much; "
+                             "docs/training.md, item 56")
     parser.add_argument("--min-score", type=float, metavar="PROBABILITY",
                         help="drop a cup whose locator blob's mean probability is below this "
                              "(default: the model's min_score, 0.8 for the shipped one; 0 "
@@ -385,7 +391,7 @@ def _json(value: object) -> object:
 def summarise(records: Iterable[dict]) -> dict:
     """Counts over image records: images, cups found, statuses, failures by reason."""
     statuses: Counter[str] = Counter()
-    images = cups = check = bright = cleaned = patient_spacing = 0
+    images = cups = check = bright = cleaned = enlarged = patient_spacing = 0
     seconds = 0.0
     for record in records:
         images += 1
@@ -397,11 +403,13 @@ def summarise(records: Iterable[dict]) -> dict:
             check += str(row.get("check")) == "1"  # rows read back on --resume are strings
         bright += record["rows"][0].get("metal") == "bright"
         cleaned += str(record["rows"][0].get("denoised")) == "1"
+        enlarged += record["rows"][0].get("enlarged") not in (None, "")
         seconds += float(record["rows"][0].get("seconds") or 0.0)
     errors = {k: v for k, v in statuses.items() if k.startswith("error")}
     return {"images": images, "cups": cups, "ok": statuses["ok"],
             "ambiguous": statuses["ambiguous"], "check": check, "no_cup": statuses["no_cup"],
-            "metal_bright": bright, "denoised": cleaned, "patient_spacing": patient_spacing,
+            "metal_bright": bright, "denoised": cleaned, "enlarged": enlarged,
+            "patient_spacing": patient_spacing,
             "errors": sum(errors.values()), "error_reasons": errors,
             "seconds_per_image": seconds / images if images else None}
 
@@ -587,6 +595,8 @@ class Predictor:
                 title += ", metal shown bright (turned over)"
             if cups and cups[0].denoised:
                 title += f", denoised (noise {cups[0].noise:.3f})"
+            if cups and cups[0].enlarged:
+                title += f", enlarged {cups[0].enlarged:.2f} times"
             record["overlay"] = f"overlays/{output_name(frame.name, '.png')}"
             write_png(out / record["overlay"], draw_overlay(frame.image, drawings, title))
         if self.args.save_masks:
@@ -632,6 +642,9 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     if summary.get("denoised"):
         lines.append(f"  {summary['denoised']} image(s) noisier than the networks' training, "
                      "denoised first: denoised=1 and their noise in results.csv")
+    if summary.get("enlarged"):
+        lines.append(f"  {summary['enlarged']} image(s) smaller than the networks' training, "
+                     "enlarged first: the factor in results.csv's enlarged column")
     lines += [f"  warning: {text}" for text in warnings.values()]
     lines.append(f"results: {out / 'results.csv'}, results.json and review.html"
                  + (f"; overlays: {out / 'overlays'}" if overlays else "")
@@ -657,6 +670,7 @@ def _model_settings(args: argparse.Namespace) -> dict[str, object]:
     """The model settings the command line overrides (flags not given keep the model's)."""
     given = {"check_doubt": args.check_doubt, "metal": args.metal,
              "min_score": args.min_score, "denoise_above": args.denoise_above,
+             "enlarge_below": args.enlarge_below,
              "round_field": False if args.keep_outside_field else None}
     return {name: value for name, value in given.items() if value is not None}
 

@@ -1,10 +1,16 @@
-"""cupnet.detection: one image's detections less the repeats of one cup, and its flagged
-cups replaced by a later look's."""
+"""cupnet.detection: one image's detections less the repeats of one cup, its flagged cups
+replaced by a later look's, and a cup found in an enlarged image in the image's pixels."""
+
+from dataclasses import replace
 
 import numpy as np
+import pytest
+import torch
 from cup_cases import detection
 
-from cupnet.detection import CupDetection, distinct_cups, later_look_cups
+from cupnet.detection import CupDetection, distinct_cups, later_look_cups, shrunk
+from cupnet.ellipse import ellipse_points
+from cupnet.landmarks import ellipse_coverage
 
 
 def test_one_cup_found_twice_is_kept_once_by_its_better_detection():
@@ -105,3 +111,27 @@ def test_a_later_looks_cup_replaces_a_flagged_piece_of_it_once():
     assert later_look_cups([piece, other_piece], [cup]) == [cup, other_piece]
     aside = detection([420.0, 169.0, 51.3, 19.1, 91.0], doubt=2.2, check=True)  # 95 px off
     assert later_look_cups([aside], [cup]) == [aside]
+
+
+def test_a_cup_found_in_an_enlarged_image_shrinks_back_to_its_own_pixels():
+    # A rim of the 300 x 400 image, drawn into its enlargement by 512 / 300 (pixel centres
+    # at integers: u -> (u + 0.5) f - 0.5), comes back as the image's own rim.
+    factor, shape = 512 / 300, (300, 400)
+    rim = np.array([210.4, 140.7, 60.0, 35.0, 25.0])
+    big_rim = np.concatenate([(rim[:2] + 0.5) * factor - 0.5, rim[2:4] * factor, rim[4:]])
+    angles = torch.linspace(0, 6, 16, dtype=torch.float64)
+    points = ellipse_points(torch.from_numpy(rim), angles).numpy()
+    big_points = (points + 0.5) * factor - 0.5
+    big_shape = (round(shape[0] * factor), round(shape[1] * factor))
+    coverage = ellipse_coverage(torch.from_numpy(big_rim)[None, None], *big_shape)[0, 0]
+    cup = replace(detection(list(big_rim)), landmarks=big_points, outline=big_points[:5],
+                  residual_px=0.5, mask=coverage.numpy())
+    back = shrunk(cup, factor, shape)
+    np.testing.assert_allclose(back.ellipse, rim, atol=1e-12)
+    np.testing.assert_allclose(back.landmarks, points, atol=1e-12)
+    np.testing.assert_allclose(back.outline, points[:5], atol=1e-12)
+    assert back.residual_px == pytest.approx(0.5 / factor)
+    assert back.enlarged == factor and back.pose is cup.pose
+    # The mask, area-averaged, covers the rim's area in the image's pixels.
+    assert back.mask.shape == shape
+    assert back.mask.sum() == pytest.approx(np.pi * rim[2] * rim[3], rel=0.01)

@@ -17,6 +17,8 @@ from cupnet.config import SPEED_PRESETS, CupNetConfig, apply_speed_preset
 from cupnet.crops import (
     ellipse_crop_affine,
     ellipse_to_view,
+    enlarged,
+    enlargement,
     frame_ellipse,
     lattice_bilinear,
     letterbox_affine,
@@ -198,6 +200,60 @@ def test_letterbox_maps_back_exactly(height, width):
     view = resample(image, affine, 128)
     _, centre, _ = soft_moments(view[None])
     assert torch.allclose(to_image(centre, affine)[0], truth[0, 0, :2], atol=0.05 * affine[0, 0])
+
+
+@pytest.mark.parametrize("factor", [4 / 3, 2.0, 512 / 300])
+def test_enlarged_puts_each_point_where_the_factor_says(factor: float) -> None:
+    # A Gaussian spot's centroid moves to (u + 0.5) f - 0.5 exactly, whatever the rounding
+    # of the enlarged size; Lanczos' overshoot is clipped to the display range.
+    height, width, centre = 101, 131, np.array([60.3, 47.8])
+    v, u = np.mgrid[0:height, 0:width]
+    spot = np.exp(-((u - centre[0]) ** 2 + (v - centre[1]) ** 2) / (2 * 6.0 ** 2))
+    image = torch.from_numpy(np.stack([spot, 1 - spot]))
+    big = enlarged(image, factor)
+    assert big.shape == (2, round(height * factor), round(width * factor))
+    assert big.dtype == image.dtype and 0 <= big.min() and big.max() <= 1
+    vv, uu = np.mgrid[0:big.shape[1], 0:big.shape[2]]
+    mass = big[0].numpy()
+    centroid = np.array([(uu * mass).sum(), (vv * mass).sum()]) / mass.sum()
+    np.testing.assert_allclose(centroid, (centre + 0.5) * factor - 0.5, atol=1e-4)
+
+
+@pytest.mark.parametrize(("height", "width", "min_side", "factor"),
+                         [(256, 256, 512, 2.0), (300, 700, 512, 512 / 300), (512, 400, 512, 1.28),
+                          (512, 700, 512, 1.0), (256, 256, None, 1.0), (256, 256, 0, 1.0)])
+def test_enlargement_brings_the_shorter_side_to_the_minimum(
+        height: int, width: int, min_side: int | None, factor: float) -> None:
+    assert enlargement(height, width, min_side) == pytest.approx(factor)
+
+
+@pytest.mark.parametrize(("height", "width"), [(300, 400), (420, 260)])
+def test_detect_enlarges_a_small_image_and_reports_its_cups_in_its_own_pixels(
+        height: int, width: int) -> None:
+    """An image under ``enlarge_below`` gives what its enlargement by hand (with the
+    geometry's spacing and principal point moved so) gives, in its own pixels."""
+    model = CupNet(replace(TINY, enlarge_below=512))
+    model.locator, model.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
+    truth = [[20.0, 40.0, 5.0, -8.0, 280.0]]
+    image, geometry, ellipse = scene(truth, height, width, spacing=0.7)
+    found = model.detect(image.float()[None], geometry, 52.0)[0]
+    factor = 512 / min(height, width)
+    by_hand = replace(geometry, pixel_spacing=geometry.pixel_spacing / factor,
+                      principal_u=(geometry.principal_u + 0.5) * factor - 0.5,
+                      principal_v=(geometry.principal_v + 0.5) * factor - 0.5)
+    model.config.enlarge_below = None
+    big = model.detect(enlarged(image.float(), factor)[None], by_hand, 52.0)[0]
+    assert len(found) == len(big) == 1
+    cup, other = found[0], big[0]
+    assert cup.enlarged == pytest.approx(factor) and other.enlarged is None
+    np.testing.assert_array_equal(cup.pose, other.pose)
+    np.testing.assert_allclose(cup.landmarks, (other.landmarks + 0.5) / factor - 0.5)
+    np.testing.assert_allclose(cup.ellipse[2:4], other.ellipse[2:4] / factor)
+    assert cup.residual_px == pytest.approx(other.residual_px / factor)
+    assert cup.mask.shape == (height, width)
+    # ... and near the true rim in the image's own pixels.
+    assert np.abs(cup.ellipse[:2] - ellipse.numpy()[0, :2]).max() < 0.5
+    assert abs(cup.pose[0] - truth[0][0]) < 2.0 and abs(cup.pose[1] - truth[0][1]) < 1.0
 
 
 @pytest.mark.parametrize(("height", "width", "count"),

@@ -416,7 +416,9 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
     from data_synth.config import SynthConfig
     from data_synth.dataset import synthesize
 
-    config = SynthConfig(p_bilateral=1.0, p_no_cup=0.0, photons=(5000.0, 20000.0))
+    # 512 px, the networks' smallest training size: no enlargement (tested below).
+    config = SynthConfig(p_bilateral=1.0, p_no_cup=0.0, photons=(5000.0, 20000.0),
+                         image_size=(512, 512))
     sample = next(s for s in (synthesize(config, 11, i) for i in range(20))
                   if bool(s["cup_valid"].all()))
     images = tmp_path / "images"
@@ -455,9 +457,9 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
         difference = np.abs([float(row[c]) - float(dark[c]) for c in POSE_COLUMNS])
         assert (difference < [1.5, 1.5, 1.0, 1.0, 5.0]).all()
     # The noisy image is measured as such and denoised first; its poses stay near the truth
-    # (a 256 px image, the smallest the model takes: the clean image's are off by up to 1.2
-    # deg and 6 mm in h; not denoised, this one's inclination by 5 deg). The others carry
-    # no noise: under the model's denoise_above only the decision is taken.
+    # (the clean image's are off by up to 0.9 deg and 3.4 mm in h, the noisy one's by 3.2
+    # deg and 9.4 mm). The others carry no noise: under the model's denoise_above only the
+    # decision is taken.
     noisy = by_image["bilateral_noisy.png"]
     assert [r["denoised"] for r in noisy] == ["1", "1"]
     assert all(abs(float(r["noise"]) - 0.03) < 0.003 for r in noisy)
@@ -469,6 +471,40 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
     printed = capsys.readouterr().out
     assert "1 image(s) taken to show metal bright" in printed
     assert "1 image(s) noisier than the networks' training, denoised first" in printed
+
+
+def test_a_small_image_is_enlarged_first_and_reported_in_its_own_pixels(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A 512 px DRR exported at half its size (area-averaged; spacing doubled, principal
+    point moved): the shipped model enlarges it twice to its smallest training side, says
+    so, and reports the cup in the small image's pixels near the truth; ``--enlarge-below
+    0`` runs it as it is."""
+    from data_synth.config import SynthConfig
+    from data_synth.dataset import synthesize
+
+    sample = synthesize(SynthConfig(p_no_cup=0.0, photons=(5000.0, 20000.0),
+                                    image_size=(512, 512)), 5, 2)
+    pixels = np.round(sample["image"][0].numpy() * 65535).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "small.png"),
+                cv2.resize(pixels, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
+    sdd, spacing, u0, v0 = sample["geometry"].tolist()
+    args = ["predict", str(tmp_path / "small.png"), "--sdd", str(sdd), "--pixel-spacing",
+            str(2 * spacing), "--principal-point", str((u0 + 0.5) / 2 - 0.5),
+            str((v0 + 0.5) / 2 - 0.5), "--cup-diameter", str(float(sample["cup_diameter"][0])),
+            "--quiet", "--no-overlays"]
+    assert main([*args, "--out", str(tmp_path / "out")]) == 0
+    [row] = read_csv(tmp_path / "out" / "results.csv")
+    assert row["status"] == "ok" and float(row["enlarged"]) == 2.0
+    centre = (sample["ellipse"][0, :2].numpy() + 0.5) / 2 - 0.5
+    assert np.abs([float(row["ellipse_cx_px"]), float(row["ellipse_cy_px"])] - centre).max() < 0.5
+    error = np.abs([float(row[c]) for c in POSE_COLUMNS] - sample["pose"][0].numpy())
+    assert (error < [1.5, 1.0, 1.0, 1.0, 8.0]).all()
+    printed = capsys.readouterr().out
+    assert "1 image(s) smaller than the networks' training, enlarged first" in printed
+    assert main([*args, "--out", str(tmp_path / "as_is"), "--enlarge-below", "0"]) == 0
+    [row] = read_csv(tmp_path / "as_is" / "results.csv")
+    assert row["status"] == "ok" and row["enlarged"] == ""
+    assert "enlarged first" not in capsys.readouterr().out
 
 
 def test_spacing_from_patient_plane_pixel_spacing_is_recorded_and_reported(
@@ -587,7 +623,8 @@ def test_overlay_text_gives_the_standard_errors_where_there_are_any() -> None:
                           (["--metal", "bright"], None, {"metal": "bright"}),
                           (["--keep-outside-field"], None, {"round_field": False}),
                           (["--min-score", "0"], None, {"min_score": 0.0}),
-                          (["--denoise-above", "0.02"], None, {"denoise_above": 0.02})])
+                          (["--denoise-above", "0.02"], None, {"denoise_above": 0.02}),
+                          (["--enlarge-below", "0"], None, {"enlarge_below": 0})])
 def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
         tmp_path: Path, flags: list[str], preset: str | None, changed: dict) -> None:
     """``--fast`` turns the model's verification off, ``--fastest`` also its outline
@@ -596,7 +633,8 @@ def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
     checkpoint's, which was the flag's), ``--metal`` how the images
     show metal, ``--keep-outside-field`` keeps cups outside a round field, ``--min-score``
     sets the weakest locator blob kept, ``--denoise-above`` the noise from which images are
-    denoised; every other setting is the checkpoint's."""
+    denoised, ``--enlarge-below`` the side under which they are enlarged; every other setting
+    is the checkpoint's."""
     stored = {"detect_threshold": 2.0, "verify_gate": 1.0, "check_doubt": 1.8,
               "outline_passes": 3, "thin_rim_gate": 0.3, "ambiguous_by_doubt": True,
               "round_field": True, "min_score": 0.8}
