@@ -35,6 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import cupnet.field  # noqa: E402
 from benchmarks.report import DOC, HEADER, machine, markdown_table, write_section  # noqa: E402
 from cupnet.config import SPEED_PRESETS, apply_speed_preset  # noqa: E402
+from cupnet.crops import enlargement  # noqa: E402
 from cupnet.detection import CupDetection  # noqa: E402
 from cupnet.evaluate import GROSS_DEG  # noqa: E402
 from cupnet.fold import fold_batchnorm  # noqa: E402
@@ -235,21 +236,32 @@ def small_section(model: CupNet, args: argparse.Namespace) -> str:
     """The shipped model on images of ``args.small`` sides, each size's DRRs from one seed:
     where :data:`cupnet.model.MIN_IMAGE_SIDE` comes from; the ``model_small`` section."""
     rows = []
+    shipped = model.config.enlarge_below
     for size in args.small:
-        res = accuracy(model, samples(args.eval_config, args.seed + 21, args.small_images,
-                                      [size]))
-        print("small", size, res)
-        rows.append([size, args.small_images, *scored(res), f"{res['median_theta']:.2f}",
-                     f"{res['median_phi']:.2f}"])
+        data = samples(args.eval_config, args.seed + 21, args.small_images, [size])
+        factor = enlargement(size, size, shipped, model.config.enlarge_to)
+        ways = [("enlarged" if factor > 1 else "as given", shipped)]
+        if ways[0][0] == "enlarged":
+            ways.append(("as given (`--enlarge-below 0`)", 0))
+        for way, enlarge_below in ways:
+            model.config.enlarge_below = enlarge_below
+            res = accuracy(model, data)
+            print("small", size, way, res)
+            rows.append([size, args.small_images, way, *scored(res),
+                         f"{res['median_theta']:.2f}", f"{res['median_phi']:.2f}"])
+    model.config.enlarge_below = shipped
     return ("## CupNet on small images\n\n"
             f"`python benchmarks/model.py --parts small --runtimes {args.runtimes[0]}`: "
             f"{args.small_images} fresh DRRs a size from `{args.eval_config}` (seed "
             f"{args.seed + 21}), the shipped model, MAE over detected true cups (deg, deg, mm, "
             "mm, mm) and the angles' medians (deg), false positives as in the accuracy table. "
-            "Below some side the poses are far off, not a little worse: `cupnet predict` "
+            f"The model enlarges an image under {shipped} px to {model.config.enlarge_to} px "
+            "first (Lanczos; "
+            "`enlarge_below`, docs/training.md, item 56); each such size is scored as given "
+            "too. Below some side the poses are far off, not a little worse: `cupnet predict` "
             f"gives an image under {MIN_IMAGE_SIDE} px a side an error row "
             "(`cupnet.model.MIN_IMAGE_SIDE`).\n\n"
-            + markdown_table(["side (px)", "images", *[f"MAE {n}" for n in NAMES],
+            + markdown_table(["side (px)", "images", "image", *[f"MAE {n}" for n in NAMES],
                               "detected", "false positives", "median theta", "median phi"],
                              rows))
 
@@ -366,7 +378,9 @@ def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
             f"{', '.join(map(str, args.sizes))} px in equal shares (seeds {args.seed + 41} "
             "on), each row the same images degraded as a user's export may be "
             "(`benchmarks/model.py`, `DEGRADATIONS`): 8-bit, JPEG (OpenCV), halved in size "
-            "(area-averaged, the pixel spacing and principal point given accordingly), "
+            "(area-averaged, the pixel spacing and principal point given accordingly; the "
+            "model enlarges those under 512 px back to 512 first, docs/training.md, item "
+            "56), "
             "more white noise (standard deviation of the display range [0, 1]) or more "
             "Gaussian blur. Training saw a focal-spot blur of sigma 0.2-1.0 px, quantum and "
             "electronic noise at 300-20,000 photons a pixel, 8 or 16 bits, and no JPEG "

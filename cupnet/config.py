@@ -88,10 +88,11 @@ class CupNetConfig:
             before anything else (None: no image is): noisier than nearly every training
             image, its cups fail grossly more often.
         enlarge_below: an image (or, with ``round_field``, its field's square) whose shorter
-            side is under this many pixels is enlarged to it (Lanczos,
-            :func:`cupnet.crops.enlarged`) after the noise check and before the networks, its
-            cups reported in its own pixels (None: none is): the networks learnt images of
-            512 px and more, and place a smaller image's rims worse.
+            side is under this many pixels is enlarged so that it is ``enlarge_to`` px
+            (Lanczos, :func:`cupnet.crops.enlarged`) after the noise check and before the
+            networks, its cups reported in its own pixels (None: none is): the networks
+            learnt images of 512 px and more, and place a smaller image's rims worse.
+        enlarge_to: the shorter side (px) ``enlarge_below`` enlarges an image to.
         max_theta_deg: a pose with a larger anteversion (deg) counts as a failure of its
             landmarks: the cup goes on to :meth:`CupNet.detect`'s next landmark source and
             keeps that pose only where none gives one within range (None: any anteversion).
@@ -276,6 +277,7 @@ class CupNetConfig:
     metal: str = "dark"
     denoise_above: float | None = None
     enlarge_below: int | None = None
+    enlarge_to: int = 512
     max_theta_deg: float | None = None
     grown_rim_scale: float | None = None
     reframe_min_scale: float | None = None

@@ -43,12 +43,13 @@ def letterbox_affine(height: int, width: int, size: int, dtype: torch.dtype = to
                       torch.tensor(off_v, dtype=dtype))
 
 
-def enlargement(height: int, width: int, min_side: int | None) -> float:
-    """The factor (>= 1) that brings an ``height x width`` image's shorter side to
-    ``min_side`` px: 1 where it is that long already or ``min_side`` is None."""
-    if min_side is None or min(height, width) >= min_side:
+def enlargement(height: int, width: int, below: int | None, to: int) -> float:
+    """The factor (>= 1) that brings an ``height x width`` image's shorter side to ``to``
+    px where it is under ``below`` px: 1 where it is not, or ``below`` is None."""
+    short = min(height, width)
+    if below is None or short >= below:
         return 1.0
-    return min_side / min(height, width)
+    return max(1.0, to / short)
 
 
 def enlarged(image: Tensor, factor: float) -> Tensor:

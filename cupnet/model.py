@@ -673,10 +673,11 @@ class CupNet(nn.Module):
                 fields = [field if crop is None else (field[0] - crop[0], field[1] - crop[1],
                                                       field[2])
                           for field, crop in zip(fields, crops, strict=True)]
-            # An image (or field) smaller than the networks' training images is enlarged
-            # to their smallest side first (docs/training.md, item 56).
+            # An image (or field) well under the networks' training sizes is enlarged to
+            # their smallest first (docs/training.md, item 56).
             sides = [tuple(image.shape[-2:]) for image in image_list]
-            factors = [enlargement(*side, self.config.enlarge_below) for side in sides]
+            factors = [enlargement(*side, self.config.enlarge_below, self.config.enlarge_to)
+                       for side in sides]
             if any(factor > 1 for factor in factors):
                 image_list, geometry, fields = _enlarged(image_list, geometry, fields, factors)
             with memoised_strips():

@@ -121,10 +121,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "shipped one; inf: never); docs/training.md, item 55")
     parser.add_argument("--enlarge-below", type=int, metavar="PX",
                         help="enlarge an image (or its round field's square) whose shorter "
-                             "side is under this many pixels to it before the networks "
-                             "(default: the model's enlarge_below, 512 for the shipped one; "
-                             "0: never); the enlarged column says by how much; "
-                             "docs/training.md, item 56")
+                             "side is under this many pixels to the model's enlarge_to (512 "
+                             "px for the shipped one) before the networks (default: the "
+                             "model's enlarge_below, 496 for the shipped one; 0: never); the "
+                             "enlarged column says by how much; docs/training.md, item 56")
     parser.add_argument("--min-score", type=float, metavar="PROBABILITY",
                         help="drop a cup whose locator blob's mean probability is below this "
                              "(default: the model's min_score, 0.8 for the shipped one; 0 "

@@ -219,12 +219,14 @@ def test_enlarged_puts_each_point_where_the_factor_says(factor: float) -> None:
     np.testing.assert_allclose(centroid, (centre + 0.5) * factor - 0.5, atol=1e-4)
 
 
-@pytest.mark.parametrize(("height", "width", "min_side", "factor"),
-                         [(256, 256, 512, 2.0), (300, 700, 512, 512 / 300), (512, 400, 512, 1.28),
-                          (512, 700, 512, 1.0), (256, 256, None, 1.0), (256, 256, 0, 1.0)])
-def test_enlargement_brings_the_shorter_side_to_the_minimum(
-        height: int, width: int, min_side: int | None, factor: float) -> None:
-    assert enlargement(height, width, min_side) == pytest.approx(factor)
+@pytest.mark.parametrize(("height", "width", "below", "factor"),
+                         [(256, 256, 448, 2.0), (300, 700, 448, 512 / 300), (512, 400, 448, 1.28),
+                          (500, 700, 448, 1.0), (448, 448, 448, 1.0), (447, 900, 448, 512 / 447),
+                          (256, 256, None, 1.0), (256, 256, 0, 1.0), (600, 600, 1024, 1.0)])
+def test_enlargement_brings_a_short_side_under_the_bar_to_the_target(
+        height: int, width: int, below: int | None, factor: float) -> None:
+    # Never a shrinking: a bar above the target leaves the sides between them as they are.
+    assert enlargement(height, width, below, 512) == pytest.approx(factor)
 
 
 @pytest.mark.parametrize(("height", "width"), [(300, 400), (420, 260)])
