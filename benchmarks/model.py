@@ -362,6 +362,7 @@ def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
     compressed, shrunk, noisier and blurrier than any training image: the
     ``model_degraded`` section."""
     data = samples(args.eval_config, args.seed + 41, args.degraded_images, args.sizes)
+    shipped = next(iter(models.values())).config
     rows = []
     for label, degrade in DEGRADATIONS.items():
         rng = np.random.default_rng(args.seed + 41)  # each row's noise, the same for each model
@@ -379,8 +380,8 @@ def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
             "on), each row the same images degraded as a user's export may be "
             "(`benchmarks/model.py`, `DEGRADATIONS`): 8-bit, JPEG (OpenCV), halved in size "
             "(area-averaged, the pixel spacing and principal point given accordingly; the "
-            "model enlarges those under 512 px back to 512 first, docs/training.md, item "
-            "56), "
+            f"model enlarges those under {shipped.enlarge_below} px to {shipped.enlarge_to} "
+            "first, docs/training.md, item 56), "
             "more white noise (standard deviation of the display range [0, 1]) or more "
             "Gaussian blur. Training saw a focal-spot blur of sigma 0.2-1.0 px, quantum and "
             "electronic noise at 300-20,000 photons a pixel, 8 or 16 bits, and no JPEG "

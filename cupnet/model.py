@@ -93,9 +93,9 @@ from cupnet.rim import (
 ASSETS = Path(__file__).resolve().parent / "assets"
 DEFAULT_CHECKPOINT = ASSETS / "cupnet_default.safetensors"
 # The shortest image side :meth:`CupNet.detect` is trusted on: on 30 DRRs a side at 512 / 384
-# / 256 / 192 / 128 px the shipped model's anteversion MAE is 0.93 / 1.38 / 3.56 / 8.40 /
-# 11.0 deg and it finds 100 / 100 / 90 / 87 / 57 % of the cups (docs/benchmarks.md, `CupNet
-# on small images`).
+# / 256 / 192 / 128 px the shipped model (enlarging those under 496 px to 512) has an
+# anteversion MAE of 0.94 / 1.10 / 2.26 / 4.87 / 5.94 deg and finds 100 / 100 / 97 / 93 / 83 %
+# of the cups (docs/benchmarks.md, `CupNet on small images`).
 MIN_IMAGE_SIDE = 256
 
 
