@@ -236,11 +236,11 @@ def small_section(model: CupNet, args: argparse.Namespace) -> str:
     """The shipped model on images of ``args.small`` sides, each size's DRRs from one seed:
     where :data:`cupnet.model.MIN_IMAGE_SIDE` comes from; the ``model_small`` section."""
     rows = []
-    shipped = model.config.enlarge_below
+    below = model.config.enlarge_below
     for size in args.small:
         data = samples(args.eval_config, args.seed + 21, args.small_images, [size])
-        factor = enlargement(size, size, shipped, model.config.enlarge_to)
-        ways = [("enlarged" if factor > 1 else "as given", shipped)]
+        factor = enlargement(size, size, below, model.config.enlarge_to)
+        ways = [("enlarged" if factor > 1 else "as given", below)]
         if ways[0][0] == "enlarged":
             ways.append(("as given (`--enlarge-below 0`)", 0))
         for way, enlarge_below in ways:
@@ -249,13 +249,13 @@ def small_section(model: CupNet, args: argparse.Namespace) -> str:
             print("small", size, way, res)
             rows.append([size, args.small_images, way, *scored(res),
                          f"{res['median_theta']:.2f}", f"{res['median_phi']:.2f}"])
-    model.config.enlarge_below = shipped
+    model.config.enlarge_below = below
     return ("## CupNet on small images\n\n"
             f"`python benchmarks/model.py --parts small --runtimes {args.runtimes[0]}`: "
             f"{args.small_images} fresh DRRs a size from `{args.eval_config}` (seed "
             f"{args.seed + 21}), the shipped model, MAE over detected true cups (deg, deg, mm, "
             "mm, mm) and the angles' medians (deg), false positives as in the accuracy table. "
-            f"The model enlarges an image under {shipped} px to {model.config.enlarge_to} px "
+            f"The model enlarges an image under {below} px to {model.config.enlarge_to} px "
             "first (Lanczos; "
             "`enlarge_below`, docs/training.md, item 56); each such size is scored as given "
             "too. Below some side the poses are far off, not a little worse: `cupnet predict` "
