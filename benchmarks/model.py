@@ -239,10 +239,9 @@ def small_section(model: CupNet, args: argparse.Namespace) -> str:
     below = model.config.enlarge_below
     for size in args.small:
         data = samples(args.eval_config, args.seed + 21, args.small_images, [size])
-        factor = enlargement(size, size, below, model.config.enlarge_to)
-        ways = [("enlarged" if factor > 1 else "as given", below)]
-        if ways[0][0] == "enlarged":
-            ways.append(("as given (`--enlarge-below 0`)", 0))
+        ways = ([("as given", below)] if enlargement(size, size, below,
+                                                    model.config.enlarge_to) == 1
+                else [("enlarged", below), ("as given (`--enlarge-below 0`)", 0)])
         for way, enlarge_below in ways:
             model.config.enlarge_below = enlarge_below
             res = accuracy(model, data)
