@@ -9,7 +9,7 @@ median of 0.0029 over the four seed sets' 2,880 images, 99 % below 0.012. White 
 means (OpenCV's) at a strength set by the measured noise takes most of those failures away
 (0.93 / 0.54 deg at 0.03 more), where a Gaussian blur moves the rim and with it ``h``; so
 :meth:`cupnet.model.CupNet.detect` takes images noisier than ``CupNetConfig.denoise_above``
-through it first (deciding by :func:`noisier_than`: 3.4 ms a 512 px image, 9 ms at 1024 px).
+through it first (deciding by :func:`noise_above`: 3.4 ms a 512 px image, 9 ms at 1024 px).
 """
 
 from __future__ import annotations
@@ -44,16 +44,8 @@ def _responses(image: Tensor | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return response, (inner > _INSIDE[0]) & (inner < _INSIDE[1])
 
 
-def noise_sigma(image: Tensor | np.ndarray) -> float:
-    """An image's white-noise standard deviation, after Immerkaer (1996), robust to edges.
-
-    Args:
-        image: ``(H, W)`` or ``(1, H, W)`` in [0, 1].
-    Returns:
-        sigma in the image's units (display range [0, 1]); NaN where fewer than 9 pixels
-        lie inside ``_INSIDE`` (a flat or saturated image).
-    """
-    response, inside = _responses(image)
+def _median_sigma(response: np.ndarray, inside: np.ndarray) -> float:
+    """:func:`noise_sigma` from :func:`_responses`' output."""
     values = response[inside]
     if values.size < 9:
         return math.nan
@@ -63,10 +55,24 @@ def noise_sigma(image: Tensor | np.ndarray) -> float:
     return float(np.median(values) / _SCALE)
 
 
-def noisier_than(image: Tensor | np.ndarray, sigma: float) -> bool:
-    """``noise_sigma(image) > sigma``, decided by counting, not by the median's selection
-    (which takes 2-10 ms of a 512-1024 px image, half the estimate's time or more); False where
-    :func:`noise_sigma` is NaN.
+def noise_sigma(image: Tensor | np.ndarray) -> float:
+    """An image's white-noise standard deviation, after Immerkaer (1996), robust to edges.
+
+    Args:
+        image: ``(H, W)`` or ``(1, H, W)`` in [0, 1].
+    Returns:
+        sigma in the image's units (display range [0, 1]); NaN where fewer than 9 pixels
+        lie inside ``_INSIDE`` (a flat or saturated image).
+    """
+    return _median_sigma(*_responses(image))
+
+
+def noise_above(image: Tensor | np.ndarray, sigma: float) -> float | None:
+    """``noise_sigma(image)`` where it exceeds ``sigma``, else None (NaN counts as under).
+
+    Whether it does is decided by counting, not by the median's selection (which takes 2-10
+    ms of a 512-1024 px image, half the estimate's time or more), so a clean image costs one
+    filter pass and no median; a noisy one the median too, on the same filter pass.
 
     Args:
         image: ``(H, W)`` or ``(1, H, W)`` in [0, 1]; sigma: display units.
@@ -74,16 +80,18 @@ def noisier_than(image: Tensor | np.ndarray, sigma: float) -> bool:
     response, inside = _responses(image)
     count = int(np.count_nonzero(inside))
     if count < 9:
-        return False
+        return None
     level = sigma * _SCALE
     higher = response > level
     above, half = int(np.count_nonzero(higher & inside)), count // 2
     if count % 2 or above != half:
         # The middle value (odd count) or both middle values (even) lie on one side.
-        return above > half
-    # An even count whose two middle values straddle the level: their mean decides.
-    middle = (response[inside & ~higher].max() + response[inside & higher].min()) / 2
-    return bool(middle / _SCALE > sigma)
+        noisy = above > half
+    else:
+        # An even count whose two middle values straddle the level: their mean decides.
+        middle = (response[inside & ~higher].max() + response[inside & higher].min()) / 2
+        noisy = bool(middle / _SCALE > sigma)
+    return _median_sigma(response, inside) if noisy else None
 
 
 def denoised(image: Tensor, sigma: float) -> Tensor:

@@ -50,7 +50,7 @@ from cupnet.crops import (
     square_windows,
     to_image,
 )
-from cupnet.denoise import denoised, noise_sigma, noisier_than
+from cupnet.denoise import denoised, noise_above
 from cupnet.detection import (
     CupDetection,
     distinct_cups,
@@ -705,9 +705,8 @@ class CupNet(nn.Module):
         above = self.config.denoise_above
         if above is None or math.isinf(above):
             return [(None, None)] * len(images)
-        noisy = [noisier_than(image, above) for image in images]
-        return [(noise_sigma(image) if flag else None, flag)
-                for image, flag in zip(images, noisy, strict=True)]
+        noises = [noise_above(image, above) for image in images]
+        return [(noise, noise is not None) for noise in noises]
 
     @property
     def look_again_doubt(self) -> float | None:

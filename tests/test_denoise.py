@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from cupnet.denoise import denoised, noise_sigma, noisier_than
+from cupnet.denoise import denoised, noise_above, noise_sigma
 
 
 def _scene(size: int = 256) -> np.ndarray:
@@ -59,15 +59,16 @@ def test_non_local_means_takes_the_noise_and_keeps_the_edge() -> None:
     assert np.abs(crossings(smooth) - clean_edges).max() <= 1
 
 
-def test_noisier_than_decides_as_the_median_does() -> None:
+def test_noise_above_decides_as_the_median_does() -> None:
     rng = np.random.default_rng(4)
     for sigma in (0.004, 0.008, 0.02):
         noisy = _scene(64) + rng.normal(0, sigma, (64, 64))
         estimate = noise_sigma(noisy)
         for bar in (0.5 * estimate, estimate * (1 - 1e-9), estimate, estimate * (1 + 1e-9),
                     2 * estimate):
-            assert noisier_than(noisy, bar) == (estimate > bar)
+            assert noise_above(noisy, bar) == (estimate if estimate > bar else None)
     # An odd count of pixels inside, and an image with none.
     odd = _scene(65) + rng.normal(0, 0.01, (65, 65))
-    assert noisier_than(odd, noise_sigma(odd) * 0.999) and not noisier_than(odd, noise_sigma(odd))
-    assert not noisier_than(np.zeros((32, 32)), 0.0)
+    assert noise_above(odd, noise_sigma(odd) * 0.999) == noise_sigma(odd)
+    assert noise_above(odd, noise_sigma(odd)) is None
+    assert noise_above(np.zeros((32, 32)), 0.0) is None
