@@ -66,6 +66,8 @@ def conic_to_params(conic: Tensor) -> Tensor:
     b = torch.rsqrt(lam_big)
     # atan2(2q, p - r) = 2 * (direction of the larger eigenvalue = minor axis); +90 deg -> major.
     alpha = torch.rad2deg(0.5 * torch.atan2(-2 * q, r - p)) % 180.0
+    # A tiny negative angle wraps to exactly 180.0 in floating point: keep [0, 180).
+    alpha = torch.where(alpha >= 180.0, alpha - 180.0, alpha)
     return torch.stack([centre[..., 0], centre[..., 1], a, b, alpha], -1)
 
 
@@ -131,7 +133,8 @@ class EllipseFit:
     """Result of :func:`fit_ellipse` for a batch of ``B`` point sets.
 
     Attributes:
-        conic: ``(B, 3, 3)`` unit-norm conics in pixels (identity-like placeholder where invalid).
+        conic: ``(B, 3, 3)`` unit-norm conics in pixels (the unit circle at the origin,
+            ``diag(1, 1, -1) / sqrt(3)``, where invalid).
         params: ``(B, 5)`` ``(cx, cy, a, b, alpha_deg)``; NaN where invalid.
         valid: ``(B,)`` bool.
         status: ``B`` strings, ``"ok"`` or the reason the fit failed.
@@ -184,6 +187,61 @@ class _PencilEigenvector(torch.autograd.Function):
         return -z @ vt + along * (vec @ vt), None, None, None
 
 
+def landmark_batch(points: Tensor, weights: Tensor | None, on_error: str,
+                   error: type[ValueError] = EllipseFitError
+                   ) -> tuple[Tensor, Tensor, torch.dtype]:
+    """Landmarks as the fit and the pose solver take them, checked at their boundary.
+
+    CONVENTIONS.md fits and solves in float64: in float32 the scatter matrix of accurate
+    landmarks is singular to working precision, and its Cholesky factor fails.
+
+    Args:
+        points: ``(B, N, 2)`` or ``(N, 2)`` pixels, any real dtype.
+        weights: ``(B, N)`` or ``(N,)`` (as ``points``), or None (ones).
+        on_error: ``"raise"`` or ``"flag"``; error: the exception a bad argument raises.
+    Returns:
+        ``(B, N, 2)`` float64 points, ``(B, N)`` float64 weights, and the dtype results are
+        given back in (the points' floating dtype, float64 for integer points). Non-finite
+        coordinates of zero-weight landmarks (the NaN padding of ragged sets) become 0, so
+        they drop out of every sum; finite ones stay where they are, so that a weight's
+        gradient at 0 is taken at its own landmark.
+    """
+    if on_error not in ("raise", "flag"):
+        raise error(f"on_error must be 'raise' or 'flag', got {on_error!r}")
+    if points.ndim == 2:
+        points = points[None]
+        weights = None if weights is None else weights[None]
+    if points.ndim != 3 or points.shape[-1] != 2:
+        raise error(f"points must have shape (B, N, 2) or (N, 2), got {tuple(points.shape)}")
+    if points.is_complex() or points.dtype == torch.bool:
+        raise error(f"points must be real pixel coordinates, got dtype {points.dtype}")
+    dtype = points.dtype if points.is_floating_point() else torch.float64
+    points = points.to(torch.float64)
+    if weights is None:
+        weights = torch.ones(points.shape[:2], dtype=torch.float64, device=points.device)
+    elif weights.shape != points.shape[:2]:
+        raise error(f"weights must have the points' shape {tuple(points.shape[:2])} "
+                    f"(one per landmark), got {tuple(weights.shape)}")
+    weights = weights.to(torch.float64)
+    padding = (weights == 0)[..., None] & ~torch.isfinite(points)
+    points = torch.where(padding, torch.zeros_like(points), points)
+    return points, weights, dtype
+
+
+def _distinct_counts(points: Tensor, active: Tensor) -> Tensor:
+    """``(B,)`` number of distinct points among the active ones of ``(B, N, 2)`` ``points``
+    (``active``: ``(B, N)`` bool, finite there), by sorting each set lexicographically."""
+    inactive = torch.full_like(points[..., 0], math.inf)
+    u = torch.where(active, points[..., 0], inactive)
+    v = torch.where(active, points[..., 1], inactive)
+    for key in (v, u):  # stable sorts, the last key first: (u, v) order
+        order = torch.sort(key, dim=-1, stable=True).indices
+        u, v = u.gather(-1, order), v.gather(-1, order)
+    first = torch.ones_like(u[:, :1], dtype=torch.bool)
+    new = torch.cat([first, (u[:, 1:] != u[:, :-1]) | (v[:, 1:] != v[:, :-1])], -1)
+    return (new & torch.isfinite(u)).sum(-1)
+
+
 def _fit_problems(points: Tensor, weights: Tensor) -> list[str]:
     """Per-item reason a fit cannot succeed ('ok' where it can). points (B,N,2), weights (B,N)."""
     active = weights > 0
@@ -200,15 +258,22 @@ def _fit_problems(points: Tensor, weights: Tensor) -> list[str]:
     cov = torch.einsum("bn,bni,bnj->bij", w, d, d) / total[:, None, None]
     evals = torch.linalg.eigvalsh(cov)
     flat = evals[:, 0] <= _COLLINEAR_RATIO * evals[:, 1].clamp_min(1e-300)
+    # Repeated landmarks add weight, not constraints: 6 landmarks on 4 distinct points leave
+    # a family of ellipses through them.
+    distinct = _distinct_counts(points, active & finite)
     reasons = []
     # Python lists: indexing tensors element by element costs more than the fit itself.
-    for bad, count, line in zip(bad_value.tolist(), counts.tolist(), flat.tolist(), strict=True):
+    for bad, count, unique, line in zip(bad_value.tolist(), counts.tolist(), distinct.tolist(),
+                                        flat.tolist(), strict=True):
         if bad:
             reasons.append("non-finite or negative landmark coordinates or weights")
         elif count < MIN_POINTS:
             reasons.append(f"too few points: {count} < {MIN_POINTS}")
         elif line:
             reasons.append("points are collinear or coincide")
+        elif unique < MIN_POINTS:
+            reasons.append(f"too few distinct points: {unique} < {MIN_POINTS} "
+                           f"({count} landmarks)")
         else:
             reasons.append("ok")
     return reasons
@@ -232,21 +297,16 @@ def fit_ellipse(
     weights through the exact eigenvector (implicit function theorem).
 
     Args:
-        points: ``(B, N, 2)`` or ``(N, 2)`` pixels.
-        weights: ``(B, N)`` or ``(N,)`` non-negative; zero drops a point (ragged sets).
+        points: ``(B, N, 2)`` or ``(N, 2)`` pixels (fitted in float64, CONVENTIONS.md).
+        weights: ``(B, N)`` or ``(N,)`` non-negative; zero drops a point (ragged sets, whose
+            padding may be NaN).
         on_error: ``"raise"`` raises :class:`EllipseFitError` naming the first bad item;
             ``"flag"`` returns ``valid=False`` and the reason in ``status`` instead.
     Returns:
-        :class:`EllipseFit` (batched even for an unbatched input).
+        :class:`EllipseFit` (batched even for an unbatched input) in the points' floating
+        dtype (float64 for integer points).
     """
-    if points.ndim == 2:
-        points = points[None]
-        weights = None if weights is None else weights[None]
-    if points.ndim != 3 or points.shape[-1] != 2:
-        raise EllipseFitError(
-            f"points must have shape (B, N, 2) or (N, 2), got {tuple(points.shape)}")
-    if weights is None:
-        weights = torch.ones(points.shape[:2], dtype=points.dtype, device=points.device)
+    points, weights, out_dtype = landmark_batch(points, weights, on_error)
     status = _fit_problems(points.detach(), weights.detach())
     bad = [i for i, s in enumerate(status) if s != "ok"]
     if bad and on_error == "raise":
@@ -258,8 +318,6 @@ def fit_ellipse(
     if bad:
         points = torch.where(valid[:, None, None], points, torch.zeros_like(points))
         weights = torch.where(valid[:, None], weights, torch.ones_like(weights))
-    active = weights > 0
-    points = torch.where(active[..., None], points, torch.zeros_like(points))
 
     w = weights / weights.sum(-1, keepdim=True)
     mean = (w[..., None] * points).sum(-2)
@@ -282,7 +340,16 @@ def fit_ellipse(
     # eigenvector there), so it is solved without a graph.
     with torch.no_grad():
         trace = reduced.diagonal(dim1=-2, dim2=-1).sum(-1)
-        chol = torch.linalg.cholesky(reduced + (_RIDGE * trace)[:, None, None] * eye)
+        chol, info = torch.linalg.cholesky_ex(reduced + (_RIDGE * trace)[:, None, None] * eye)
+        # Not expected after the checks above; flagged, not raised, so one item cannot end
+        # the batch.
+        singular = info != 0
+        if singular.any():
+            for i in singular.nonzero()[:, 0].tolist():
+                status[i] = "scatter matrix is singular (points too few or degenerate)"
+            valid = valid & ~singular
+            reduced = torch.where(valid[:, None, None], reduced, eye)
+            chol = torch.where(valid[:, None, None], chol, eye)
         half = torch.linalg.solve_triangular(chol, constraint.expand_as(chol), upper=False)
         sym = torch.linalg.solve_triangular(chol, half.transpose(-1, -2), upper=False)
         sym = 0.5 * (sym + sym.transpose(-1, -2))
@@ -319,4 +386,9 @@ def fit_ellipse(
     params = torch.cat([mean + scale[:, None] * params_norm[:, :2],
                         scale[:, None] * params_norm[:, 2:4], params_norm[:, 4:]], -1)
     params = torch.where(valid[:, None], params, torch.full_like(params, math.nan))
-    return EllipseFit(conic=conic, params=params, valid=valid, status=status)
+    # An invalid item's stand-in points all lie at 0 (no spread), so its conic is NaN.
+    placeholder = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=conic.dtype,
+                                          device=conic.device)) / math.sqrt(3.0)
+    conic = torch.where(valid[:, None, None], conic, placeholder)
+    return EllipseFit(conic=conic.to(out_dtype), params=params.to(out_dtype), valid=valid,
+                      status=status)

@@ -32,7 +32,7 @@ from torch import Tensor
 from torch.autograd.function import FunctionCtx
 from torch.func import jacfwd, vmap
 
-from cupnet.ellipse import conic_to_params, fit_ellipse
+from cupnet.ellipse import conic_to_params, fit_ellipse, landmark_batch
 from cupnet.geometry import (
     Geometry,
     camera_matrix,
@@ -84,6 +84,15 @@ def _batch_geometry(geometry: Geometry, batch: int, dtype: torch.dtype,
     """``(B, 4)`` rows (sdd, spacing, u0, v0)."""
     fields = [t.expand(batch) if t.ndim == 0 else t for t in geometry.tensors(dtype, device)]
     return torch.stack(fields, -1)
+
+
+def _check_geometry_batch(geometry: Geometry, batch: int) -> None:
+    """A PoseError naming a geometry field of other than one value or one per item."""
+    for name, t in zip(("sdd", "pixel_spacing", "principal_u", "principal_v"),
+                       geometry.tensors(), strict=True):
+        if t.ndim > 1 or (t.ndim == 1 and t.shape[0] != batch):
+            raise PoseError(f"geometry {name} must be a scalar or one per item ({batch}), got "
+                            f"shape {tuple(t.shape)}")
 
 
 def geometry_problems(geometry: Geometry, radius: Tensor) -> list[str | None]:
@@ -731,31 +740,39 @@ def solve_pose(
     on_error: Literal["raise", "flag"] = "raise",
     ambiguity_tol_deg: float = 1.0,
     max_iter: int = 10,
+    tol: float = 1e-4,
     corrected: bool = True,
     compiled: bool = False,
 ) -> PoseSolution:
     """Cup pose from rim landmarks: ellipse fit, closed form, ML refinement, range choice.
 
     Args:
-        points: ``(B, N, 2)`` or ``(N, 2)`` landmark pixels (u, v).
+        points: ``(B, N, 2)`` or ``(N, 2)`` landmark pixels (u, v), solved in float64
+            (CONVENTIONS.md).
         geometry: batch fields ``(B,)`` or scalars.
         cup_diameter: outer diameter, mm, scalar or ``(B,)``.
-        weights: ``(B, N)`` or ``(N,)`` non-negative landmark weights (0 drops a landmark).
+        weights: ``(B, N)`` or ``(N,)`` non-negative landmark weights (0 drops a landmark,
+            whose coordinates may then be NaN: ragged sets padded).
         refine: run the Levenberg-Marquardt ML refinement (else the closed form alone, which
             is differentiable through ``eigh``).
         on_error: ``"raise"`` raises :class:`PoseError` naming the first bad item; ``"flag"``
             returns its status and NaN pose and goes on.
         ambiguity_tol_deg: the other candidate counts as in range within this margin.
-        max_iter: LM iterations at most.
+        max_iter, tol: LM iterations at most, and its stopping test (:func:`refine_pose`:
+            tighten ``tol``, e.g. to 1e-20, where the gradient must be exact to many digits).
         corrected, compiled: see :func:`refine_pose`.
     Returns:
-        :class:`PoseSolution`, differentiable in ``pose`` w.r.t. points and weights.
+        :class:`PoseSolution` in the points' floating dtype (float64 for integer points),
+        differentiable in ``pose`` w.r.t. points and weights.
     """
-    if points.ndim == 2:
-        points = points[None]
-        weights = None if weights is None else weights[None]
+    points, weights, out_dtype = landmark_batch(points, weights, on_error, PoseError)
     batch, dtype, device = points.shape[0], points.dtype, points.device
-    radius = torch.as_tensor(cup_diameter, dtype=dtype, device=device).expand(batch) / 2
+    radius = torch.as_tensor(cup_diameter, dtype=dtype, device=device)
+    if radius.numel() not in (1, batch):
+        raise PoseError(f"cup_diameter must be a scalar or one per item ({batch}), got "
+                        f"{radius.numel()} values")
+    radius = radius.reshape(-1).expand(batch) / 2
+    _check_geometry_batch(geometry, batch)
     fit = fit_ellipse(points, weights, on_error="flag")
     status = [s if s == "ok" else f"error: {s}" for s in fit.status]
     for i, problem in enumerate(geometry_problems(geometry, radius.detach())):
@@ -780,15 +797,14 @@ def solve_pose(
     if refine:
         solutions = _refine_candidates(solutions, points, weights, ok, safe_geometry, safe_radius,
                                        math.radians(ambiguity_tol_deg),
-                                       dict(max_iter=max_iter, corrected=corrected,
+                                       dict(max_iter=max_iter, tol=tol, corrected=corrected,
                                             compiled=compiled))
     pose, alt, ambiguous = _select(solutions, math.radians(ambiguity_tol_deg))
 
-    w_res = torch.ones(points.shape[:2], dtype=dtype, device=device) if weights is None else weights
     dist = rim_distances(pose.detach(), torch.where(ok[:, None, None], points.detach(), 0.0),
                          safe_radius.detach(), safe_geometry, compiled=compiled)
-    residual = torch.sqrt((w_res.detach() * dist**2).sum(-1) / w_res.detach().sum(-1).clamp_min(
-        1e-300))
+    w_res = weights.detach()
+    residual = torch.sqrt((w_res * dist**2).sum(-1) / w_res.sum(-1).clamp_min(1e-300))
 
     h = pose[:, 4].detach()
     sdd = _batch_geometry(safe_geometry, batch, dtype, device)[:, 0]
@@ -805,11 +821,12 @@ def solve_pose(
     status = ["ambiguous" if a else s for s, a in zip(status, ambiguous.tolist(), strict=True)]
     nan = torch.full_like(pose, math.nan)
     return PoseSolution(
-        pose=torch.where(valid[:, None], pose_to_degrees(pose), nan),
-        alt_pose=torch.where(ambiguous[:, None], pose_to_degrees(alt), nan),
+        pose=torch.where(valid[:, None], pose_to_degrees(pose), nan).to(out_dtype),
+        alt_pose=torch.where(ambiguous[:, None], pose_to_degrees(alt), nan).to(out_dtype),
         ambiguous=ambiguous,
-        ellipse=fit.params,
-        residual_px=torch.where(valid, residual, torch.full_like(residual, math.nan)),
+        ellipse=fit.params.to(out_dtype),
+        residual_px=torch.where(valid, residual, torch.full_like(residual, math.nan)
+                                ).to(out_dtype),
         valid=valid,
         status=status,
     )
@@ -1038,13 +1055,13 @@ def solve_pose_paper(points: Tensor, geometry: Geometry, cup_diameter: Tensor | 
         ``(B, 5)`` poses in public units, mapped into the CONVENTIONS ranges, and ``(B,)``
         the number of steps each item took until its loss stopped improving.
     """
-    radius = torch.as_tensor(cup_diameter, dtype=points.dtype) / 2
+    radius = torch.as_tensor(cup_diameter, dtype=points.dtype, device=points.device) / 2
     observed = fit_ellipse(points).params
     sdd = geometry.tensors(points.dtype, points.device)[0]
     pose = paper_start(observed, geometry, radius).requires_grad_(True)
     optimiser = torch.optim.Adam([pose], lr=lr)
-    best = torch.full(points.shape[:1], math.inf, dtype=points.dtype)
-    used = torch.zeros(points.shape[0], dtype=torch.long)
+    best = torch.full(points.shape[:1], math.inf, dtype=points.dtype, device=points.device)
+    used = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
     for step in range(steps):
         optimiser.zero_grad()
         loss = ellipse_parameter_loss(ellipse_of_pose(pose, 2 * radius, geometry), observed)

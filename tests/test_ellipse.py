@@ -133,3 +133,80 @@ def test_hyperbola_points_are_not_an_ellipse():
     fit = fit_ellipse(points, on_error="flag")
     # The ellipse-specific fit always returns an ellipse, even for hyperbola points.
     assert fit.valid.all() and fit.params[0, 2] >= fit.params[0, 3] > 0
+
+
+def test_float32_and_integer_points_are_fitted_in_float64():
+    """CONVENTIONS: fits run in float64. Exact float32 landmarks made the float32 scatter
+    matrix singular (its Cholesky factor failed, and with it the batch)."""
+    truth = torch.tensor([512.3, 487.9, 121.7, 43.5, 39.9], dtype=torch.float64)
+    t = torch.linspace(0, 2 * math.pi, 33, dtype=torch.float64)[:-1]
+    points = ellipse_points(truth, t)
+    fit32 = fit_ellipse(points.float())
+    assert fit32.params.dtype == fit32.conic.dtype == torch.float32
+    # Only the float32 rounding of the points (~3e-5 px) moves the fit.
+    torch.testing.assert_close(fit32.params[0].double(), fit_ellipse(points.float().double())
+                               .params[0], atol=1e-4, rtol=0)
+    torch.testing.assert_close(fit32.params[0].double(), truth, atol=1e-3, rtol=0)
+    fit_int = fit_ellipse(points.round().long())
+    assert fit_int.params.dtype == torch.float64
+    assert (fit_int.params[0] - truth)[:4].abs().max() < 0.5
+
+
+def test_nan_padding_at_zero_weight_drops_out_and_keeps_weight_gradients(generator):
+    """A ragged set padded with NaN at weight 0 fits as the set alone; a finite landmark at
+    weight 0 stays where it is, so the gradient at that weight is taken at it (one-sided
+    finite differences)."""
+    truth = torch.tensor([30.0, -12.0, 40.0, 22.0, 65.0], dtype=torch.float64)
+    t = torch.linspace(0, 2 * math.pi, 21, dtype=torch.float64)[:-1]
+    points = ellipse_points(truth, t) + 0.3 * torch.randn(20, 2, generator=generator,
+                                                          dtype=torch.float64)
+    padded = torch.cat([points, torch.full((7, 2), math.nan, dtype=torch.float64)])
+    weights = torch.cat([torch.ones(20), torch.zeros(7)]).double()
+    padded.requires_grad_(True)
+    fit = fit_ellipse(padded, weights)
+    torch.testing.assert_close(fit.params, fit_ellipse(points).params, atol=1e-9, rtol=0)
+    fit.params.sum().backward()
+    assert torch.isfinite(padded.grad).all() and (padded.grad[20:] == 0).all()
+
+    weights = torch.ones(20, dtype=torch.float64)
+    weights[5] = 0.0
+    weights.requires_grad_(True)
+    autograd = torch.autograd.grad(fit_ellipse(points, weights).params[0, 2], weights)[0][5]
+    step = torch.zeros(20, dtype=torch.float64)
+    step[5] = 1e-4  # round-off of ~1e-10 in the forward: a large step, one-sided
+    with torch.no_grad():
+        upper = fit_ellipse(points, weights + step).params[0, 2]
+        lower = fit_ellipse(points, weights).params[0, 2]
+    assert float(autograd) == pytest.approx(float((upper - lower) / 1e-4), rel=0.02)
+    assert abs(float(autograd)) > 1e-4
+
+
+def test_repeated_landmarks_count_once():
+    """Six landmarks on four distinct points leave a family of ellipses through them."""
+    t = torch.linspace(0, 2 * math.pi, 5, dtype=torch.float64)[:-1]
+    four = ellipse_points(torch.tensor([0.0, 0.0, 5.0, 3.0, 10.0], dtype=torch.float64), t)
+    repeated = torch.cat([four, four[:2]])
+    with pytest.raises(EllipseFitError, match=r"too few distinct points: 4 < 5 \(6 landmarks\)"):
+        fit_ellipse(repeated)
+    # Flagged, the other item of the batch is fitted; the stand-in conic stays finite.
+    good = ellipse_points(torch.tensor([0.0, 0.0, 5.0, 3.0, 10.0], dtype=torch.float64),
+                          torch.linspace(0, 2 * math.pi, 7, dtype=torch.float64)[:-1])
+    fit = fit_ellipse(torch.stack([good, repeated]), on_error="flag")
+    assert fit.valid.tolist() == [True, False] and "distinct" in fit.status[1]
+    assert torch.isfinite(fit.conic).all()
+
+
+def test_arguments_it_cannot_take_are_named():
+    points = torch.zeros(2, 8, 2, dtype=torch.float64)
+    with pytest.raises(EllipseFitError, match=r"weights must have the points' shape \(2, 8\)"):
+        fit_ellipse(points, torch.ones(8, dtype=torch.float64))
+    with pytest.raises(EllipseFitError, match="on_error must be 'raise' or 'flag'"):
+        fit_ellipse(points, on_error="skip")  # type: ignore[arg-type]
+
+
+def test_alpha_stays_below_180():
+    """A major axis a hair below +u wraps to [0, 180), never to 180.0 itself."""
+    for alpha in (-1e-12, -1e-14, 0.0):
+        params = torch.tensor([100.0, 100.0, 50.0, 20.0, alpha], dtype=torch.float64)
+        out = float(conic_to_params(params_to_conic(params))[4])
+        assert 0.0 <= out < 180.0 and min(out, 180.0 - out) < 1e-9

@@ -313,3 +313,60 @@ def test_paper_mode_converges_from_its_first_best_guess():
     pose, steps = solve_pose_paper(rim_landmarks(truth, GEOMETRY), GEOMETRY, 50.0, steps=4000)
     assert (pose - truth).abs().max() < 0.05, pose
     assert (10 < steps).all() and (steps <= 4000).all()
+
+
+def test_float32_landmarks_are_solved_in_float64(generator):
+    """Accurate float32 landmarks of a nearly edge-on cup crashed the float32 fit; solved in
+    float64 (CONVENTIONS) they give the pose, in float32."""
+    truth = torch.tensor([[5.0, 30.0, 0.0, 0.0, 300.0], [20.0, 40.0, 10.0, -5.0, 300.0]],
+                         dtype=torch.float64)
+    geometry = Geometry(1040.0, 0.3, 511.5, 511.5)
+    points = rim_landmarks(truth, geometry, 52.0, n=32)
+    points = points + 0.05 * torch.randn(points.shape, generator=generator, dtype=torch.float64)
+    sol = solve_pose(points.float(), geometry, 52.0)
+    assert sol.pose.dtype == sol.ellipse.dtype == sol.residual_px.dtype == torch.float32
+    reference = solve_pose(points.float().double(), geometry, 52.0)
+    torch.testing.assert_close(sol.pose.double(), reference.pose, atol=1e-3, rtol=1e-5)
+    assert (sol.pose.double() - truth)[:, :2].abs().max() < 1.0
+
+
+def test_nan_padded_ragged_sets_solve_as_the_sets_alone(generator):
+    truth = torch.tensor([[20.0, 40.0, 10.0, -5.0, 300.0], [30.0, -20.0, -30.0, 10.0, 250.0]],
+                         dtype=torch.float64)
+    points = rim_landmarks(truth, GEOMETRY, 50.0, n=32)
+    points = points + 0.5 * torch.randn(points.shape, generator=generator, dtype=torch.float64)
+    weights = torch.ones(2, 32, dtype=torch.float64)
+    weights[0, 20:] = 0.0
+    padded = points.clone()
+    padded[0, 20:] = math.nan
+    padded.requires_grad_(True)
+    sol = solve_pose(padded, GEOMETRY, 50.0, weights)
+    alone = solve_pose(points[0, :20], GEOMETRY, 50.0)
+    torch.testing.assert_close(sol.pose[:1], alone.pose, atol=1e-6, rtol=0)
+    torch.testing.assert_close(sol.residual_px[:1], alone.residual_px, atol=1e-9, rtol=0)
+    sol.pose.sum().backward()
+    assert torch.isfinite(padded.grad).all() and (padded.grad[0, 20:] == 0).all()
+
+
+def test_solve_pose_tol_makes_its_gradient_exact(generator):
+    """``tol`` reaches the refinement: tightened, the implicit gradient of a thin rim's h
+    agrees with finite differences of solve_pose itself."""
+    truth = torch.tensor([[6.0, 35.0, 20.0, -10.0, 300.0]], dtype=torch.float64)
+    points = rim_landmarks(truth, GEOMETRY, 50.0, n=24)
+    points = points + 0.3 * torch.randn(points.shape, generator=generator, dtype=torch.float64)
+    points.requires_grad_(True)
+    assert torch.autograd.gradcheck(
+        lambda p: solve_pose(p, GEOMETRY, 50.0, tol=1e-20, max_iter=50).pose[:, [0, 4]],
+        (points,), eps=1e-5, atol=1e-5, rtol=1e-3)
+
+
+def test_batch_sizes_that_disagree_are_named():
+    points = rim_landmarks(torch.tensor([[20.0, 40.0, 0.0, 0.0, 300.0]] * 2,
+                                        dtype=torch.float64), GEOMETRY, 50.0, n=16)
+    three = Geometry(torch.tensor([1040.0, 1000.0, 990.0], dtype=torch.float64), 1.0, 0.0, 0.0)
+    with pytest.raises(PoseError, match=r"geometry sdd must be a scalar or one per item \(2\)"):
+        solve_pose(points, three, 50.0)
+    with pytest.raises(PoseError, match=r"cup_diameter must be a scalar or one per item \(2\)"):
+        solve_pose(points, GEOMETRY, torch.tensor([50.0, 52.0, 54.0]))
+    with pytest.raises(PoseError, match=r"weights must have the points' shape"):
+        solve_pose(points, GEOMETRY, 50.0, torch.ones(16, dtype=torch.float64))
