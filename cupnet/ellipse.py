@@ -234,9 +234,11 @@ def _distinct_counts(points: Tensor, active: Tensor) -> Tensor:
     inactive = torch.full_like(points[..., 0], math.inf)
     u = torch.where(active, points[..., 0], inactive)
     v = torch.where(active, points[..., 1], inactive)
-    for key in (v, u):  # stable sorts, the last key first: (u, v) order
-        order = torch.sort(key, dim=-1, stable=True).indices
-        u, v = u.gather(-1, order), v.gather(-1, order)
+    # Stable sorts, the last key first: (u, v) order.
+    order = torch.sort(v, dim=-1, stable=True).indices
+    u, v = u.gather(-1, order), v.gather(-1, order)
+    order = torch.sort(u, dim=-1, stable=True).indices
+    u, v = u.gather(-1, order), v.gather(-1, order)
     first = torch.ones_like(u[:, :1], dtype=torch.bool)
     new = torch.cat([first, (u[:, 1:] != u[:, :-1]) | (v[:, 1:] != v[:, :-1])], -1)
     return (new & torch.isfinite(u)).sum(-1)

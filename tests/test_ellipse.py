@@ -11,6 +11,7 @@ import torch
 
 from cupnet.ellipse import (
     EllipseFitError,
+    _distinct_counts,
     conic_to_params,
     ellipse_points,
     fit_ellipse,
@@ -210,3 +211,12 @@ def test_alpha_stays_below_180():
         params = torch.tensor([100.0, 100.0, 50.0, 20.0, alpha], dtype=torch.float64)
         out = float(conic_to_params(params_to_conic(params))[4])
         assert 0.0 <= out < 180.0 and min(out, 180.0 - out) < 1e-9
+
+
+def test_distinct_points_counted_exactly(generator):
+    """The count against torch.unique on each set's active points."""
+    points = torch.randint(0, 4, (30, 12, 2), generator=generator).double()
+    active = torch.rand(30, 12, generator=generator) < 0.7
+    counts = _distinct_counts(points, active)
+    expected = [len(torch.unique(points[i][active[i]], dim=0)) for i in range(30)]
+    assert counts.tolist() == expected and len(set(expected)) > 3
