@@ -10,14 +10,14 @@ sub-pixel precision.
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from cupnet.io.results import atomic_write
 
 # BGR colours by status.
 STATUS_COLOURS = {"ok": (80, 220, 80), "ambiguous": (0, 215, 255)}
@@ -184,6 +184,4 @@ def write_png(path: Path, image: np.ndarray) -> None:
                                             cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_UP])
     if not ok:
         raise OSError(f"cannot encode {path}")
-    with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".tmp", delete=False) as tmp:
-        tmp.write(data.tobytes())
-    os.replace(tmp.name, path)
+    atomic_write(path, lambda f: f.write(data.tobytes()), binary=True)

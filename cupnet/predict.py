@@ -27,7 +27,7 @@ from collections import Counter, deque
 from collections.abc import Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -56,6 +56,7 @@ from cupnet.io.meta import (
     ResolvedGeometry,
     add_geometry_arguments,
     implausible_once,
+    row_for_image,
 )
 from cupnet.io.results import (
     atomic_write,
@@ -288,12 +289,9 @@ class LandmarkDetector:
         self.info = {"landmarks": str(path), "sha256": _sha256(path)}
 
     def cups_of(self, name: str) -> list:
-        """The image's :class:`cupnet.io.landmarks.LandmarkSet` s (frames: also their file's)."""
-        file_name = name.split("#", 1)[0]
-        for key in (name, file_name, Path(file_name).name):
-            if key in self.sets:
-                return self.sets[key]
-        return []
+        """The image's :class:`cupnet.io.landmarks.LandmarkSet` s
+        (:func:`cupnet.io.meta.row_for_image`)."""
+        return row_for_image(self.sets, name) or []
 
     def input_error(self, frame: Frame) -> str | None:
         """The landmark file's error for an image all of whose rows are unreadable."""
@@ -415,8 +413,12 @@ def summarise(records: Iterable[dict]) -> dict:
 
 
 def output_name(name: str, suffix: str) -> str:
-    """File name under overlays/ or masks/ for an image name (frames: '#' -> '_frame')."""
-    return name.replace("#", "_frame") + suffix
+    """File name under overlays/ or masks/ for an image name (frames: '#' -> '_frame'); a
+    name given by its path (two inputs of one name, :func:`gather_images`) stays under that
+    folder: a root is dropped and each ``..`` becomes ``__``."""
+    parts = [("__" if part == ".." else part) for part in PurePosixPath(name).parts
+             if part not in ("/", ".")]
+    return "/".join(parts).replace("#", "_frame") + suffix
 
 
 # -- the run ----------------------------------------------------------------------------------
@@ -425,10 +427,20 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
 
     Names are relative to their spec's folder; where two specs give the same name (a shell
     expanding ``*/a.png``), the later file is named by its path so results stay apart.
+
+    Raises:
+        ValueError: ``out`` is a file, or holds an input folder (its contents are skipped).
+        FileNotFoundError: a spec names nothing, or no images (:func:`find_images`).
     """
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; give a folder for the results")
     sources: dict[str, ImageSource] = {}
     seen: set[Path] = set()
     for spec in specs:
+        if Path(spec).is_dir() and Path(spec).resolve().is_relative_to(out.resolve()):
+            # Everything under --out is skipped as input (the overlays of earlier runs).
+            raise ValueError(f"--out {out} holds the input folder {spec}; give a folder "
+                             f"beside it or inside it (such as {Path(spec) / 'cupnet'})")
         for source in find_images(spec, recursive, exclude=out):
             path = source.path.resolve()
             if path in seen:
@@ -577,11 +589,26 @@ class Predictor:
                       else named_error(exc))
             return [f"error: detection failed ({reason})"]
 
+    def _written(self, rel: str, image: np.ndarray, name: str) -> str | None:
+        """``rel`` once ``image`` is written there under ``--out``; None where it cannot be
+        (a name too long for the file system, a full disk, no permission): warned of once a
+        run, and the image's rows are kept."""
+        try:
+            write_png(self.outputs.out / rel, image)
+        except OSError as exc:
+            if "unwritten_images" not in self.outputs.warnings:
+                text = (f"cannot write {rel} ({exc.strerror or exc}); the poses are in "
+                        f"results.csv, where an overlay or mask could not be written (first: "
+                        f"{name})")
+                self.outputs.warnings["unwritten_images"] = text
+                tqdm.write(f"warning: {text}", file=sys.stderr)
+            return None
+        return rel
+
     def _record(self, frame: Frame, geometry: ResolvedGeometry, cups: list,
                 compute_seconds: float) -> dict:
         start = time.perf_counter()
         record = {"image": frame.name, "geometry": geometry.to_json()}
-        out = self.outputs.out
         if not self.args.no_overlays:
             drawings = [CupDrawing(c.ellipse, c.landmarks, c.weights,
                                    pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose,
@@ -597,16 +624,15 @@ class Predictor:
                 title += f", denoised (noise {cups[0].noise:.3f})"
             if cups and cups[0].enlarged:
                 title += f", enlarged {cups[0].enlarged:.2f} times"
-            record["overlay"] = f"overlays/{output_name(frame.name, '.png')}"
-            write_png(out / record["overlay"], draw_overlay(frame.image, drawings, title))
+            record["overlay"] = self._written(f"overlays/{output_name(frame.name, '.png')}",
+                                              draw_overlay(frame.image, drawings, title),
+                                              frame.name)
         if self.args.save_masks:
-            record["masks"] = []
-            for j, cup in enumerate(cups):
-                if cup.mask is None:
-                    continue
-                rel = f"masks/{output_name(frame.name, f'_cup{j}.png')}"
-                write_png(out / rel, np.round(np.clip(cup.mask, 0, 1) * 255).astype(np.uint8))
-                record["masks"].append(rel)
+            masks = [self._written(f"masks/{output_name(frame.name, f'_cup{j}.png')}",
+                                   np.round(np.clip(cup.mask, 0, 1) * 255).astype(np.uint8),
+                                   frame.name)
+                     for j, cup in enumerate(cups) if cup.mask is not None]
+            record["masks"] = [rel for rel in masks if rel is not None]
         seconds = frame.seconds + compute_seconds + time.perf_counter() - start
         record["rows"] = ([cup_row(frame.name, j, c, seconds) for j, c in enumerate(cups)]
                           or [status_row(frame.name, "no_cup", seconds)])

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import struct
 import zlib
@@ -15,7 +16,12 @@ import pytest
 from dicom_factory import transcoded, with_jpeg_streams, write_dicom
 from pydicom.data import get_testdata_file
 from pydicom.pixels import pixel_array
-from pydicom.uid import JPEG2000Lossless, JPEGLosslessSV1, JPEGLSLossless
+from pydicom.uid import (
+    DeflatedExplicitVRLittleEndian,
+    JPEG2000Lossless,
+    JPEGLosslessSV1,
+    JPEGLSLossless,
+)
 
 from cupnet.io.images import (
     MAX_SIDE,
@@ -160,6 +166,22 @@ def test_a_compression_no_decoder_reads_is_named_not_called_corrupt(tmp_path: Pa
     (frame,) = read_frames(damaged)
     assert frame.error.startswith("cannot decode DICOM pixel data compressed as JPEG Extended")
     assert "corrupt" not in frame.error
+    assert "\n" not in frame.error  # a decoder's message over lines: its first one
+
+
+def test_deflated_dicom_is_inflated(tmp_path: Path) -> None:
+    """Deflated Explicit VR Little Endian: pydicom's pixel_array(path) reads no deflated
+    file, which had been called corrupt."""
+    pixels = (gradient() * 4000).astype(np.uint16)
+    path = write_dicom(tmp_path / "plain.dcm", pixels)
+    ds = pydicom.dcmread(path)
+    ds.file_meta.TransferSyntaxUID = DeflatedExplicitVRLittleEndian
+    ds.save_as(tmp_path / "deflated.dcm")
+    written = pydicom.dcmread(tmp_path / "deflated.dcm", stop_before_pixels=True)
+    assert written.file_meta.TransferSyntaxUID == DeflatedExplicitVRLittleEndian
+    (frame,) = read_frames(tmp_path / "deflated.dcm")
+    assert frame.error is None
+    np.testing.assert_array_equal(frame.image, read_frames(path)[0].image)
 
 
 def test_a_private_transfer_syntax_is_an_error_row_not_a_crash(tmp_path: Path) -> None:
@@ -330,6 +352,9 @@ def test_discovery_folder_recursive_glob_and_empty(tmp_path: Path) -> None:
     for rel in ("b.png", "a.jpg", "sub/c.tif", "out/overlay.png"):
         cv2.imwrite(str(tmp_path / rel), image)
     write_dicom(tmp_path / "sub" / "IM0001", np.zeros((8, 8), np.uint16))  # no suffix
+    # DICOM by its content, whatever its suffix: a UID name's last part, Siemens' .IMA.
+    write_dicom(tmp_path / "sub" / "1.2.840.113619.2.55.3.1234", np.zeros((8, 8), np.uint16))
+    write_dicom(tmp_path / "sub" / "IM-0001-0001.IMA", np.zeros((8, 8), np.uint16))
     (tmp_path / "readme.txt").write_text("not an image")
     (tmp_path / "moved.png").symlink_to(tmp_path / "gone.png")  # a broken link: a row
     (tmp_path / "folder.png").mkdir()  # a folder named as an image: not one
@@ -338,7 +363,9 @@ def test_discovery_folder_recursive_glob_and_empty(tmp_path: Path) -> None:
     (moved,) = read_frames(tmp_path / "moved.png")
     assert moved.error.startswith("cannot open file (No such file")
     names = [s.name for s in find_images(tmp_path, recursive=True, exclude=tmp_path / "out")]
-    assert names == ["a.jpg", "b.png", "moved.png", "sub/IM0001", "sub/c.tif"]
+    assert names == ["a.jpg", "b.png", "moved.png", "sub/1.2.840.113619.2.55.3.1234",
+                     "sub/IM-0001-0001.IMA", "sub/IM0001", "sub/c.tif"]
+    assert read_frames(tmp_path / "sub" / "IM-0001-0001.IMA")[0].error is None
     assert [s.name for s in find_images(f"{tmp_path}/*.png")] == ["b.png", "moved.png"]
     assert [s.name for s in find_images(f"{tmp_path}/**/*.tif", recursive=True)] == ["sub/c.tif"]
     assert [s.name for s in find_images(tmp_path / "b.png")] == ["b.png"]
@@ -381,3 +408,42 @@ def test_stream_reads_a_bounded_number_of_frames_ahead(tmp_path: Path,
     assert first.name == "copy0.png"
     assert len(decoded) <= 5  # the frame handed out and at most 4 waiting
     stream.close()
+
+
+def test_a_raster_is_read_as_what_it_holds_not_as_its_suffix(tmp_path: Path) -> None:
+    """A JPEG named .png and a PNG named .jpg are intact, and so is a JPEG with a long
+    trailer after its end (a phone's motion photo) or an EXIF thumbnail, whose own end
+    marker does not end a cut-off image."""
+    ramp = np.round(gradient() * 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "a.jpg"), ramp, [cv2.IMWRITE_JPEG_QUALITY, 100])
+    cv2.imwrite(str(tmp_path / "a.png"), ramp)
+    jpeg = (tmp_path / "a.jpg").read_bytes()
+    (tmp_path / "jpeg.png").write_bytes(jpeg)
+    (tmp_path / "png.jpg").write_bytes((tmp_path / "a.png").read_bytes())
+    (tmp_path / "trailer.jpg").write_bytes(jpeg + bytes(range(256)) * 16)
+    for name in ("jpeg.png", "png.jpg", "trailer.jpg"):
+        (frame,) = read_frames(tmp_path / name)
+        assert frame.error is None, name
+        np.testing.assert_allclose(frame.image, ramp / 255, atol=3 / 255)
+    # An APP1 segment holding a whole JPEG (its end marker inside), then the image cut off.
+    app1 = b"Exif\x00\x00" + jpeg
+    with_thumbnail = jpeg[:2] + b"\xff\xe1" + (len(app1) + 2).to_bytes(2, "big") + app1 + jpeg[2:]
+    (tmp_path / "thumb.jpg").write_bytes(with_thumbnail)
+    assert read_frames(tmp_path / "thumb.jpg")[0].error is None
+    (tmp_path / "thumb_cut.jpg").write_bytes(with_thumbnail[: len(with_thumbnail) - 200]
+                                             + bytes(2048))
+    assert "truncated JPEG" in read_frames(tmp_path / "thumb_cut.jpg")[0].error
+
+
+def test_a_name_no_utf8_holds_is_read_and_named_with_escapes(tmp_path: Path) -> None:
+    """A latin-1 file name (an old share's) is kept by Python as lone surrogates, which
+    OpenCV could not open and no UTF-8 writer could write."""
+    ramp = np.round(gradient() * 255).astype(np.uint8)
+    ok, data = cv2.imencode(".png", ramp)
+    path = Path(os.fsdecode(bytes(tmp_path) + b"/caf\xe9.png"))
+    path.write_bytes(data.tobytes())
+    (source,) = find_images(tmp_path)
+    assert source.name == "caf\\xe9.png"
+    (frame,) = iter_frames([source], workers=0)
+    assert frame.error is None and frame.name == "caf\\xe9.png"
+    np.testing.assert_allclose(frame.image, ramp / 255, atol=0.5 / 255 + 1e-6)

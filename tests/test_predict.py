@@ -682,3 +682,63 @@ def test_implausible_geometry_is_warned_of_once_and_recorded(
     assert warnings["pixel_spacing_mm"].startswith(spacing)
     # Warned of, not refused: every image is run.
     assert {r["status"] for r in read_csv(out / "results.csv")} == {"no_cup"}
+
+
+def test_overlays_of_inputs_named_by_their_paths_stay_under_out(tmp_path: Path,
+                                                                 blind_checkpoint: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch
+                                                                 ) -> None:
+    """Two inputs of one name, the second named by its path: relative with '..' (its overlay
+    had gone to out/overlays/../../d2, into the input folder) or absolute."""
+    for folder in ("d1", "d2", "d3"):
+        (tmp_path / "in" / folder).mkdir(parents=True)
+        noise_png(tmp_path / "in" / folder / "a.png", size=256)
+    (tmp_path / "work").mkdir()
+    monkeypatch.chdir(tmp_path / "work")
+    assert main(["predict", "../in/d1", "../in/d2", str(tmp_path / "in" / "d3"),
+                 "--out", "out", "--checkpoint", str(blind_checkpoint), "--assume-defaults",
+                 "--quiet"]) == 0
+    names = list(rows_by_image(read_csv(tmp_path / "work" / "out" / "results.csv")))
+    assert names == ["a.png", "../in/d2/a.png", (tmp_path / "in" / "d3" / "a.png").as_posix()]
+    assert predict.output_name("../in/d2/a.png", ".png") == "__/in/d2/a.png.png"
+    written = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.png.png"))
+    assert len(written) == 3 and all(p.startswith("work/out/overlays/") for p in written)
+    assert sorted(p.name for p in (tmp_path / "in" / "d2").iterdir()) == ["a.png"]
+
+
+def test_an_overlay_that_cannot_be_written_loses_no_row(tmp_path: Path, blind_checkpoint: Path,
+                                                         capsys: pytest.CaptureFixture) -> None:
+    """A name one byte short of the file system's limit takes the overlay's '.png' past it:
+    the run had stopped with a traceback and a results.csv of its header alone."""
+    images = tmp_path / "images"
+    images.mkdir()
+    long_name = "x" * 251 + ".png"
+    for name in ("a.png", long_name, "z.png"):
+        noise_png(images / name, size=256)
+    out = tmp_path / "out"
+    assert main(["predict", str(images), "--out", str(out), "--checkpoint",
+                 str(blind_checkpoint), "--assume-defaults", "--quiet"]) == 0
+    assert list(rows_by_image(read_csv(out / "results.csv"))) == ["a.png", long_name, "z.png"]
+    assert sorted(p.name for p in (out / "overlays").iterdir()) == ["a.png.png", "z.png.png"]
+    document = json.loads((out / "results.json").read_text())
+    assert f"first: {long_name}" in document["warnings"]["unwritten_images"]
+    assert "cannot write overlays/" in capsys.readouterr().err
+
+
+def test_an_out_that_is_a_file_or_holds_the_input_is_named(tmp_path: Path,
+                                                             blind_checkpoint: Path,
+                                                             capsys: pytest.CaptureFixture
+                                                             ) -> None:
+    images = tmp_path / "images"
+    images.mkdir()
+    noise_png(images / "a.png")
+    (tmp_path / "afile").write_text("")
+    common = ["--checkpoint", str(blind_checkpoint), "--assume-defaults", "--quiet"]
+    # It had said "no images found" (everything under --out is skipped) and, for a file,
+    # ended in a FileExistsError traceback.
+    assert main(["predict", str(images), "--out", str(images), *common]) == 2
+    assert f"--out {images} holds the input folder {images}" in capsys.readouterr().err
+    assert main(["predict", str(images), "--out", str(tmp_path / "afile"), *common]) == 2
+    assert "is a file; give a folder for the results" in capsys.readouterr().err
+    assert main(["predict", str(images), "--out", str(images / "cupnet"), *common]) == 0
+    assert list(rows_by_image(read_csv(images / "cupnet" / "results.csv"))) == ["a.png"]

@@ -13,6 +13,7 @@ from cup_cases import rim_landmarks
 from cupnet.cli import main
 from cupnet.geometry import Geometry, pose_to_radians
 from cupnet.io.landmarks import read_landmarks
+from cupnet.io.meta import read_meta, row_for_image
 from cupnet.io.results import MURRAY_COLUMNS, SD_COLUMNS
 from cupnet.pose import cramer_rao_bound
 
@@ -226,3 +227,24 @@ def test_clicked_landmarks_give_the_poses_standard_errors(tmp_path):
         assert all(abs(p - q) < 3 * e for p, q, e in zip(pose, TRUTH[0].tolist(), errors,
                                                          strict=True))
     assert all(rows["few.png"][c] == "" for c in SD_COLUMNS)
+
+
+def test_csv_files_saved_by_excel_with_a_byte_order_mark_are_read(tmp_path):
+    """Excel's "CSV UTF-8" starts with a byte-order mark, which had hidden the first
+    column's name ("meta.csv needs an 'image' column", "unknown landmark format")."""
+    (tmp_path / "lm.csv").write_text("image,u,v\na.png,1,2\n", encoding="utf-8-sig")
+    assert list(read_landmarks(tmp_path / "lm.csv")) == ["a.png"]
+    (tmp_path / "meta.csv").write_text("image,sdd_mm\na.png,1000\n", encoding="utf-8-sig")
+    assert read_meta(tmp_path / "meta.csv") == {"a.png": {"sdd_mm": 1000.0}}
+
+
+def test_an_images_row_is_found_by_its_name_its_files_or_a_keys_file_name():
+    table = {"a.png": 1, "run/b.png": 2, "x/c.png": 3, "y/c.png": 4, "d.dcm": 5,
+             "C:\\images\\e.png": 6}
+    assert row_for_image(table, "a.png") == 1
+    assert row_for_image(table, "sub/a.png") == 1   # the image in a subfolder of the run
+    assert row_for_image(table, "b.png") == 2       # the key with a folder, alone of its name
+    assert row_for_image(table, "c.png") is None    # two keys of that name: neither
+    assert row_for_image(table, "d.dcm#2") == 5     # a frame: its file's row
+    assert row_for_image(table, "e.png") == 6       # a Windows path
+    assert row_for_image(table, "f.png") is None

@@ -27,6 +27,7 @@ import pydicom
 from PIL import Image, UnidentifiedImageError
 from pydicom.errors import InvalidDicomError
 from pydicom.pixels import apply_modality_lut, apply_voi_lut, pixel_array
+from pydicom.uid import DeflatedExplicitVRLittleEndian
 
 from cupnet.errors import named_error
 from cupnet.io import jpeg12
@@ -40,9 +41,9 @@ SUPPORTED_SUFFIXES = RASTER_SUFFIXES + DICOM_SUFFIXES
 _DICOM_MAGIC_OFFSET = 128
 # The bytes a whole file of each kind ends with: JPEG's end-of-image marker, PNG's IEND chunk
 # (its empty length, type and CRC).
-_END_MARKERS = {".jpg": (b"\xff\xd9", "JPEG data (no end-of-image marker)"),
-                ".jpeg": (b"\xff\xd9", "JPEG data (no end-of-image marker)"),
-                ".png": (b"\x00\x00\x00\x00IEND\xaeB`\x82", "PNG data (no IEND end chunk)")}
+# Keyed by the format PIL finds in the file, not by its suffix (a JPEG renamed .png is a JPEG).
+_END_MARKERS = {"JPEG": (b"\xff\xd9", "JPEG data (no end-of-image marker)"),
+                "PNG": (b"\x00\x00\x00\x00IEND\xaeB`\x82", "PNG data (no IEND end chunk)")}
 # Relative difference between row and column spacing below which pixels count as square.
 _SQUARE_TOL = 1e-3
 
@@ -91,14 +92,28 @@ class Frame:
 
 
 # -- discovery ----------------------------------------------------------------------------------
-def _is_dicom_without_suffix(path: Path) -> bool:
-    """DICOM files often have no suffix: recognise them by the ``DICM`` preamble magic."""
+def display_name(name: str) -> str:
+    """``name`` as results, overlays and titles show it: bytes of a file name that are no
+    UTF-8 (a latin-1 name from an old share, which Python keeps as lone surrogates that no
+    UTF-8 writer, and not OpenCV, can take) written as ``\\xe9`` escapes."""
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
+def _is_dicom_by_content(path: Path) -> bool:
+    """DICOM files often have no suffix, or one of their own (``.IMA``, the last part of a
+    UID name): recognise them by the ``DICM`` preamble magic."""
     try:
         with path.open("rb") as f:
             f.seek(_DICOM_MAGIC_OFFSET)
             return f.read(4) == b"DICM"
     except OSError:
         return False
+
+
+def _is_dicom(path: Path) -> bool:
+    suffix = path.suffix.lower()
+    return suffix in DICOM_SUFFIXES or (suffix not in RASTER_SUFFIXES
+                                        and _is_dicom_by_content(path))
 
 
 def _wanted(path: Path) -> bool:
@@ -108,7 +123,7 @@ def _wanted(path: Path) -> bool:
         return not path.name.startswith(".") and suffix in SUPPORTED_SUFFIXES
     if path.name.startswith(".") or not path.is_file():
         return False
-    return suffix in SUPPORTED_SUFFIXES or (suffix == "" and _is_dicom_without_suffix(path))
+    return suffix in RASTER_SUFFIXES or _is_dicom(path)
 
 
 def _glob_root(pattern: str) -> Path:
@@ -125,10 +140,10 @@ def find_images(spec: str | Path, recursive: bool = False,
                 exclude: Path | None = None) -> list[ImageSource]:
     """Input files named by a folder, a file or a glob pattern, in sorted order.
 
-    A folder gives its files with a supported suffix (and suffix-less DICOM files), with
-    ``recursive`` those of its subfolders too. A file is taken as is (reading it says whether
-    it is supported). A glob keeps the files it matches (``**`` spans folders with
-    ``recursive``).
+    A folder gives its files with a supported suffix (and DICOM files of any other name, by
+    content), with ``recursive`` those of its subfolders too. A file is taken as is (reading
+    it says whether it is supported). A glob keeps the files it matches (``**`` spans folders
+    with ``recursive``). Names are :func:`display_name` s.
 
     Args:
         spec: folder, file or glob.
@@ -143,7 +158,7 @@ def find_images(spec: str | Path, recursive: bool = False,
         root = path
         candidates = path.rglob("*") if recursive else path.iterdir()
     elif path.is_file():
-        return [ImageSource(path, path.name)]
+        return [ImageSource(path, display_name(path.name))]
     elif glob.has_magic(spec):
         root = _glob_root(spec)
         candidates = (Path(p) for p in glob.glob(spec, recursive=recursive))
@@ -155,13 +170,13 @@ def find_images(spec: str | Path, recursive: bool = False,
         if excluded is not None and p.resolve().is_relative_to(excluded):
             continue
         if _wanted(p):
-            found.append(ImageSource(p, p.relative_to(root).as_posix()))
+            found.append(ImageSource(p, display_name(p.relative_to(root).as_posix())))
     if not found:
         where = "matching" if glob.has_magic(spec) and not path.is_dir() else "in"
         hint = "" if recursive or not path.is_dir() else " (use --recursive for subfolders)"
         raise FileNotFoundError(
             f"no images found {where} {spec}{hint}: looked for "
-            f"{', '.join(SUPPORTED_SUFFIXES)} and suffix-less DICOM files")
+            f"{', '.join(SUPPORTED_SUFFIXES)} and DICOM files of other names")
     return sorted(found, key=lambda s: s.name)
 
 
@@ -306,22 +321,28 @@ def _dicom_header(path: Path) -> pydicom.Dataset:
 
 def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarray:
     """One decoded frame with modality LUT / rescale and VOI LUT / window applied."""
+    syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
     try:
-        stored = pixel_array(path, index=index)
+        if syntax == DeflatedExplicitVRLittleEndian:  # pixel_array(path) reads no deflated file
+            stored = pydicom.dcmread(path).pixel_array
+            stored = stored if index is None else stored[index]
+        else:
+            stored = pixel_array(path, index=index)
     except Exception as exc:  # pydicom raises many types on broken pixel data
-        syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+        # A decoder's message may run over lines (one a plugin): one line, all of them.
+        reason = " ".join(str(exc).split()) or type(exc).__name__
         try:
             compressed = syntax is not None and syntax.is_compressed
         except ValueError:  # a private or unknown transfer syntax: no decoder knows it
             raise ImageReadError(f"cannot decode DICOM pixel data in transfer syntax "
-                                 f"{syntax} ({exc})") from exc
+                                 f"{syntax} ({reason})") from exc
         if compressed:
             # Intact data no installed decoder reads (a colour JPEG Extended stream, HTJ2K
             # where GDCM is old) or a damaged stream: say which compression, and what the
             # decoders said.
             raise ImageReadError(f"cannot decode DICOM pixel data compressed as {syntax.name} "
-                                 f"(unsupported or damaged: {exc})") from exc
-        raise ImageReadError(f"corrupt or truncated DICOM pixel data ({exc})") from exc
+                                 f"(unsupported or damaged: {reason})") from exc
+        raise ImageReadError(f"corrupt or truncated DICOM pixel data ({reason})") from exc
     if stored.ndim == 3 and stored.shape[-1] == 3:
         stored = _to_gray(stored)
     elif stored.ndim != 2:
@@ -334,9 +355,10 @@ def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarr
 
 
 # -- reading ------------------------------------------------------------------------------------
-def _read_raster(path: Path, page: int | None) -> np.ndarray:
-    suffix = path.suffix.lower()
-    if suffix in (".tif", ".tiff"):
+def _read_raster(path: Path, page: int | None, kind: str) -> np.ndarray:
+    """One page of a raster file whose content PIL found to be ``kind`` ("PNG", "JPEG",
+    "TIFF", ...), whatever its suffix."""
+    if kind == "TIFF":
         try:
             with Image.open(path) as im:
                 im.seek(page or 0)
@@ -346,12 +368,18 @@ def _read_raster(path: Path, page: int | None) -> np.ndarray:
         return to_unit_range(pixels)  # a decoded file's values: their own error, not "corrupt"
     # libjpeg decodes a cut-off JPEG into a partly grey image without failing, and libpng
     # fails on a cut-off PNG with "libpng error: Read Error" on stderr: require the end
-    # marker (some writers pad after it, so look at the last kilobyte).
-    if suffix in _END_MARKERS and _END_MARKERS[suffix][0] not in _tail(path, 1024):
-        raise ImageReadError(f"corrupt or truncated {_END_MARKERS[suffix][1]}")
-    decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # faster than imdecode of the bytes
+    # marker (some writers pad after it, so look at the last kilobyte; a JPEG may carry a
+    # longer trailer, a phone's motion photo, so its segments are walked to find its end).
+    if kind in _END_MARKERS and _END_MARKERS[kind][0] not in _tail(path, 1024) and not (
+            kind == "JPEG" and _jpeg_ends(path.read_bytes())):
+        raise ImageReadError(f"corrupt or truncated {_END_MARKERS[kind][1]}")
+    try:
+        str(path).encode("utf-8")
+        decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)  # faster than imdecode
+    except UnicodeEncodeError:  # a name no UTF-8 holds, which OpenCV cannot open by name
+        decoded = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
     if decoded is None:
-        raise ImageReadError(f"corrupt or truncated {suffix.lstrip('.').upper()} data")
+        raise ImageReadError(f"corrupt or truncated {kind} data")
     return to_unit_range(decoded)
 
 
@@ -359,6 +387,30 @@ def _tail(path: Path, size: int) -> bytes:
     with path.open("rb") as f:
         f.seek(max(0, path.stat().st_size - size))
         return f.read()
+
+
+def _jpeg_ends(data: bytes) -> bool:
+    """Whether a JPEG's own segments reach its end-of-image marker: headers are skipped by
+    their lengths (an EXIF thumbnail's own marker lies inside one), entropy-coded data up to
+    the next marker (0xFF followed by neither a stuffed 0x00 nor a restart marker)."""
+    at = 2  # after the start-of-image marker
+    while at + 1 < len(data):
+        if data[at] != 0xFF:
+            return False
+        marker = data[at + 1]
+        if marker == 0xD9:
+            return True
+        if marker == 0xFF or 0xD0 <= marker <= 0xD7 or marker == 0x01:  # fill, no length
+            at += 1 if marker == 0xFF else 2
+            continue
+        at += 2 + int.from_bytes(data[at + 2:at + 4], "big")
+        if marker == 0xDA:  # start of scan: its entropy-coded data runs to the next marker
+            while (at := data.find(b"\xff", at)) != -1 and at + 1 < len(data) and (
+                    data[at + 1] == 0x00 or 0xD0 <= data[at + 1] <= 0xD7):
+                at += 2
+            if at == -1:
+                return False
+    return False
 
 
 @dataclass(frozen=True)
@@ -369,6 +421,7 @@ class _Unit:
     index: int | None
     last: bool
     header: pydicom.Dataset | None = None
+    kind: str = ""  # a raster's format, as PIL found it in the file
 
 
 def _probe(source: ImageSource) -> list[_Unit]:
@@ -381,7 +434,7 @@ def _probe(source: ImageSource) -> list[_Unit]:
     if size == 0:
         raise ImageReadError("empty file (0 bytes)")
     suffix = path.suffix.lower()
-    if suffix in DICOM_SUFFIXES or (suffix == "" and _is_dicom_without_suffix(path)):
+    if _is_dicom(path):
         ds = _dicom_header(path)
         n = int(ds.get("NumberOfFrames", 1) or 1)
         return [_Unit(source, i if n > 1 else None, i == n - 1, ds) for i in range(n)]
@@ -390,8 +443,8 @@ def _probe(source: ImageSource) -> list[_Unit]:
                              f"supported: {', '.join(SUPPORTED_SUFFIXES)}")
     try:
         with Image.open(path) as im:
-            width, height = im.size
-            n = getattr(im, "n_frames", 1) if suffix in (".tif", ".tiff") else 1
+            width, height, kind = *im.size, str(im.format)
+            n = getattr(im, "n_frames", 1) if kind == "TIFF" else 1
     except UnidentifiedImageError as exc:
         raise ImageReadError(f"not a readable {suffix.lstrip('.').upper()} image "
                              "(unknown or corrupt content)") from exc
@@ -402,7 +455,7 @@ def _probe(source: ImageSource) -> list[_Unit]:
     except OSError as exc:
         raise ImageReadError(f"corrupt image header ({exc})") from exc
     _check_size(width, height)
-    return [_Unit(source, i if n > 1 else None, i == n - 1) for i in range(n)]
+    return [_Unit(source, i if n > 1 else None, i == n - 1, kind=kind) for i in range(n)]
 
 
 def _frame_name(unit: _Unit) -> str:
@@ -418,7 +471,7 @@ def _decode(unit: _Unit) -> Frame:
             (frame.sdd_mm, frame.pixel_spacing_mm, frame.tag_notes,
              frame.tag_sources) = dicom_geometry(unit.header)
         else:
-            frame.image = _read_raster(unit.source.path, unit.index)
+            frame.image = _read_raster(unit.source.path, unit.index, unit.kind)
     except ImageReadError as exc:
         frame.error = str(exc)
     except (OSError, MemoryError) as exc:
@@ -432,7 +485,7 @@ def _decode(unit: _Unit) -> Frame:
 def read_frames(source: ImageSource | str | Path) -> list[Frame]:
     """All frames of one file, decoded now (errors in ``Frame.error``)."""
     if not isinstance(source, ImageSource):
-        source = ImageSource(Path(source), Path(source).name)
+        source = ImageSource(Path(source), display_name(Path(source).name))
     return list(iter_frames([source], workers=0))
 
 
@@ -442,7 +495,7 @@ def read_image(path: str | Path) -> np.ndarray:
     Raises:
         ImageReadError: naming why the file cannot be read.
     """
-    source = ImageSource(Path(path), Path(path).name)
+    source = ImageSource(Path(path), display_name(Path(path).name))
     units = _probe(source)
     frame = _decode(units[0])
     if frame.error is not None:

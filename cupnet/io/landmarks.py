@@ -67,7 +67,7 @@ def read_landmarks(path: str | Path) -> dict[str, list[LandmarkSet]]:
         ValueError: the header matches neither format, or the file holds no rows.
     """
     path = Path(path)
-    with path.open(newline="") as f:
+    with path.open(newline="", encoding="utf-8-sig") as f:
         rows = list(csv.reader(f))
     rows = [r for r in rows if any(cell.strip() for cell in r)]
     if not rows:

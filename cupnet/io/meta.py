@@ -10,10 +10,14 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 from cupnet.geometry import Geometry
+
+T = TypeVar("T")
 
 # Geometry values an image needs, with what they are called in messages and which flag sets
 # them; the principal point defaults to the image centre (CONVENTIONS) where the size is known.
@@ -212,7 +216,7 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
     Raises:
         ValueError: no ``image`` column, an unknown column, or a non-numeric cell (with its line).
     """
-    with path.open(newline="") as f:
+    with path.open(newline="", encoding="utf-8-sig") as f:
         reader = csv.DictReader(f)
         if reader.fieldnames is None or "image" not in reader.fieldnames:
             raise ValueError(f"{path}: meta.csv needs an 'image' column")
@@ -229,10 +233,25 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
     return rows
 
 
-def meta_row(meta: dict[str, dict[str, float]], name: str) -> dict[str, float]:
-    """The meta.csv row of an image: by its name, else its file name (frames: their file's)."""
+def row_for_image(table: Mapping[str, T], name: str) -> T | None:
+    """An image's entry in a table keyed by image names (meta.csv rows, landmark sets): by its
+    name, else its file's name (frames ``name#2``), else that file's name without folders;
+    keys given with folders match too where their file name is theirs alone
+    (``images/a.png`` for an image ``a.png`` of a run on ``images/``)."""
     file_name = name.split("#", 1)[0]
-    for key in (name, file_name, Path(file_name).name):
-        if key in meta:
-            return meta[key]
-    return {}
+    for key in (name, file_name, _base_name(file_name)):
+        if key in table:
+            return table[key]
+    wanted = _base_name(file_name)
+    keys = [key for key in table if _base_name(key) == wanted]
+    return table[keys[0]] if len(keys) == 1 else None
+
+
+def _base_name(name: str) -> str:
+    """A path's last part, with either separator (a meta.csv written on Windows)."""
+    return name.replace("\\", "/").rsplit("/", 1)[-1]
+
+
+def meta_row(meta: dict[str, dict[str, float]], name: str) -> dict[str, float]:
+    """The meta.csv row of an image (:func:`row_for_image`), else no values."""
+    return row_for_image(meta, name) or {}

@@ -84,12 +84,25 @@ def status_row(name: str, status: str, seconds: float) -> dict:
     return {"image": name, "cup": None, "status": status, "seconds": seconds}
 
 
-def atomic_write(path: Path, write: Callable[[Any], None]) -> None:
-    """Write a text file through ``write(f)`` so a reader never sees it half-written."""
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False,
-                                     newline="") as tmp:
-        write(tmp)
-    os.replace(tmp.name, path)
+def atomic_write(path: Path, write: Callable[[Any], None], binary: bool = False) -> None:
+    """Write a file through ``write(f)`` (text, UTF-8, or ``binary``) so a reader never sees
+    it half-written; where it cannot be written (a name too long for the file system, a full
+    disk, no permission) the temporary file is removed, not left beside the results, and the
+    error raised."""
+    options: dict[str, Any] = {} if binary else {"newline": "", "encoding": "utf-8"}
+    with tempfile.NamedTemporaryFile("wb" if binary else "w", dir=path.parent, suffix=".tmp",
+                                     delete=False, **options) as tmp:
+        try:
+            write(tmp)
+        except BaseException:
+            tmp.close()
+            os.unlink(tmp.name)
+            raise
+    try:
+        os.replace(tmp.name, path)
+    except OSError:
+        os.unlink(tmp.name)
+        raise
 
 
 def _cell(value: object) -> object:
