@@ -383,6 +383,30 @@ def _read_raster(path: Path, page: int | None, kind: str) -> np.ndarray:
     return to_unit_range(decoded)
 
 
+# EXIF Orientation -> what turns the stored pixels as every viewer shows them (a phone's
+# photo of a monitor, an exporter writing rows as the sensor read them).
+_EXIF_ORIENTATION = 0x0112
+_UPRIGHT = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+            5: lambda a: a.T, 6: lambda a: np.rot90(a, -1), 7: lambda a: a.T[::-1, ::-1],
+            8: lambda a: np.rot90(a, 1)}
+
+
+def _orientation(image: Image.Image) -> int:
+    """A raster's EXIF Orientation; 1 where it has none, or where reading it meets damage
+    (PNG's chunks past a cut: the decoding names that)."""
+    try:
+        return int(image.getexif().get(_EXIF_ORIENTATION, 1) or 1)
+    except (OSError, ValueError, SyntaxError, TypeError):
+        return 1
+
+
+def upright(image: np.ndarray, orientation: int) -> np.ndarray:
+    """``(H, W)`` stored pixels as shown under EXIF ``orientation`` (1-8; 1 and unknown
+    values: as stored), contiguous."""
+    turn = _UPRIGHT.get(orientation)
+    return image if turn is None else np.ascontiguousarray(turn(image))
+
+
 def _tail(path: Path, size: int) -> bytes:
     with path.open("rb") as f:
         f.seek(max(0, path.stat().st_size - size))
@@ -422,6 +446,7 @@ class _Unit:
     last: bool
     header: pydicom.Dataset | None = None
     kind: str = ""  # a raster's format, as PIL found it in the file
+    orientation: int = 1  # a raster's EXIF Orientation (1: as stored)
 
 
 def _probe(source: ImageSource) -> list[_Unit]:
@@ -445,6 +470,7 @@ def _probe(source: ImageSource) -> list[_Unit]:
         with Image.open(path) as im:
             width, height, kind = *im.size, str(im.format)
             n = getattr(im, "n_frames", 1) if kind == "TIFF" else 1
+            orientation = _orientation(im)
     except UnidentifiedImageError as exc:
         raise ImageReadError(f"not a readable {suffix.lstrip('.').upper()} image "
                              "(unknown or corrupt content)") from exc
@@ -455,7 +481,8 @@ def _probe(source: ImageSource) -> list[_Unit]:
     except OSError as exc:
         raise ImageReadError(f"corrupt image header ({exc})") from exc
     _check_size(width, height)
-    return [_Unit(source, i if n > 1 else None, i == n - 1, kind=kind) for i in range(n)]
+    return [_Unit(source, i if n > 1 else None, i == n - 1, kind=kind,
+                  orientation=orientation if orientation in _UPRIGHT else 1) for i in range(n)]
 
 
 def _frame_name(unit: _Unit) -> str:
@@ -471,7 +498,8 @@ def _decode(unit: _Unit) -> Frame:
             (frame.sdd_mm, frame.pixel_spacing_mm, frame.tag_notes,
              frame.tag_sources) = dicom_geometry(unit.header)
         else:
-            frame.image = _read_raster(unit.source.path, unit.index, unit.kind)
+            frame.image = upright(_read_raster(unit.source.path, unit.index, unit.kind),
+                                  unit.orientation)
     except ImageReadError as exc:
         frame.error = str(exc)
     except (OSError, MemoryError) as exc:
