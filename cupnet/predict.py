@@ -548,7 +548,7 @@ class Predictor:
                 frame.name, frame.image.shape,  # type: ignore[union-attr]
                 {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm},
                 frame.tag_sources, self.detector.file_values(frame.name))
-            if geometry.missing:
+            if not geometry.complete:
                 batch.records[i] = {"image": frame.name, "geometry": geometry.to_json(),
                                     "rows": [status_row(frame.name,
                                                         geometry.error(frame.tag_notes),

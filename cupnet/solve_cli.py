@@ -82,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
                 continue
             resolved = geometry_inputs.resolve(image, cup.size(),
                                                file_values=cup.geometry_values())
-            if resolved.missing:
+            if not resolved.complete:
                 rows.append(status_row(image, resolved.error(), 0.0))
             else:
                 for text in implausible_once(resolved.values, warned, image, resolved.sources):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 
 import cv2
@@ -134,6 +135,15 @@ def test_geometry_precedence_and_assumptions() -> None:
         "error: missing pixel spacing (--pixel-spacing or meta.csv pixel_spacing_mm), "
         "principal point (--principal-point or meta.csv principal_u_px, principal_v_px; no "
         "image size to take its centre from)")
+    # A value no geometry has is its image's error row before the networks run (the
+    # solver had said so after them, as "no pose from the rim found").
+    bad = resolve_geometry((100, 200), {"sdd_mm": 0.0, "cup_diameter_mm": math.nan,
+                                        "principal_u_px": math.inf}, flags)
+    assert not bad.complete and bad.missing == ["pixel_spacing_mm"]  # unusable said first
+    assert bad.error() == ("error: sdd_mm from meta.csv must be a positive number, got 0.0; "
+                           "cup_diameter_mm from meta.csv must be a positive number, got nan; "
+                           "principal_u_px from meta.csv must be a number, got inf")
+    assert explicit.complete and assumed.complete and not missing.complete
 
 
 def test_no_overwrite_without_flag(tmp_path: Path, blind_checkpoint: Path,

@@ -70,17 +70,26 @@ def implausible_once(values: dict[str, float], warned: dict[str, str], image: st
 
 @dataclass
 class ResolvedGeometry:
-    """The geometry of one image: ``values`` by key, where each came from, what is missing."""
+    """The geometry of one image: ``values`` by key, where each came from, what is missing,
+    and the values given that no geometry can have (``unusable``: key -> why)."""
 
     values: dict[str, float] = field(default_factory=dict)
     sources: dict[str, str] = field(default_factory=dict)
     missing: list[str] = field(default_factory=list)
     assumed_defaults: bool = False
+    unusable: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def complete(self) -> bool:
+        """Every value given, and usable."""
+        return not self.missing and not self.unusable
 
     def error(self, notes: dict[str, str] | None = None) -> str:
-        """The error status naming the missing values, how to give them (``--assume-defaults``
-        where not used yet), and the ``notes`` (key -> text: why a DICOM tag could not serve)
-        of those."""
+        """The error status naming the unusable values, else the missing ones, how to give
+        them (``--assume-defaults`` where not used yet), and the ``notes`` (key -> text: why a
+        DICOM tag could not serve) of those."""
+        if self.unusable:
+            return f"error: {'; '.join(self.unusable.values())}"
         parts = []
         for key in self.missing:
             if key in PRINCIPAL_KEYS:
@@ -135,9 +144,14 @@ def resolve_geometry(size: tuple[int, int] | None, meta: dict[str, float],
                                ("DICOM tags", tags or {}), ("landmark file", file_values or {}),
                                ("assumed", assumed), ("image centre", centre)):
             if values.get(key) is not None:
-                geometry.values[key] = float(values[key])  # type: ignore[arg-type]
+                value = geometry.values[key] = float(values[key])  # type: ignore[arg-type]
                 geometry.sources[key] = ((tag_sources or {}).get(key, source)
                                          if source == "DICOM tags" else source)
+                if not math.isfinite(value) or (key in REQUIRED and value <= 0):
+                    # Said here, not by the solver after the networks ran on the image.
+                    need = "a number" if key in PRINCIPAL_KEYS else "a positive number"
+                    geometry.unusable[key] = (f"{key} from {geometry.sources[key]} must be "
+                                              f"{need}, got {value}")
                 break
         else:
             geometry.missing.append(key)
