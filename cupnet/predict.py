@@ -145,7 +145,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "given is in the file's own pixels and turns with it")
     parser.add_argument("--landmarks", type=Path,
                         help="solve from manual landmarks in this file instead of the network")
-    parser.add_argument("--overwrite", action="store_true", help="replace existing results")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace existing results (and remove the overlays and masks "
+                             "the previous run's results.json lists)")
     parser.add_argument("--resume", action="store_true",
                         help="keep existing results and process only the images not in them")
     parser.add_argument("--save-masks", action="store_true", help="write cup masks as PNG")
@@ -362,6 +364,22 @@ class Outputs:
         if self.csv_path.exists():
             for name, rows in read_results_csv(self.csv_path).items():
                 self.records[name] = previous.get(name) or {"image": name, "rows": rows}
+
+    def remove_previous_images(self) -> None:
+        """For ``--overwrite``: the overlays and masks a previous run's ``results.json`` lists
+        removed, so none of an image no longer in the run stays beside the new results (only
+        those files, and only under ``overlays/`` and ``masks/``)."""
+        try:
+            records = json.loads(self.json_path.read_text())["images"]
+            written = [rel for r in records for rel in [r.get("overlay"), *r.get("masks", [])]
+                       if isinstance(rel, str)]
+        except (OSError, ValueError, KeyError, TypeError):
+            return  # no readable list of what it wrote: nothing is removed
+        folders = [(self.out / folder).resolve() for folder in ("overlays", "masks")]
+        for rel in written:
+            path = (self.out / rel).resolve()
+            if any(path.is_relative_to(folder) for folder in folders) and path.is_file():
+                path.unlink()
 
     def add(self, record: dict) -> None:
         self.records[record["image"]] = record
@@ -727,6 +745,8 @@ def _run(args: argparse.Namespace) -> int:
     outputs = Outputs(args.out, header)
     if args.resume:
         outputs.load_previous()
+    elif args.overwrite:
+        outputs.remove_previous_images()
     done = set(outputs.records)
     predictor = Predictor(args, detector, outputs, geometry_inputs)
     todo = [s for s in sources if s.name not in done]

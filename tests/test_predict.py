@@ -163,6 +163,23 @@ def test_no_overwrite_without_flag(tmp_path: Path, blind_checkpoint: Path,
     assert not (out / "overlays").exists()
 
 
+def test_overwrite_removes_the_overlays_of_the_run_it_replaces(tmp_path: Path,
+                                                              blind_checkpoint: Path) -> None:
+    """Only the files the previous results.json lists, under overlays/ (they had stayed)."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for name in ("a.png", "b.png"):
+        noise_png(images / name)
+    out = tmp_path / "out"
+    common = ["--out", str(out), "--checkpoint", str(blind_checkpoint), "--assume-defaults",
+              "--quiet"]
+    assert main(["predict", str(images), *common]) == 0
+    (out / "overlays" / "mine.png").write_bytes(b"a user's file")
+    (images / "b.png").unlink()
+    assert main(["predict", str(images), *common, "--overwrite"]) == 0
+    assert sorted(p.name for p in (out / "overlays").iterdir()) == ["a.png.png", "mine.png"]
+
+
 def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
                                       monkeypatch: pytest.MonkeyPatch) -> None:
     images = tmp_path / "images"
