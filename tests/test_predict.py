@@ -144,6 +144,11 @@ def test_geometry_precedence_and_assumptions() -> None:
                            "cup_diameter_mm from meta.csv must be a positive number, got nan; "
                            "principal_u_px from meta.csv must be a number, got inf")
     assert explicit.complete and assumed.complete and not missing.complete
+    # Only the principal point missing: --assume-defaults would not give it, so no hint.
+    centreless = resolve_geometry(None, {}, {"sdd_mm": 1000.0, "cup_diameter_mm": 50.0,
+                                             "pixel_spacing_mm": 0.3})
+    assert centreless.missing == ["principal_u_px", "principal_v_px"]
+    assert not centreless.error().endswith("--assume-defaults")
 
 
 def test_no_overwrite_without_flag(tmp_path: Path, blind_checkpoint: Path,

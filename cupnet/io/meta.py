@@ -101,7 +101,9 @@ class ResolvedGeometry:
             name, flag = REQUIRED[key]
             note = f"; {notes[key]}" if notes and key in notes else ""
             parts.append(f"{name} ({flag} or meta.csv {key}{note})")
-        hint = "" if self.assumed_defaults else "; or use --assume-defaults"
+        # --assume-defaults gives none of the principal point (the image centre does).
+        hint = ("" if self.assumed_defaults or not set(self.missing) & set(REQUIRED)
+                else "; or use --assume-defaults")
         return f"error: missing {', '.join(parts)}{hint}"
 
     def to_json(self) -> dict[str, dict[str, float | str]]:
