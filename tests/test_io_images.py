@@ -16,6 +16,8 @@ import pytest
 from dicom_factory import transcoded, with_jpeg_streams, write_dicom
 from PIL import Image, ImageOps
 from pydicom.data import get_testdata_file
+from pydicom.filebase import DicomBytesIO
+from pydicom.filewriter import write_dataset
 from pydicom.pixels import pixel_array
 from pydicom.uid import (
     DeflatedExplicitVRLittleEndian,
@@ -468,3 +470,28 @@ def test_exif_orientation_turns_the_pixels_as_viewers_show_them(tmp_path: Path,
         image = read_image(path)
         assert image.shape == shown.shape
         np.testing.assert_allclose(image, shown, atol=0.5 / 255 + 1e-6)
+
+
+def test_a_bare_dicom_dataset_without_preamble_or_file_meta_is_read(tmp_path: Path) -> None:
+    """Old exports store the dataset alone; pydicom reads it only by force, and it had been
+    refused as 'not a DICOM file'. Its pixels and tags are those of the same dataset stored
+    whole."""
+    pixels = (gradient() * 4000).astype(np.uint16)
+    whole = write_dicom(tmp_path / "whole.dcm", pixels, DistanceSourceToDetector=1100.0,
+                        ImagerPixelSpacing=[0.2, 0.2])
+    for implicit in (True, False):
+        ds = pydicom.dcmread(whole)
+        del ds.file_meta
+        buffer = DicomBytesIO()
+        buffer.is_little_endian, buffer.is_implicit_VR = True, implicit
+        write_dataset(buffer, ds)
+        bare = tmp_path / f"bare_{implicit}.dcm"
+        bare.write_bytes(buffer.getvalue())
+        with pytest.raises(pydicom.errors.InvalidDicomError):
+            pydicom.dcmread(bare)
+        (frame,) = read_frames(bare)
+        assert frame.error is None
+        np.testing.assert_array_equal(frame.image, read_frames(whole)[0].image)
+        assert (frame.sdd_mm, frame.pixel_spacing_mm) == (1100.0, 0.2)
+    (tmp_path / "text.dcm").write_bytes(b"\x08\x00" + b"no dataset at all" * 40)
+    assert "not a DICOM file" in read_frames(tmp_path / "text.dcm")[0].error

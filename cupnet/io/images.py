@@ -25,9 +25,15 @@ import cv2
 import numpy as np
 import pydicom
 from PIL import Image, UnidentifiedImageError
+from pydicom.dataset import FileMetaDataset
 from pydicom.errors import InvalidDicomError
 from pydicom.pixels import apply_modality_lut, apply_voi_lut, pixel_array
-from pydicom.uid import DeflatedExplicitVRLittleEndian
+from pydicom.uid import (
+    DeflatedExplicitVRLittleEndian,
+    ExplicitVRBigEndian,
+    ExplicitVRLittleEndian,
+    ImplicitVRLittleEndian,
+)
 
 from cupnet.errors import named_error
 from cupnet.io import jpeg12
@@ -299,14 +305,35 @@ def dicom_geometry(ds: pydicom.Dataset
     return sdd, spacing, notes, sources
 
 
+def _bare_dataset(path: Path, stop_before_pixels: bool) -> pydicom.Dataset | None:
+    """A DICOM dataset stored bare (no preamble, no file meta: old exports and archives),
+    with the transfer syntax it was read in set in its file meta; None where the file holds
+    no image dataset."""
+    try:
+        ds = pydicom.dcmread(path, stop_before_pixels=stop_before_pixels, force=True)
+        implicit, little = ds.original_encoding
+        ok = "Rows" in ds and "Columns" in ds and implicit is not None
+    except Exception:  # noqa: BLE001 - read by force, anything may fail: not a DICOM file
+        return None
+    if not ok:
+        return None
+    ds.file_meta = FileMetaDataset()
+    ds.file_meta.TransferSyntaxUID = (ImplicitVRLittleEndian if implicit else
+                                      ExplicitVRLittleEndian if little else
+                                      ExplicitVRBigEndian)
+    return ds
+
+
 def _dicom_header(path: Path) -> pydicom.Dataset:
     try:
         ds = pydicom.dcmread(path, stop_before_pixels=True)
     except InvalidDicomError as exc:
-        # pydicom's message ends "Use force=True to force reading.", advice for its API
-        # that a predict user cannot take.
-        raise ImageReadError("not a DICOM file (no 'DICM' prefix and no file meta "
-                             "information header)") from exc
+        ds = _bare_dataset(path, stop_before_pixels=True)
+        if ds is None:
+            # pydicom's message ends "Use force=True to force reading.", advice for its API
+            # that a predict user cannot take.
+            raise ImageReadError("not a DICOM file (no 'DICM' prefix and no file meta "
+                                 "information header)") from exc
     except (EOFError, OSError, ValueError, KeyError, TypeError) as exc:
         raise ImageReadError(f"corrupt or truncated DICOM header ({exc})") from exc
     for keyword in ("Rows", "Columns"):
@@ -323,8 +350,13 @@ def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarr
     """One decoded frame with modality LUT / rescale and VOI LUT / window applied."""
     syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
     try:
-        if syntax == DeflatedExplicitVRLittleEndian:  # pixel_array(path) reads no deflated file
-            stored = pydicom.dcmread(path).pixel_array
+        if syntax == DeflatedExplicitVRLittleEndian or ds.preamble is None:
+            # pixel_array(path) reads neither a deflated file nor a bare dataset.
+            whole = (pydicom.dcmread(path) if ds.preamble is not None
+                     else _bare_dataset(path, stop_before_pixels=False))
+            stored = whole.pixel_array if whole is not None else None
+            if stored is None:
+                raise ValueError("the dataset read again has no pixel data")
             stored = stored if index is None else stored[index]
         else:
             stored = pixel_array(path, index=index)
