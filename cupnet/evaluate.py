@@ -28,6 +28,8 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from cupnet.geometry import Geometry
+from cupnet.io.meta import row_for_image
+from cupnet.io.results import ALT_COLUMNS
 from cupnet.pose import ellipse_of_pose, orthographic_pose
 
 POSE = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
@@ -64,7 +66,7 @@ def read_rows(path: Path, required: tuple[str, ...],
     """CSV rows as dicts, columns renamed by ``aliases``; a missing required column raises
     ``ValueError`` naming it."""
     aliases = aliases or {}
-    with Path(path).open(newline="") as f:
+    with Path(path).open(newline="", encoding="utf-8-sig") as f:  # Excel's byte-order mark
         reader = csv.DictReader(f)
         columns = [aliases.get(c, c) for c in reader.fieldnames or []]
         missing = [c for c in required if c not in columns]
@@ -82,8 +84,8 @@ def true_ellipses(rows: list[dict[str, str]], meta: dict[str, dict[str, str]]) -
     """``(N, 5)`` true ellipses: the truth's columns, else projected from pose and geometry."""
     if rows and all(c in rows[0] for c in ELLIPSE):
         return _array(rows, ELLIPSE)
-    geometry_rows = [{**meta.get(r["image"], {}), **{k: v for k, v in r.items() if k in GEOMETRY}}
-                     for r in rows]
+    geometry_rows = [{**(row_for_image(meta, r["image"]) or {}),
+                      **{k: v for k, v in r.items() if k in GEOMETRY}} for r in rows]
     missing = [c for c in GEOMETRY[:3] if any(c not in g for g in geometry_rows)]
     if missing:
         raise ValueError(f"truth has no ellipse columns and no geometry {missing} to project the "
@@ -111,6 +113,9 @@ class Matched:
         ambiguous: matched cups the solver flagged ambiguous.
         unpredicted: truth images without any prediction row (left out).
         check: ``(M,)`` matched cups the model flagged to check by eye (``check`` = 1).
+        alt_pred: ``(M, 5)`` the second pose of each matched ambiguous cup, NaN for others.
+        untrue: predicted images without a truth row (scored as images with no cup).
+        incomplete_truth: truth rows without a whole pose and ellipse (left out).
     """
 
     images: list[str]
@@ -126,6 +131,37 @@ class Matched:
     ambiguous: int
     unpredicted: int
     check: np.ndarray
+    alt_pred: np.ndarray
+    untrue: int
+    incomplete_truth: int
+
+
+def _duplicates(rows: list[dict[str, str]], columns: tuple[str, ...], what: str) -> None:
+    """A ValueError naming the first row of ``rows`` that repeats another on ``columns``
+    (two runs' results appended, a truth file pasted twice): each would count again."""
+    seen: set[tuple[str, ...]] = set()
+    for row in rows:
+        key = tuple(row.get(c) or "" for c in columns)
+        if key in seen:
+            cells = ", ".join(f"{c} {v}" for c, v in zip(columns[1:], key[1:], strict=True))
+            raise ValueError(f"two {what} rows alike for image {row['image']} ({cells}): "
+                             "two files appended? Give each cup once")
+        seen.add(key)
+
+
+def _truth_names(pred_rows: list[dict[str, str]], truth_names: set[str]
+                 ) -> list[dict[str, str]]:
+    """``pred_rows`` named as the truth names their images: a prediction of a run on the
+    parent folder (``images/a.png``) or a truth keyed by paths finds its image by file name
+    where that name is one image's alone (:func:`cupnet.io.meta.row_for_image`)."""
+    table = {name: name for name in truth_names}
+    named = {}
+    for image in {row["image"] for row in pred_rows}:
+        named[image] = image if image in table else (row_for_image(table, image) or image)
+    # Two predicted images that find one truth image keep their own names.
+    targets = list(named.values())
+    return [row if named[row["image"]] == row["image"] or targets.count(named[row["image"]]) > 1
+            else {**row, "image": named[row["image"]]} for row in pred_rows]
 
 
 def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]],
@@ -135,13 +171,17 @@ def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]]
     Only images with a prediction row count; truth images without one are counted apart
     (``unpredicted``), so evaluating part of a set does not read as missed cups.
     """
+    # The centre too: a results.csv of another tool may have no cup column.
+    _duplicates(pred_rows, ("image", "cup", *ELLIPSE[:2]), "prediction")
+    _duplicates(truth_rows, ("image", *POSE), "truth")
+    pred_rows = _truth_names(pred_rows, {r["image"] for r in truth_rows})
     pred_by_image: dict[str, list[dict[str, str]]] = {}
     first_rows: dict[str, dict[str, str]] = {}
     for row in pred_rows:
         first_rows.setdefault(row["image"], row)
     predicted = np.array([r["image"] in first_rows for r in truth_rows], dtype=bool)
-    usable = (np.isfinite(_array(truth_rows, POSE)).all(1) & np.isfinite(truth_ellipse).all(1)
-              & predicted)
+    complete = np.isfinite(_array(truth_rows, POSE)).all(1) & np.isfinite(truth_ellipse).all(1)
+    usable = complete & predicted
     truth_rows_ok = np.flatnonzero(usable).tolist()
     for row in pred_rows:
         if row["status"] in FOUND and np.isfinite(_array([row], ELLIPSE[:2])).all():
@@ -177,6 +217,10 @@ def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]]
         unpredicted=len({r["image"] for r in truth_rows} - set(first_rows)),
         ambiguous=sum(p["status"] == "ambiguous" for p, _ in pairs),
         check=np.array([p.get("check") == "1" for p, _ in pairs], dtype=bool),
+        alt_pred=_array([p if p["status"] == "ambiguous" else {} for p, _ in pairs],
+                        ALT_COLUMNS),
+        untrue=len(set(first_rows) - {r["image"] for r in truth_rows}),
+        incomplete_truth=int(np.sum(~complete & predicted)),
     )
 
 
@@ -241,6 +285,10 @@ def compute_metrics(matched: Matched) -> dict:
     gross = int(np.sum(~(angle_error <= GROSS_DEG)))  # NaN counts as a failure
     n = len(matched.images)
     rest = ~matched.check
+    # The first pose of an ambiguous cup is scored; what its second pose would have given.
+    alt_errors = pose_errors(matched.alt_pred, matched.true)
+    alt_angle = np.maximum(np.abs(alt_errors["anteversion_deg"]),
+                           np.abs(alt_errors["inclination_deg"]))
     return {
         "images": matched.n_images,
         "true_cups": matched.n_true,
@@ -250,6 +298,10 @@ def compute_metrics(matched: Matched) -> dict:
         "false_positives": matched.n_pred - n,
         "error_images": matched.errors,
         "ambiguous_matched": matched.ambiguous,
+        "ambiguous_second_nearer": int(np.sum(alt_angle < angle_error)),
+        "gross_second_right": int(np.sum((alt_angle <= GROSS_DEG) & ~(angle_error <= GROSS_DEG))),
+        "predicted_images_without_truth": matched.untrue,
+        "truth_rows_incomplete": matched.incomplete_truth,
         "truth_images_not_predicted": matched.unpredicted,
         "gross_failures": gross,
         "gross_failure_rate": gross / n if n else None,
@@ -312,9 +364,22 @@ def metrics_table(metrics: dict) -> str:
             f"{check['gross_flagged']} of them gross failures; MAE of the others: "
             + ", ".join(f"{label} {_fmt(rest[name]['mae'])}" for name, label in LABELS.items()
                         if name in rest) + ".")
+    if metrics["ambiguous_matched"]:
+        lines.append(f"\n{metrics['ambiguous_matched']} matched cup(s) ambiguous (both circle "
+                     "poses in range): their first pose is scored; the second lies nearer the "
+                     f"truth for {metrics['ambiguous_second_nearer']}, and is right for "
+                     f"{metrics['gross_second_right']} of the gross failures.")
     if metrics["truth_images_not_predicted"]:
         lines.append(f"\n{metrics['truth_images_not_predicted']} truth image(s) without a "
                      "prediction row were left out.")
+    untrue = metrics["predicted_images_without_truth"]
+    if untrue > metrics["images"] / 2:  # a truth omits the images without a cup, not most
+        lines.append(f"\n{untrue} of the {metrics['images']} predicted images have no truth "
+                     "row, so count as images without a cup (their cups as false positives): "
+                     "do the two files name the images alike?")
+    if metrics["truth_rows_incomplete"]:
+        lines.append(f"\n{metrics['truth_rows_incomplete']} truth row(s) without a whole pose "
+                     "(or ellipse) were left out.")
     return "\n".join(lines)
 
 

@@ -172,3 +172,59 @@ def test_cli_writes_report_and_plots(tmp_path: Path, capsys: pytest.CaptureFixtu
     assert main(["evaluate", "--pred", str(bad), "--truth", str(truth), "--out",
                  str(tmp_path / "ev2")]) == 2
     assert "missing column" in capsys.readouterr().err
+
+
+def test_predictions_of_a_parent_folder_find_their_truth_by_file_name(tmp_path: Path) -> None:
+    """`cupnet predict DIR --recursive` names images `images/a.png`; a truth of the images'
+    own folder names them `a.png`: they had matched nothing (every cup a false positive)."""
+    truth = write_csv(tmp_path / "truth.csv", truth_rows())
+    plain = evaluate_results(write_csv(tmp_path / "p.csv", predicted_rows()), truth)
+    prefixed = [{**row, "image": f"images/{row['image']}"} for row in predicted_rows()]
+    metrics = evaluate_results(write_csv(tmp_path / "q.csv", prefixed), truth)
+    assert metrics == plain and metrics["matched_cups"] == 3
+    assert metrics["predicted_images_without_truth"] == 1  # d.png: no truth row, no cup
+
+
+def test_an_ambiguous_cup_scores_its_first_pose_and_says_what_the_second_gives(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    truth = write_csv(tmp_path / "truth.csv", truth_rows()[2:3])  # b.png
+    true_pose = truth_rows()[2]
+    row = {"image": "b.png", "cup": 0, "status": "ambiguous", "seconds": 1.0,
+           **dict(zip(POSE + ELLIPSE, [25.0, 89.0, 0, 0, 400, 512, 512, 70, 12, 179],
+                      strict=True)),
+           **{f"alt_{c}": v for c, v in zip(POSE, [10.0, 89.0, 0.0, 0.0, 400.0],
+                                              strict=True)}}
+    assert true_pose["theta_deg"] == 10.0 and true_pose["phi_deg"] == 89.0
+    pred = write_csv(tmp_path / "p.csv", [row])
+    metrics = evaluate_results(pred, truth)
+    assert metrics["perspective"]["anteversion_deg"]["mae"] == pytest.approx(15.0)
+    assert (metrics["ambiguous_matched"], metrics["ambiguous_second_nearer"],
+            metrics["gross_second_right"], metrics["gross_failures"]) == (1, 1, 1, 1)
+    assert main(["evaluate", "--pred", str(pred), "--truth", str(truth), "--out",
+                 str(tmp_path / "out")]) == 0
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "1 matched cup(s) ambiguous" in report and "their first pose is scored" in report
+
+
+def test_what_the_files_hold_that_cannot_be_scored_is_said(tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture
+                                                           ) -> None:
+    """A byte-order mark is read; rows repeated (two files appended) are an error naming
+    them; truth rows without a whole pose are counted as left out."""
+    rows = truth_rows()
+    truth = tmp_path / "truth.csv"
+    write_csv(truth, rows)
+    truth.write_text(truth.read_text(), encoding="utf-8-sig")
+    pred = write_csv(tmp_path / "p.csv", predicted_rows())
+    assert evaluate_results(pred, truth)["matched_cups"] == 3
+    out = ["--out", str(tmp_path / "out")]
+    assert main(["evaluate", "--pred", str(pred), "--truth",
+                 str(write_csv(tmp_path / "twice.csv", rows + rows[:1])), *out]) == 2
+    assert "two truth rows alike for image a.png" in capsys.readouterr().err
+    assert main(["evaluate", "--pred", str(write_csv(tmp_path / "q.csv", predicted_rows()
+                                                     + predicted_rows()[:1])),
+                 "--truth", str(truth), *out]) == 2
+    assert "two prediction rows alike for image a.png" in capsys.readouterr().err
+    blank = [{**row, "h_mm": ""} if row["image"] == "b.png" else row for row in rows]
+    metrics = evaluate_results(pred, write_csv(tmp_path / "blank.csv", blank))
+    assert metrics["truth_rows_incomplete"] == 1 and metrics["true_cups"] == 3
