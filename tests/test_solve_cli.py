@@ -6,6 +6,7 @@ import csv
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 from cup_cases import rim_landmarks
@@ -248,3 +249,21 @@ def test_an_images_row_is_found_by_its_name_its_files_or_a_keys_file_name():
     assert row_for_image(table, "d.dcm#2") == 5     # a frame: its file's row
     assert row_for_image(table, "e.png") == 6       # a Windows path
     assert row_for_image(table, "f.png") is None
+
+
+def test_a_bad_row_spoils_its_own_cup_alone_and_cups_may_be_written_as_floats(tmp_path):
+    """A bad row of cup 1 had turned cup 0 into the error row and left cup 1 solved; a cup
+    column written 0.0 / 1.0 (pandas, with a blank somewhere) had spoilt the image."""
+    rows = ["image,cup,u,v"]
+    for cup, (cx, cy) in enumerate(((100.0, 120.0), (300.0, 140.0))):
+        for t in np.linspace(0, 2 * np.pi, 24, endpoint=False):
+            rows.append(f"x.png,{cup}.0,{cx + 40 * np.cos(t):.4f},{cy + 25 * np.sin(t):.4f}")
+    (tmp_path / "floats.csv").write_text("\n".join(rows) + "\n")
+    sets = read_landmarks(tmp_path / "floats.csv")["x.png"]
+    assert [(s.cup, s.error, len(s.points)) for s in sets] == [(0, None, 24), (1, None, 24)]
+    (tmp_path / "bad.csv").write_text("\n".join([*rows, "x.png,1,n/a,3", "x.png,2.5,1,2"])
+                                      + "\n")
+    sets = read_landmarks(tmp_path / "bad.csv")["x.png"]
+    assert [s.cup for s in sets] == [0, 1, 2] and sets[0].error is None
+    assert sets[1].error == "landmark file line 50: could not convert string to float: 'n/a'"
+    assert sets[2].error == "landmark file line 51: cup must be a whole number >= 0, got '2.5'"

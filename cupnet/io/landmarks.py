@@ -95,13 +95,19 @@ def _read_long(header: list[str], rows: list[list[str]]) -> dict[str, list[Landm
         image = row[col["image"]].strip() if len(row) > col["image"] else ""
         if not image:
             continue
+        cup = 0
         try:
-            cup = int(row[col["cup"]]) if "cup" in col and row[col["cup"]].strip() else 0
+            cell = row[col["cup"]].strip() if "cup" in col else ""
+            # "1.0": a cup column with a blank somewhere, as pandas writes it.
+            cup = int(float(cell)) if cell else 0
+            if cell and not float(cell).is_integer() or cup < 0:
+                raise ValueError(f"cup must be a whole number >= 0, got {cell!r}")
             u, v = float(row[col["u"]]), float(row[col["v"]])
             if not (math.isfinite(u) and math.isfinite(v)):
                 raise ValueError("non-finite landmark coordinate")
         except (ValueError, IndexError) as exc:
-            errors.setdefault((image, 0), f"landmark file line {line}: {exc}")
+            # The set of the row's cup (cup 0 where the cup itself is unreadable) is an error.
+            errors.setdefault((image, cup), f"landmark file line {line}: {exc}")
             continue
         points.setdefault((image, cup), []).append((u, v))
     out: dict[str, list[LandmarkSet]] = {}
