@@ -207,6 +207,18 @@ def test_landmarks_that_are_no_rim_are_flagged_check(tmp_path, capsys):
         capsys.readouterr().out
 
 
+def test_two_whole_rims_in_one_set_are_flagged_by_their_cup_near_the_source(tmp_path):
+    """A bilateral pair's whole rims in one set fit a wide ellipse between them, within a
+    tenth of its axis, whose pose lies near the source: flagged by the pose."""
+    geometry = Geometry(1000.0, 0.4, 300.0, 250.0)
+    pair = torch.tensor([[40.0, 35.0, -100.0, 10.0, 300.0], [40.0, -35.0, 100.0, 10.0, 300.0]],
+                        dtype=torch.float64)
+    row = solved_sets(tmp_path, {"pair.png": rim_landmarks(pair, geometry, n=40).reshape(-1, 2)}
+                      )["pair.png"]
+    assert float(row["residual_px"]) < 0.1 * float(row["ellipse_a_px"])  # the rim test passes
+    assert float(row["h_mm"]) > 0.75 * 1000.0 and row["check"] == "1"
+
+
 def test_clicked_landmarks_give_the_poses_standard_errors(tmp_path):
     """Three clicked rims of the same cup, 1.5 px of noise each: each row's standard errors
     are the Cramer-Rao bound at that noise (measured from its own scatter, so within the
