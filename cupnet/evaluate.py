@@ -451,6 +451,10 @@ def run(args: argparse.Namespace) -> int:
     except (FileNotFoundError, ValueError, KeyError) as exc:
         print(f"cupnet evaluate: error: {exc}", file=sys.stderr)
         return 2
+    if args.out.exists() and not args.out.is_dir():
+        print(f"cupnet evaluate: error: --out {args.out} is a file; give a folder",
+              file=sys.stderr)
+        return 2
     metrics = compute_metrics(matched)
     args.out.mkdir(parents=True, exist_ok=True)
     plots = plot_figures(matched, args.out / "plots")

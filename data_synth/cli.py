@@ -35,7 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="YAML of SynthConfig fields (default: the paper's "
                         "protocol with SDD and pixel spacing varied)")
     parser.add_argument("--size", type=int, nargs=2, metavar=("W", "H"),
-                        help="image size in pixels (overrides the config's image_size)")
+                        help="image size in pixels (overrides the config's image_size, 256 x "
+                             "256 by default; the shipped networks learnt 512 px and more, so "
+                             "give 512 512 or larger for images to predict on)")
     parser.add_argument("--seed", type=int, default=0, help="stream seed (default 0)")
     parser.add_argument("--format", choices=("png", "dcm"), default="png",
                         help="16-bit PNG (default) or DICOM")
@@ -43,21 +45,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replace images/, meta.csv and truth.csv in --out")
 
 
-def write_dicom(path: Path, pixels: np.ndarray, sdd: float, spacing: float) -> None:
-    """Save ``pixels`` ``(H, W)`` uint16 as a DICOM X-ray image with its geometry tags."""
+def write_dicom(path: Path, pixels: np.ndarray, sdd: float, spacing: float,
+                stream: tuple[int, int]) -> None:
+    """Save ``pixels`` ``(H, W)`` uint16 as a DICOM X-ray image with its geometry tags; its
+    UIDs follow from ``stream`` (seed, image index), so a seed gives the same files again."""
     import pydicom
     from pydicom.dataset import FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, generate_uid
 
+    def uid(what: str) -> str:
+        return generate_uid(entropy_srcs=["cupnet synth", *map(str, stream), what])
+
     sop_class = "1.2.840.10008.5.1.4.1.1.12.2"  # X-Ray Radiofluoroscopic Image Storage
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = sop_class
-    meta.MediaStorageSOPInstanceUID = generate_uid()
+    meta.MediaStorageSOPInstanceUID = uid("instance")
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     ds = pydicom.Dataset()
     ds.file_meta = meta
     ds.SOPClassUID, ds.SOPInstanceUID = sop_class, meta.MediaStorageSOPInstanceUID
-    ds.StudyInstanceUID, ds.SeriesInstanceUID = generate_uid(), generate_uid()
+    # One study and series a seed: the images of one run belong together.
+    ds.StudyInstanceUID = generate_uid(entropy_srcs=["cupnet synth", str(stream[0]), "study"])
+    ds.SeriesInstanceUID = generate_uid(entropy_srcs=["cupnet synth", str(stream[0]), "series"])
     ds.Modality = "RF"
     ds.PatientName, ds.PatientID = "SYNTHETIC^CUPNET", path.stem
     ds.Rows, ds.Columns = pixels.shape
@@ -86,6 +95,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"cupnet synth: {error}", file=sys.stderr)
         return 2
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        print(f"cupnet synth: --out {out} is a file; give a folder", file=sys.stderr)
+        return 2
     existing = [name for name in OUTPUTS if (out / name).exists()]
     if existing and not args.overwrite:
         print(f"cupnet synth: {out} already holds {', '.join(existing)}; pass --overwrite "
@@ -111,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
                 if not cv2.imwrite(str(images / name), pixels):
                     raise OSError(f"could not write {images / name}")
             else:
-                write_dicom(images / name, pixels, sdd, spacing)
+                write_dicom(images / name, pixels, sdd, spacing, (args.seed, index))
             valid = sample["cup_valid"]
             diameter = float(sample["cup_diameter"][0])  # the image's, with a cup or without
             meta.writerow([name, _fmt(sdd), _fmt(spacing), _fmt(diameter), _fmt(u0), _fmt(v0)])

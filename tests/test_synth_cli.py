@@ -61,6 +61,15 @@ def test_dicom_output_carries_the_geometry(tmp_path):
     assert float(ds.DistanceSourceToDetector) == pytest.approx(float(meta["sdd_mm"]), abs=1e-3)
     assert [float(v) for v in ds.ImagerPixelSpacing] == pytest.approx(
         [float(meta["pixel_spacing_mm"])] * 2, abs=1e-5)
+    # A seed gives the same files again, UIDs included (they had been random); another
+    # seed other UIDs.
+    again, other = tmp_path / "again", tmp_path / "other"
+    for folder, seed in ((again, "0"), (other, "1")):
+        assert main(["synth", "--n", "1", "--out", str(folder), "--size", "40", "32",
+                     "--format", "dcm", "--seed", seed]) == 0
+    name = meta["image"]
+    assert (again / "images" / name).read_bytes() == (out / "images" / name).read_bytes()
+    assert pydicom.dcmread(other / "images" / name).SOPInstanceUID != ds.SOPInstanceUID
 
 
 def test_refuses_to_overwrite_and_names_bad_config_keys(tmp_path, capsys):
@@ -75,3 +84,6 @@ def test_refuses_to_overwrite_and_names_bad_config_keys(tmp_path, capsys):
     assert main(["synth", "--n", "1", "--out", str(tmp_path / "x"), "--config",
                  str(config)]) == 2
     assert "p_bilateral" in capsys.readouterr().err
+    (tmp_path / "afile").write_text("")
+    assert main(["synth", "--n", "1", "--out", str(tmp_path / "afile")]) == 2
+    assert "is a file; give a folder" in capsys.readouterr().err
