@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -82,11 +84,20 @@ def build_bank(subject: Subject, n: int, size: int, seed: int = 0) -> dict[str, 
 
 
 def save_bank(bank: dict[str, np.ndarray], path: str | Path) -> None:
+    """Write ``bank`` to ``path`` atomically. The temporary file's name is this writer's own:
+    data-loader workers or DDP ranks that all miss the cache render and save the same bank at
+    once, and with one shared name one's rename took the file from under another's."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, **bank)
-    tmp.replace(path)
+    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz",
+                                     delete=False) as tmp:
+        try:
+            np.savez_compressed(tmp, **bank)
+        except BaseException:
+            tmp.close()
+            os.unlink(tmp.name)
+            raise
+    os.replace(tmp.name, path)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -69,3 +69,21 @@ def test_user_ct_is_rendered_once_and_cached(tmp_path, monkeypatch, kind):
     assert torch.equal(first["image"], second["image"])
     maps = anatomy.load_bank(str(cached[0]))
     assert maps.max() > 0  # the CT's body shows in its renders
+
+
+def test_banks_saved_at_once_by_several_writers_all_land_whole(tmp_path):
+    """Data-loader workers or DDP ranks that all miss the cache save one bank at once: with
+    one shared temporary name, a writer's rename took the file from under another's
+    (FileNotFoundError) or left a torn one."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from data_synth.build_bank import save_bank
+
+    path = tmp_path / "bank.npz"
+    banks = [{"maps": np.random.default_rng(i).standard_normal((8, 256, 256))
+              .astype(np.float32)} for i in range(4)]
+    with ThreadPoolExecutor(4) as pool:  # zlib releases the GIL: the writes overlap
+        list(pool.map(lambda bank: save_bank(bank, path), banks))
+    with np.load(path) as saved:
+        assert any(np.array_equal(saved["maps"], bank["maps"]) for bank in banks)
+    assert [p.name for p in tmp_path.iterdir()] == ["bank.npz"]  # no temporary file left
