@@ -12,6 +12,7 @@ import pytest
 import torch
 import yaml
 
+from cupnet.cli import main as cupnet_main
 from cupnet.crops import resample_batch, square_windows
 from cupnet.model import load_model, save_model
 from train.cli import add_arguments, lightning_args, main
@@ -28,6 +29,14 @@ SMOKE = ROOT / "configs" / "smoke.yaml"
 def test_cli_implies_fit():
     assert lightning_args(["--config", "c.yaml"]) == ["fit", "--config", "c.yaml"]
     assert lightning_args(["validate", "-c", "c.yaml"]) == ["validate", "-c", "c.yaml"]
+
+
+def test_sub_commands_the_module_has_no_step_for_name_what_to_use(capsys):
+    """Lightning had failed deep in its loop ("No test_step()")."""
+    assert cupnet_main(["train", "test", "-c", str(SMOKE)]) == 2
+    assert "cupnet train test is not offered; use cupnet evaluate" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="use cupnet predict"):
+        lightning_args(["predict", "-c", "c.yaml"])
 
 
 @pytest.mark.parametrize("argv", [["--config", "c.yaml", "--trainer.max_steps", "3"],

@@ -4,4 +4,4 @@ import sys
 
 from train.cli import main
 
-main(sys.argv[1:])
+sys.exit(main(sys.argv[1:]))

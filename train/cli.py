@@ -1,20 +1,32 @@
 """``cupnet train`` / ``python -m train``: LightningCLI over CupNetModule and CupDataModule.
 
-``cupnet train --config configs/cpu.yaml`` runs ``fit``; LightningCLI's own sub-commands work
-too (``cupnet train fit -c configs/cpu.yaml --ckpt_path last.ckpt`` resumes).
+``cupnet train --config configs/cpu.yaml`` runs ``fit``; LightningCLI's ``fit`` and ``validate``
+work too (``cupnet train fit -c configs/cpu.yaml --ckpt_path last.ckpt`` resumes).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 
 from lightning.pytorch.cli import LightningCLI
 
-SUBCOMMANDS = ("fit", "validate", "test", "predict")
+SUBCOMMANDS = ("fit", "validate")
+# LightningCLI's others, which the module has no step for: what does their job instead.
+NOT_OFFERED = {"test": "cupnet evaluate (on cupnet synth's images)",
+               "predict": "cupnet predict"}
 
 
 def lightning_args(argv: list[str]) -> list[str]:
-    """Arguments for LightningCLI: ``fit`` is implied when no sub-command is given."""
+    """Arguments for LightningCLI: ``fit`` is implied when no sub-command is given.
+
+    Raises:
+        ValueError: ``test`` or ``predict``, which CupNetModule has no step for (Lightning
+            failed with "No test_step()"), naming the command to use.
+    """
+    if argv and argv[0] in NOT_OFFERED:
+        raise ValueError(f"cupnet train {argv[0]} is not offered; use "
+                         f"{NOT_OFFERED[argv[0]]}")
     if argv and (argv[0] in SUBCOMMANDS or argv[0] in ("-h", "--help")):
         return list(argv)
     return ["fit", *argv]
@@ -29,14 +41,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.prefix_chars = "\0"
 
 
-def main(argv: list[str]) -> None:
+def main(argv: list[str]) -> int:
+    """LightningCLI on ``argv``; 2 for a sub-command not offered (said on stderr)."""
     from train.data import CupDataModule
     from train.module import CupNetModule
 
-    LightningCLI(CupNetModule, CupDataModule, args=lightning_args(argv),
-                 save_config_kwargs={"overwrite": True})
+    try:
+        args = lightning_args(argv)
+    except ValueError as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    LightningCLI(CupNetModule, CupDataModule, args=args, save_config_kwargs={"overwrite": True})
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
-    main(args.argv)
-    return 0
+    return main(args.argv)
