@@ -483,3 +483,17 @@ def test_merge_takes_the_named_networks_and_keeps_the_rest(tmp_path, capsys):
         merge_main([str(paths["base"]), "--take", f"rim={tmp_path / 'missing'}",
                     "--out", str(tmp_path / "x")])
     assert "checkpoint not found" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", ["cpu", "gpu"])
+def test_last_checkpoint_is_written_at_the_runs_last_step(name):
+    """A monitored ModelCheckpoint writes last.ckpt only where the score improves (Lightning
+    2.6: a resume went back to the best step); last.ckpt comes from an unmonitored one whose
+    interval divides max_steps, so the run's last step is in it."""
+    config = yaml.safe_load((ROOT / "configs" / f"{name}.yaml").read_text())
+    checkpoints = [c["init_args"] for c in config["trainer"]["callbacks"]
+                   if c["class_path"].endswith("ModelCheckpoint")]
+    assert not any(c.get("save_last") for c in checkpoints if c.get("monitor"))
+    (last,) = [c for c in checkpoints if c.get("save_last")]
+    assert last.get("monitor") is None
+    assert config["trainer"]["max_steps"] % last["every_n_train_steps"] == 0
