@@ -477,6 +477,10 @@ def test_merge_takes_the_named_networks_and_keeps_the_rest(tmp_path, capsys):
         merged(base, {"coarse_rim": coarse, "rim": wider})
     # Nothing loaded, not even the part that fits: the misfit is found first.
     assert all(torch.equal(v, base.state_dict()[k]) for k, v in before.items())
+    # Weights of the same shapes, learnt on strips sampled otherwise: it had merged silently.
+    other_steps = CupNetModule(model={**RIM_MODEL, "rim_step": 2 * base.config.rim_step}).model
+    with pytest.raises(ValueError, match=r"'rim': it learnt rim_step = .*, the base model runs"):
+        merged(base, {"rim": other_steps})
     with pytest.raises(SystemExit):
         merge_main([str(paths["base"]), "--take", "rim", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):

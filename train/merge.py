@@ -19,14 +19,21 @@ from torch import Tensor, nn
 
 from cupnet.model import CupNet, load_model, save_model
 
+# The settings that give each network's input its meaning (its view's size, the crop's
+# framing, the strips' sampling): a network taken into a model that sets them otherwise
+# would see inputs it never learnt, with weights of the same shapes.
+INPUT_SETTINGS = {"locator": ("locator_size",), "refiner": ("crop_size", "crop_fill"),
+                  "rim": ("rim_samples", "rim_step"),
+                  "coarse_rim": ("rim_samples", "rim_step", "coarse_rim_reach")}
+
 
 def merged(base: CupNet, parts: dict[str, CupNet]) -> CupNet:
     """``base`` with each named network (``"rim"``, ``"coarse_rim"``, ``"locator"``,
     ``"refiner"``) replaced by the same network of ``parts[name]``, in place.
 
-    Raises ValueError naming a network that ``base`` or its donor lacks, or whose weights
-    do not fit (another width). Every part is checked before any is loaded, so a merge
-    never half-loads.
+    Raises ValueError naming a network that ``base`` or its donor lacks, whose weights do
+    not fit (another width), or whose donor sets one of its :data:`INPUT_SETTINGS`
+    otherwise. Every part is checked before any is loaded, so a merge never half-loads.
     """
     for name, donor in parts.items():
         mine, theirs = getattr(base, name, None), getattr(donor, name, None)
@@ -37,6 +44,11 @@ def merged(base: CupNet, parts: dict[str, CupNet]) -> CupNet:
         if misfit is not None:
             raise ValueError(f"cannot take {name!r}: its weights do not fit the base "
                              f"model's ({name}.{misfit})")
+        for setting in INPUT_SETTINGS.get(name, ()):
+            ours, donors = getattr(base.config, setting), getattr(donor.config, setting)
+            if ours != donors:
+                raise ValueError(f"cannot take {name!r}: it learnt {setting} = {donors}, the "
+                                 f"base model runs it at {ours}")
     for name, donor in parts.items():
         getattr(base, name).load_state_dict(getattr(donor, name).state_dict())
     return base
