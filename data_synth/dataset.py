@@ -191,16 +191,18 @@ def _synthesize(config: SynthConfig, rng: np.random.Generator, index: int) -> di
     }
 
 
-def stream_share() -> tuple[int, int]:
+def stream_share(rotate: int = 0) -> tuple[int, int]:
     """This reader's share of a sample stream, ``(share, shares)``: one per DataLoader worker
     in each process of a distributed run (DDP: ``torch.distributed``, when initialised), so
-    that no two readers make the same samples."""
+    that no two readers make the same samples. With ``rotate``, worker ``w`` takes worker
+    ``(w + rotate) % workers``'s share (a resumed loader, whose first worker takes up where
+    the stopped one's next worker was)."""
     rank, world = ((torch.distributed.get_rank(), torch.distributed.get_world_size())
                    if torch.distributed.is_available() and torch.distributed.is_initialized()
                    else (0, 1))
     info = get_worker_info()
     worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
-    return rank * workers + worker, world * workers
+    return rank * workers + (worker + rotate) % workers, world * workers
 
 
 class SynthDataset(IterableDataset):
@@ -230,8 +232,14 @@ class SynthDataset(IterableDataset):
         return synthesize(self.config, self.seed, index)
 
     def __iter__(self) -> Iterator[dict[str, Tensor]]:
-        share, shares = stream_share()
-        indices = (itertools.count(share, shares) if self.length is None
-                   else range(share, self.length, shares))
+        return self.samples()
+
+    def samples(self, skip: int = 0, rotate: int = 0) -> Iterator[dict[str, Tensor]]:
+        """This reader's samples (:func:`stream_share` with ``rotate``), after its first
+        ``skip`` of them (a resumed run's, which it trained on), without making those."""
+        share, shares = stream_share(rotate)
+        first = share + skip * shares
+        indices = (itertools.count(first, shares) if self.length is None
+                   else range(first, self.length, shares))
         for index in indices:
             yield synthesize(self.config, self.seed, index)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import itertools
 import math
 from pathlib import Path
 
@@ -11,12 +12,14 @@ import lightning as L
 import pytest
 import torch
 import yaml
+from torch.utils.data import DataLoader
 
 from cupnet.cli import main as cupnet_main
 from cupnet.crops import resample_batch, square_windows
 from cupnet.model import load_model, save_model
+from data_synth.dataset import stream_share
 from train.cli import add_arguments, lightning_args, main
-from train.data import CupDataModule
+from train.data import CupDataModule, RoundRobinBatches
 from train.losses import distill_loss, pose_errors, ramp, wrap_angle
 from train.merge import main as merge_main
 from train.merge import merged
@@ -102,6 +105,26 @@ def smoke_run(tmp_path_factory):
     finally:
         os.chdir(cwd)
     return root
+
+
+def test_a_resumed_run_goes_on_as_the_stopped_one_would_have(tmp_path, monkeypatch):
+    """Six smoke steps at once, and three, then three more resumed from the checkpoint: the
+    same images (the streams had started again at their first) and the same losses (the
+    random draws had started again too)."""
+    def run(name: str, *extra: str) -> list[dict]:
+        (tmp_path / name).mkdir()
+        monkeypatch.chdir(tmp_path / name)
+        main(["fit", "-c", str(SMOKE), "--data.synth", str(ROOT / "configs/synth_smoke.yaml"),
+              "--trainer.max_steps", "6", "--trainer.limit_val_batches", "0", *extra])
+        return [r for r in _metrics(tmp_path / name) if r.get("train/loss")]
+
+    every = tmp_path / "every3"
+    whole = run("whole", "--trainer.callbacks+=ModelCheckpoint",
+                f"--trainer.callbacks.dirpath={every}",
+                "--trainer.callbacks.every_n_train_steps=3", "--trainer.callbacks.save_top_k=-1")
+    resumed = run("resumed", "--ckpt_path", str(every / "epoch=0-step=3.ckpt"))
+    assert [r["step"] for r in resumed] == ["3", "4", "5"]
+    assert [r["train/loss"] for r in resumed] == [r["train/loss"] for r in whole[3:]]
 
 
 def test_smoke_config_loss_decreases(smoke_run):
@@ -501,3 +524,33 @@ def test_last_checkpoint_is_written_at_the_runs_last_step(name):
     (last,) = [c for c in checkpoints if c.get("save_last")]
     assert last.get("monitor") is None
     assert config["trainer"]["max_steps"] % last["every_n_train_steps"] == 0
+
+
+class _Counting(torch.utils.data.IterableDataset):
+    """Samples ``{"index": (stream, i)}`` of a stream, shared among readers as SynthDataset
+    shares its own (without synthesising anything)."""
+
+    def __init__(self, stream: int) -> None:
+        self.stream = stream
+
+    def __iter__(self):
+        return self.samples()
+
+    def samples(self, skip: int = 0, rotate: int = 0):
+        share, shares = stream_share(rotate)
+        for i in itertools.count(share + skip * shares, shares):
+            yield {"index": torch.tensor([self.stream, i])}
+
+
+@pytest.mark.parametrize("workers", [0, 2, 3])
+def test_batches_after_a_resume_are_those_the_stopped_run_would_have_made(workers):
+    """Two streams taken in turn, read by several workers: resumed after 5 batches, the
+    loader gives batches 5, 6, ... of the uninterrupted one."""
+    def batches(done: int, count: int) -> list[list[list[int]]]:
+        loader = DataLoader(RoundRobinBatches([_Counting(0), _Counting(1)], 2, None, done),
+                            batch_size=None, num_workers=workers)
+        return [b["index"].tolist() for b in itertools.islice(loader, count)]
+
+    whole = batches(0, 12)
+    assert len({tuple(map(tuple, b)) for b in whole}) == 12  # no batch made twice
+    assert batches(5, 7) == whole[5:]

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import lightning as L
-from torch.utils.data import DataLoader, IterableDataset, default_collate
+from torch.utils.data import DataLoader, IterableDataset, default_collate, get_worker_info
 
 if TYPE_CHECKING:  # data_synth loads where a config is made
     from data_synth import SynthConfig
@@ -50,17 +50,30 @@ class RoundRobinBatches(IterableDataset):
     """Collated batches taken in turn from several sample streams (one per image size).
 
     Args:
-        datasets: iterable datasets of sample dicts.
+        datasets: ``data_synth.SynthDataset`` s (or iterable datasets of sample dicts with
+            a ``samples(skip, rotate)`` method).
         batch_size: samples per batch.
-        batches: total batches (None: until a stream ends).
+        batches: batches a reader makes (None: until a stream ends).
+        done: batches already trained on (a resumed run): each stream starts after its
+            share of them, so the run goes on with the batches it would have made without
+            the stop, in their order. A DataLoader takes its workers' batches in turn, so
+            of the first ``done`` the worker ``w`` of ``W`` made those numbered ``w, w + W,
+            ...``; resumed, worker 0 comes first again, so it plays worker ``done % W``.
     """
 
-    def __init__(self, datasets: list, batch_size: int, batches: int | None = None) -> None:
+    def __init__(self, datasets: list, batch_size: int, batches: int | None = None,
+                 done: int = 0) -> None:
         self.datasets, self.batch_size, self.batches = datasets, batch_size, batches
+        self.done = done
 
     def __iter__(self) -> Iterator[dict]:
-        streams = [iter(d) for d in self.datasets]
-        count = 0
+        info = get_worker_info()
+        worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
+        role = (worker + self.done) % workers
+        count = len(range(role, self.done, workers))  # batches its role made before
+        n = len(self.datasets)
+        streams = [d.samples(len(range(j, count, n)) * self.batch_size, rotate=self.done)
+                   for j, d in enumerate(self.datasets)]
         while self.batches is None or count < self.batches:
             stream = streams[count % len(streams)]
             samples = [s for _, s in zip(range(self.batch_size), stream, strict=False)]
@@ -118,7 +131,10 @@ class CupDataModule(L.LightningDataModule):
         streams = [(source, size) for source in self._synth_list() for size in sizes]
         datasets = [SynthDataset(synth_config(source, size), seed=hp.train_seed + i)
                     for i, (source, size) in enumerate(streams)]
-        return RoundRobinBatches(datasets, hp.batch_size, hp.train_batches)
+        # A run resumed from a checkpoint has its step back by now: it goes on with new
+        # images rather than the first ones again.
+        done = self.trainer.global_step if self.trainer is not None else 0
+        return RoundRobinBatches(datasets, hp.batch_size, hp.train_batches, done)
 
     def train_dataloader(self) -> DataLoader:
         hp = self.hparams

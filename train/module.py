@@ -321,6 +321,8 @@ class CupNetModule(L.LightningModule):
         super().__init__()
         self.save_hyperparameters()
         self.model = CupNet(CupNetConfig.from_dict(model or {}))
+        # A resumed run's random state (CPU, CUDA), set at its first step (on_load_checkpoint).
+        self._resumed_rng: tuple[Tensor | None, list[Tensor] | None] = (None, None)
         if init_weights:
             # A model gaining a rim stage starts from weights without one; a rim network of
             # another width starts afresh.
@@ -582,6 +584,27 @@ class CupNetModule(L.LightningModule):
                                                                self.hparams.lr / 20)
         return {"optimizer": optimizer,
                 "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def on_save_checkpoint(self, checkpoint: dict) -> None:
+        # The random draws of the training steps (jittered rim starts, dark views, windows),
+        # so that a resumed run goes on drawing as the stopped one would have.
+        checkpoint["torch_rng_state"] = torch.get_rng_state()
+        if torch.cuda.is_available():
+            checkpoint["cuda_rng_states"] = torch.cuda.get_rng_state_all()
+
+    def on_load_checkpoint(self, checkpoint: dict) -> None:
+        # Set at the first step, not now: the data loader's start draws from the generator
+        # in between, which the stopped run had done once, long before.
+        self._resumed_rng = (checkpoint.get("torch_rng_state"),
+                             checkpoint.get("cuda_rng_states"))
+
+    def on_train_batch_start(self, batch: dict, batch_idx: int) -> None:
+        state, cuda_states = self._resumed_rng
+        if state is not None:
+            torch.set_rng_state(state)
+        if cuda_states is not None and torch.cuda.is_available():
+            torch.cuda.set_rng_state_all(cuda_states)
+        self._resumed_rng = (None, None)
 
     def on_fit_end(self) -> None:
         if self.hparams.export_path and self.trainer.is_global_zero:
