@@ -554,3 +554,12 @@ def test_batches_after_a_resume_are_those_the_stopped_run_would_have_made(worker
     whole = batches(0, 12)
     assert len({tuple(map(tuple, b)) for b in whole}) == 12  # no batch made twice
     assert batches(5, 7) == whole[5:]
+    # Epochs of 5 batches, the loader's whole (each worker's part had been 5), of one loader
+    # with persistent workers (as CupDataModule's): each epoch goes on with the streams
+    # (they had started again), and so does a loader resumed after 5.
+    for done, first in ((0, 0), (5, 5)):
+        loader = DataLoader(RoundRobinBatches([_Counting(0), _Counting(1)], 2, 5, done),
+                            batch_size=None, num_workers=workers,
+                            persistent_workers=workers > 0)
+        epochs = [b["index"].tolist() for _ in range(2) for b in loader]
+        assert epochs == (whole + batches(12, 3))[first:first + 10]

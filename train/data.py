@@ -53,7 +53,8 @@ class RoundRobinBatches(IterableDataset):
         datasets: ``data_synth.SynthDataset`` s (or iterable datasets of sample dicts with
             a ``samples(skip, rotate)`` method).
         batch_size: samples per batch.
-        batches: batches a reader makes (None: until a stream ends).
+        batches: batches the loader makes, its workers together (an epoch of
+            ``train_batches``; None: until a stream ends).
         done: batches already trained on (a resumed run): each stream starts after its
             share of them, so the run goes on with the batches it would have made without
             the stop, in their order. A DataLoader takes its workers' batches in turn, so
@@ -65,22 +66,30 @@ class RoundRobinBatches(IterableDataset):
                  done: int = 0) -> None:
         self.datasets, self.batch_size, self.batches = datasets, batch_size, batches
         self.done = done
+        # Epochs this copy began: the main process's, or a persistent worker's, which keeps
+        # it from epoch to epoch (so each epoch goes on with the streams).
+        self.epochs = 0
 
     def __iter__(self) -> Iterator[dict]:
         info = get_worker_info()
         worker, workers = (0, 1) if info is None else (info.id, info.num_workers)
-        role = (worker + self.done) % workers
-        count = len(range(role, self.done, workers))  # batches its role made before
+        done = self.done + self.epochs * (self.batches or 0)  # the loader's, all workers'
+        self.epochs += 1
+        role = (worker + done) % workers
+        count = len(range(role, done, workers))  # batches its role made before
         n = len(self.datasets)
-        streams = [d.samples(len(range(j, count, n)) * self.batch_size, rotate=self.done)
+        streams = [d.samples(len(range(j, count, n)) * self.batch_size, rotate=done)
                    for j, d in enumerate(self.datasets)]
-        while self.batches is None or count < self.batches:
+        # This worker's part of the loader's `batches` (the workers take turns).
+        mine = None if self.batches is None else len(range(worker, self.batches, workers))
+        made = 0
+        while mine is None or made < mine:
             stream = streams[count % len(streams)]
             samples = [s for _, s in zip(range(self.batch_size), stream, strict=False)]
             if len(samples) < self.batch_size:
                 return
             yield default_collate(samples)
-            count += 1
+            count, made = count + 1, made + 1
 
 
 class CupDataModule(L.LightningDataModule):
