@@ -212,6 +212,23 @@ def test_rim_only_training_moves_the_rim_network_alone():
     assert losses[-1] < losses[0]
 
 
+def test_a_pose_loss_that_reaches_no_trained_network_is_warned_of():
+    """With a rim stage the pose comes from the rim network's landmarks alone: frozen, the
+    pose loss trains nothing (a 'refiner-only' stage's pose_weight had done nothing
+    silently); the rim network trained, it gets the gradient."""
+    batch = _smoke_batch()
+    frozen = CupNetModule(model=RIM_MODEL, freeze=("locator", "rim"), pose_start=0,
+                          ramp_steps=1)
+    with pytest.warns(UserWarning, match="the pose loss reaches no network this run trains"):
+        terms = frozen.losses(batch, 10)
+    assert not terms["pose"].requires_grad
+    trained = CupNetModule(model=RIM_MODEL, freeze=("locator",), pose_start=0, ramp_steps=1)
+    trained.losses(batch, 10)["pose"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0
+               for p in trained.model.rim.parameters())
+    assert all(p.grad is None for p in trained.model.refiner.parameters())
+
+
 def _fit_moves_only(module: CupNetModule, trained: str, tmp_path: Path) -> None:
     """Three steps of Lightning's own loop (which decides the modules' modes): the weights
     and BatchNorm statistics of every network but ``trained`` must not move; its must."""

@@ -8,6 +8,7 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor, nn
 
 from cupnet.config import CupNetConfig
@@ -235,7 +236,9 @@ class CupNetModule(L.LightningModule):
         ellipse_start, pose_start: steps at which the ellipse and pose losses come in, each
             ramped linearly over ``ramp_steps`` (segmentation always on).
         ellipse_weight, pose_weight: their full weights (``pose_weight: 0`` trains on
-            segmentation (and ellipse) alone: the ablation).
+            segmentation (and ellipse) alone: the ablation). The pose loss reaches the
+            networks whose landmarks give the pose: the rim network where the model has one
+            (``rim_passes > 0``; the refiner only frames its strips), else the refiner.
         locator_weight: weight of the locator's segmentation loss.
         coarse_fraction, coarse_shift, coarse_scale, fine_shift, fine_scale, fine_angle,
             fine_ratio: crop framing errors (see :func:`jittered_ellipses`).
@@ -417,6 +420,12 @@ class CupNetModule(L.LightningModule):
                                             fit.valid)
         solution = out.solution
         terms["pose"] = pose_loss(solution.pose, batch["pose"][i, c].double(), solution.valid)
+        if w_pose > 0 and torch.is_grad_enabled() and not terms["pose"].requires_grad:
+            # (Python's warnings say it once.)
+            rank_zero_warn("pose_weight > 0, but the pose loss reaches no network this run "
+                           "trains: it reaches those whose landmarks give the pose, the rim "
+                           "network where the model has one (rim_passes > 0), else the "
+                           "refiner; pose_weight has no effect here")
         total = (hp.locator_weight * terms["seg_locator"] + terms["seg_crop"]
                  + w_ellipse * terms.get("ellipse", 0.0) + w_pose * terms["pose"])
         if out.rim is not None:
