@@ -41,9 +41,9 @@ class CupDetection:
         check: ``doubt`` is at or above the model's ``check_doubt``, or the pose lies beyond
             its ``max_theta_deg`` (given landmarks: they lie off the solved rim, or its
             pose near the source, see :func:`cupnet.solve_cli.solve_cup`): look at this
-            cup's overlay before
-            trusting it (most gross failures are flagged; see README). None where not
-            measured (a model without a rim stage or its dome-outline refinement).
+            cup's overlay before trusting it (most gross failures are flagged; see README).
+            None where not measured (a model without a rim stage or its dome-outline
+            refinement).
         metal_bright: the model took the image to show metal bright and turned it over
             before placing the rims (``CupNetConfig.metal`` ``"bright"``, or ``"auto"``
             judging it so); False: used as given (metal dark); None where not judged

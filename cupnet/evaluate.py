@@ -20,6 +20,7 @@ import csv
 import json
 import math
 import sys
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -159,9 +160,9 @@ def _truth_names(pred_rows: list[dict[str, str]], truth_names: set[str]
     for image in {row["image"] for row in pred_rows}:
         named[image] = image if image in table else (row_for_image(table, image) or image)
     # Two predicted images that find one truth image keep their own names.
-    targets = list(named.values())
-    return [row if named[row["image"]] == row["image"] or targets.count(named[row["image"]]) > 1
-            else {**row, "image": named[row["image"]]} for row in pred_rows]
+    found = Counter(named.values())
+    return [row if found[named[row["image"]]] > 1 else {**row, "image": named[row["image"]]}
+            for row in pred_rows]
 
 
 def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]],

@@ -42,6 +42,7 @@ from cupnet.io.images import (
     TURNS,
     Frame,
     ImageSource,
+    display_name,
     find_images,
     iter_frames,
     turned_clockwise,
@@ -464,7 +465,8 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
             if path in seen:
                 continue
             seen.add(path)
-            name = source.name if source.name not in sources else source.path.as_posix()
+            name = (source.name if source.name not in sources
+                    else display_name(source.path.as_posix()))
             sources[name] = ImageSource(source.path, name)
     return list(sources.values())
 

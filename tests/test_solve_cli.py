@@ -273,9 +273,11 @@ def test_a_bad_row_spoils_its_own_cup_alone_and_cups_may_be_written_as_floats(tm
     (tmp_path / "floats.csv").write_text("\n".join(rows) + "\n")
     sets = read_landmarks(tmp_path / "floats.csv")["x.png"]
     assert [(s.cup, s.error, len(s.points)) for s in sets] == [(0, None, 24), (1, None, 24)]
-    (tmp_path / "bad.csv").write_text("\n".join([*rows, "x.png,1,n/a,3", "x.png,2.5,1,2"])
-                                      + "\n")
-    sets = read_landmarks(tmp_path / "bad.csv")["x.png"]
+    (tmp_path / "bad.csv").write_text("\n".join([*rows, "x.png,1,n/a,3", "x.png,2.5,1,2",
+                                                 "y.png,inf,1,2"]) + "\n")
+    landmark_sets = read_landmarks(tmp_path / "bad.csv")
+    assert "cannot convert float infinity" in landmark_sets["y.png"][0].error  # not a crash
+    sets = landmark_sets["x.png"]
     assert [s.cup for s in sets] == [0, 1, 2] and sets[0].error is None
     assert sets[1].error == "landmark file line 50: could not convert string to float: 'n/a'"
     assert sets[2].error == "landmark file line 51: cup must be a whole number >= 0, got '2.5'"

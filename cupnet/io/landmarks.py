@@ -105,7 +105,7 @@ def _read_long(header: list[str], rows: list[list[str]]) -> dict[str, list[Landm
             u, v = float(row[col["u"]]), float(row[col["v"]])
             if not (math.isfinite(u) and math.isfinite(v)):
                 raise ValueError("non-finite landmark coordinate")
-        except (ValueError, IndexError) as exc:
+        except (ValueError, IndexError, OverflowError) as exc:  # int(inf): OverflowError
             # The set of the row's cup (cup 0 where the cup itself is unreadable) is an error.
             errors.setdefault((image, cup), f"landmark file line {line}: {exc}")
             continue
