@@ -135,6 +135,11 @@ def poses_from_conic(conic: Tensor, geometry: Geometry, radius: Tensor | float) 
         ``(B, 2, 5)`` poses (rad, mm). Their (theta, phi) are the raw angles of the rim
         normal oriented towards the source (theta >= 0); :func:`canonical_pose` maps them
         into the CONVENTIONS ranges.
+
+    Differentiable through ``eigh`` except where two eigenvalues coincide: a circle's
+    exact image seen face-on on the central ray (theta = 90 deg, phi undefined), whose
+    gradient is NaN. Landmarks with any noise lie off it; :func:`solve_pose`'s default
+    (``refine=True``) takes its gradient from the refinement, finite there too.
     """
     dtype, device = conic.dtype, conic.device
     radius = torch.as_tensor(radius, dtype=dtype, device=device).expand(conic.shape[0])
