@@ -58,6 +58,7 @@ from cupnet.io.meta import (
     add_geometry_arguments,
     implausible_once,
     row_for_image,
+    unmatched_keys,
 )
 from cupnet.io.results import (
     atomic_write,
@@ -659,6 +660,20 @@ class Predictor:
         return record
 
 
+def _note_unmatched(outputs: Outputs, meta: dict, detector: object, names: list[str]) -> None:
+    """Warn of ``--meta`` rows and ``--landmarks`` sets that no image of the run found (frames
+    find their file's): each was left unused without a word."""
+    tables = [("meta.csv", meta)]
+    if isinstance(detector, LandmarkDetector):
+        tables.append(("landmark", detector.sets))
+    for what, table in tables:
+        unused = unmatched_keys(table, names)
+        if unused:
+            outputs.warnings[f"unmatched_{what}"] = (
+                f"{len(unused)} {what} row(s) matched no image of the run (first: "
+                f"{unused[0]}); check their names against the images'")
+
+
 def _software() -> dict:
     return {"cupnet": __version__, "python": platform.python_version(),
             "torch": torch.__version__, "numpy": np.__version__, "platform": platform.platform()}
@@ -781,6 +796,8 @@ def _run(args: argparse.Namespace) -> int:
         pool.shutdown(wait=False, cancel_futures=True)
         frames.close()
         bar.close()
+        if not interrupted:
+            _note_unmatched(outputs, geometry_inputs.meta, detector, list(outputs.records))
         summary = summarise(outputs.records.values())
         outputs.flush(summary, force=True)
     _print_summary(summary, args.out, not args.no_overlays, time.perf_counter() - start,

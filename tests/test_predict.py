@@ -774,3 +774,34 @@ def test_an_out_that_is_a_file_or_holds_the_input_is_named(tmp_path: Path,
     assert "is a file; give a folder for the results" in capsys.readouterr().err
     assert main(["predict", str(images), "--out", str(images / "cupnet"), *common]) == 0
     assert list(rows_by_image(read_csv(images / "cupnet" / "results.csv"))) == ["a.png"]
+
+
+def test_side_file_rows_no_image_found_are_warned_of(tmp_path: Path, blind_checkpoint: Path,
+                                                      capsys: pytest.CaptureFixture) -> None:
+    """A meta.csv row or landmark set whose name matches no image (a typo) had been left
+    unused without a word; a key with folders that finds its image by file name is used."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for name in ("a.png", "b.png"):
+        noise_png(images / name)
+    meta = tmp_path / "meta.csv"
+    meta.write_text("image,sdd_mm,pixel_spacing_mm,cup_diameter_mm\n"
+                    "images/a.png,1000,0.3,52\nb.png,1000,0.3,52\nB_typo.png,1000,0.3,52\n")
+    landmarks = tmp_path / "lm.csv"
+    rim = [f"a.png,{128 + 110 * np.cos(t):.3f},{128 + 70 * np.sin(t):.3f}"
+           for t in np.linspace(0, 2 * np.pi, 16, endpoint=False)]
+    landmarks.write_text("\n".join(["image,u,v", *rim, "c.png,1,2"]) + "\n")
+    out = tmp_path / "out"
+    assert main(["predict", str(images), "--out", str(out), "--meta", str(meta),
+                 "--landmarks", str(landmarks), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    warnings = json.loads((out / "results.json").read_text())["warnings"]
+    assert warnings["unmatched_meta.csv"].startswith("1 meta.csv row(s) matched no image of "
+                                                     "the run (first: B_typo.png)")
+    assert "(first: c.png)" in warnings["unmatched_landmark"]
+    assert "B_typo.png" in printed
+    rows = rows_by_image(read_csv(out / "results.csv"))
+    assert rows["a.png"][0]["status"] in ("ok", "ambiguous")
+    assert rows["b.png"][0]["status"] == "no_cup"
+    records = {r["image"]: r for r in json.loads((out / "results.json").read_text())["images"]}
+    assert records["a.png"]["geometry"]["sdd_mm"]["source"] == "meta.csv"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
@@ -249,18 +249,31 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
     return rows
 
 
-def row_for_image(table: Mapping[str, T], name: str) -> T | None:
-    """An image's entry in a table keyed by image names (meta.csv rows, landmark sets): by its
+def key_for_image(table: Mapping[str, object], name: str) -> str | None:
+    """An image's key in a table keyed by image names (meta.csv rows, landmark sets): its
     name, else its file's name (frames ``name#2``), else that file's name without folders;
     keys given with folders match too where their file name is theirs alone
     (``images/a.png`` for an image ``a.png`` of a run on ``images/``)."""
     file_name = name.split("#", 1)[0]
     for key in (name, file_name, _base_name(file_name)):
         if key in table:
-            return table[key]
+            return key
     wanted = _base_name(file_name)
     keys = [key for key in table if _base_name(key) == wanted]
-    return table[keys[0]] if len(keys) == 1 else None
+    return keys[0] if len(keys) == 1 else None
+
+
+def row_for_image(table: Mapping[str, T], name: str) -> T | None:
+    """An image's entry in ``table`` (:func:`key_for_image`), else None."""
+    key = key_for_image(table, name)
+    return None if key is None else table[key]
+
+
+def unmatched_keys(table: Mapping[str, object], names: Iterable[str]) -> list[str]:
+    """The keys of ``table`` that none of the images ``names`` finds (:func:`key_for_image`):
+    rows of a side file a run silently went without (a typo, another folder's images)."""
+    found = {key_for_image(table, name) for name in names}
+    return [key for key in table if key not in found]
 
 
 def _base_name(name: str) -> str:
