@@ -31,6 +31,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="landmark file: image,u,v (long format) or the paper's label.csv")
     parser.add_argument("--out", type=Path, required=True, help="results.csv to write")
     add_geometry_arguments(parser)
+    parser.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"),
+                        help="the images' size in pixels, for a landmark file that does not "
+                             "give it (the long format): the principal point defaults to its "
+                             "centre and --assume-defaults' spacing to 300 mm over W")
     parser.add_argument("--closed-form", action="store_true",
                         help="skip the maximum-likelihood refinement")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
@@ -74,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"cupnet solve: {args.out} exists; pass --overwrite to replace it", file=sys.stderr)
         return 2
     try:
+        if args.image_size is not None and min(args.image_size) < 1:
+            raise ValueError(f"--image-size must be positive, got {args.image_size}")
         landmark_sets = read_landmarks(args.landmarks)
         geometry_inputs = GeometryInputs.from_args(args)
     except (OSError, ValueError) as exc:
@@ -88,8 +94,9 @@ def run(args: argparse.Namespace) -> int:
             if cup.error is not None:  # a bad row: no geometry to resolve for it
                 rows.append(status_row(image, f"error: {cup.error}", 0.0))
                 continue
-            resolved = geometry_inputs.resolve(image, cup.size(),
-                                               file_values=cup.geometry_values())
+            size = cup.size() or (None if args.image_size is None
+                                  else (args.image_size[1], args.image_size[0]))
+            resolved = geometry_inputs.resolve(image, size, file_values=cup.geometry_values())
             if not resolved.complete:
                 rows.append(status_row(image, resolved.error(), 0.0))
             else:

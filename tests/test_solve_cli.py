@@ -281,3 +281,26 @@ def test_a_bad_row_spoils_its_own_cup_alone_and_cups_may_be_written_as_floats(tm
     assert [s.cup for s in sets] == [0, 1, 2] and sets[0].error is None
     assert sets[1].error == "landmark file line 50: could not convert string to float: 'n/a'"
     assert sets[2].error == "landmark file line 51: cup must be a whole number >= 0, got '2.5'"
+
+
+def test_long_format_landmarks_take_the_image_centre_from_image_size(tmp_path, capsys):
+    """The long format gives no image size: the principal point had no default (every row
+    'no image size to take its centre from'), nor --assume-defaults' spacing."""
+    geometry = Geometry(1040.0, 300.0 / 640, 319.5, 239.5)  # the centre of 640 x 480, 300 mm
+    points = rim_landmarks(TRUTH[:1], geometry, n=40)[0]
+    (tmp_path / "lm.csv").write_text("image,u,v\n" + "".join(
+        f"x.png,{u:.6f},{v:.6f}\n" for u, v in points.tolist()))
+    out = tmp_path / "r.csv"
+    args = ["solve", str(tmp_path / "lm.csv"), "--out", str(out), "--sdd", "1040",
+            "--cup-diameter", "50", "--pixel-spacing", str(300.0 / 640)]
+    assert main(args) == 0
+    assert "no image size to take its centre from" in results(out)[0]["status"]
+    assert main([*args, "--image-size", "640", "480", "--overwrite"]) == 0
+    row = results(out)[0]
+    pose = [float(row[c]) for c in ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")]
+    assert pose == pytest.approx(TRUTH[0].tolist(), abs=1e-4)
+    # --assume-defaults' spacing, 300 mm over the given width, is the spacing used above.
+    assert main(["solve", str(tmp_path / "lm.csv"), "--out", str(out), "--assume-defaults",
+                 "--sdd", "1040", "--cup-diameter", "50", "--image-size", "640", "480",
+                 "--overwrite"]) == 0
+    assert float(results(out)[0]["h_mm"]) == pytest.approx(float(TRUTH[0, 4]), abs=1e-3)
