@@ -39,8 +39,9 @@ class CupDetection:
             outline (:meth:`cupnet.model.CupNet.pose_doubt`; lower is better, true poses
             mostly below 1), or None where not measured (no rim stage, landmarks given).
         check: ``doubt`` is at or above the model's ``check_doubt``, or the pose lies beyond
-            its ``max_theta_deg`` (given landmarks: they lie off the solved rim, or its
-            pose near the source, see :func:`cupnet.solve_cli.solve_cup`): look at this
+            its ``max_theta_deg`` or within the cup's radius of the detector (given
+            landmarks: they lie off the solved rim, or its pose lies near the source or the
+            detector, see :func:`cupnet.solve_cli.solve_cup`): look at this
             cup's overlay before trusting it (most gross failures are flagged; see README).
             None where not measured (a model without a rim stage or its dome-outline
             refinement).

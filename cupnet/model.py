@@ -686,8 +686,9 @@ class CupNet(nn.Module):
                 for look in self.later_looks():
                     self._looked_again(found, image_list, geometry, diameter, return_masks,
                                        look, fields)
-            found = [[self._as_reported(cup, noise, cleaned) for cup in cups]
-                     for cups, (noise, cleaned) in zip(found, noises, strict=True)]
+            found = [[self._as_reported(cup, noise, cleaned, float(size) / 2) for cup in cups]
+                     for cups, (noise, cleaned), size in zip(found, noises, diameter.tolist(),
+                                                             strict=True)]
             found = with_second_poses(found, geometry, diameter)
             found = [cups if factor == 1 else [shrunk(cup, factor, side) for cup in cups]
                      for cups, factor, side in zip(found, factors, sides, strict=True)]
@@ -725,12 +726,16 @@ class CupNet(nn.Module):
         return (threshold is not None and doubt >= threshold) or not bool(
             self.in_theta_range(pose))
 
-    def _as_reported(self, cup: CupDetection, noise: float | None,
-                     cleaned: bool | None) -> CupDetection:
+    def _as_reported(self, cup: CupDetection, noise: float | None, cleaned: bool | None,
+                     radius: float) -> CupDetection:
         """``cup`` as :meth:`detect` reports it: flagged at ``check_doubt`` (the looks went
-        by ``look_again_doubt``), with its image's ``noise`` and whether it was ``cleaned``
-        (:meth:`image_noises`)."""
+        by ``look_again_doubt``), and wherever its rim's centre lies nearer the detector than
+        the cup's ``radius`` (mm: its dome would pass through the detector; pure noise had
+        given such cups, unflagged under ``--fastest``), with its image's ``noise`` and
+        whether it was ``cleaned`` (:meth:`image_noises`)."""
         check = self.flagged(cup.doubt, torch.from_numpy(cup.pose), self.config.check_doubt)
+        if float(cup.pose[4]) < radius:  # NaN (no pose): False
+            check = True
         return replace(cup, check=check, noise=noise, denoised=cleaned)
 
     def later_looks(self) -> list[Look]:

@@ -57,19 +57,21 @@ def solve_cup(cup: LandmarkSet, geometry: Geometry, diameter: float, refine: boo
               ) -> CupDetection:
     """The pose of one cup's given landmarks, flagged ``check`` where they lie off the solved
     rim by more than :data:`OFF_RIM_CHECK` of its semi-major axis or the pose lies past
-    :data:`NEAR_SOURCE_CHECK` of SDD, with its standard errors from their scatter about that
-    rim."""
+    :data:`NEAR_SOURCE_CHECK` of SDD or within the cup's radius of the detector, with its
+    standard errors from their scatter about that rim."""
     points = torch.as_tensor(cup.points, dtype=torch.float64)
     sol = solve_pose(points, geometry, diameter, refine=refine, on_error="flag")
     ambiguous = bool(sol.ambiguous[0])
     off_rim = float(sol.residual_px[0] / sol.ellipse[0, 2])  # NaN where no pose, never raises
-    near_source = float(sol.pose[0, 4]) > NEAR_SOURCE_CHECK * float(geometry.sdd)
+    h = float(sol.pose[0, 4])
+    # Past NEAR_SOURCE_CHECK of SDD, or so near the detector that the dome passes through it.
+    implausible = h > NEAR_SOURCE_CHECK * float(geometry.sdd) or h < diameter / 2
     return CupDetection(
         pose=sol.pose[0].numpy(), alt_pose=sol.alt_pose[0].numpy() if ambiguous else None,
         ambiguous=ambiguous, ellipse=sol.ellipse[0].numpy(), landmarks=cup.points,
         weights=torch.ones(len(cup.points)).numpy(), residual_px=float(sol.residual_px[0]),
         status=sol.status[0],
-        check=None if math.isnan(off_rim) else off_rim > OFF_RIM_CHECK or near_source,
+        check=None if math.isnan(off_rim) else off_rim > OFF_RIM_CHECK or implausible,
         pose_sd=pose_standard_errors(sol.pose, points, geometry, diameter)[0].numpy())
 
 

@@ -723,3 +723,14 @@ def test_a_reported_rim_with_a_second_pose_in_range_makes_its_cup_ambiguous() ->
     np.testing.assert_allclose(made.alt_pose, reference.alt_pose[0].numpy(), atol=1e-4)
     assert replace(made, ambiguous=False, alt_pose=None, status="ok") == edge_on
     assert out[0][1] is typical and out[1][0] is failed and out[1][1] is already
+
+
+def test_a_cup_within_its_radius_of_the_detector_is_flagged():
+    """Its dome would pass through the detector: pure noise had given such cups (h 8-28 mm
+    for a 52 mm cup), unflagged under --fastest, where no doubt is measured."""
+    model = CupNet(CupNetConfig())
+    for h, doubt, flagged in ((20.0, None, True), (20.0, 0.2, True), (300.0, 0.2, False),
+                              (300.0, None, None)):
+        cup = replace(detection([100.0, 100.0, 40.0, 20.0, 0.0], doubt=doubt),
+                      pose=np.array([20.0, 40.0, 0.0, 0.0, h]))
+        assert model._as_reported(cup, None, None, 26.0).check is flagged, (h, doubt)

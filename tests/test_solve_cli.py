@@ -217,6 +217,13 @@ def test_two_whole_rims_in_one_set_are_flagged_by_their_cup_near_the_source(tmp_
                       )["pair.png"]
     assert float(row["residual_px"]) < 0.1 * float(row["ellipse_a_px"])  # the rim test passes
     assert float(row["h_mm"]) > 0.75 * 1000.0 and row["check"] == "1"
+    # A rim too small for the cup's diameter (a 35.8 mm cup's, solved as 50 mm): the cup comes
+    # out within its radius of the detector, its dome through it. Flagged too.
+    small = rim_landmarks(torch.tensor([[30.0, 20.0, 10.0, -20.0, 300.0]], dtype=torch.float64),
+                          geometry, diameter=35.8, n=40)[0]
+    (tmp_path / "small").mkdir()
+    row = solved_sets(tmp_path / "small", {"small.png": small})["small.png"]
+    assert 0 < float(row["h_mm"]) < 25.0 and row["status"] == "ok" and row["check"] == "1"
 
 
 def test_clicked_landmarks_give_the_poses_standard_errors(tmp_path):
