@@ -495,3 +495,30 @@ def test_a_bare_dicom_dataset_without_preamble_or_file_meta_is_read(tmp_path: Pa
         assert (frame.sdd_mm, frame.pixel_spacing_mm) == (1100.0, 0.2)
     (tmp_path / "text.dcm").write_bytes(b"\x08\x00" + b"no dataset at all" * 40)
     assert "not a DICOM file" in read_frames(tmp_path / "text.dcm")[0].error
+
+
+def test_coloured_annotations_are_inpainted_and_a_tinted_image_is_averaged(tmp_path: Path
+                                                                          ) -> None:
+    """A green ellipse and red text drawn on a grey screenshot had become grey edges (one
+    such ellipse on a cup gave a pose 32 deg off, unflagged): they are inpainted from their
+    surround, and the rest of the image is the channels' mean, untouched."""
+    ramp = np.round(gradient(120, 160) * 200 + 20).astype(np.uint8)
+    grey = np.repeat(ramp[..., None], 3, -1)
+    annotated = grey.copy()
+    cv2.ellipse(annotated, (80, 60), (40, 25), 20, 0, 360, (0, 255, 0), 2)  # BGR: green
+    cv2.putText(annotated, "L", (10, 110), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 255), 2)
+    cv2.imwrite(str(tmp_path / "annotated.png"), annotated)
+    # Colour images are min-max scaled: back to the ramp's own range.
+    image = read_image(tmp_path / "annotated.png") * (ramp.max() - ramp.min()) + ramp.min()
+    drawn = np.abs(annotated.astype(int) - grey).max(-1) > 0
+    averaged = annotated.mean(-1)
+    assert np.abs(averaged - ramp)[drawn].mean() > 20  # what plain averaging left
+    assert np.abs(image - ramp)[drawn].mean() < 3  # the ramp again, from its surround
+    far = ~cv2.dilate(drawn.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    np.testing.assert_allclose(image[far], ramp[far], atol=1e-3)
+    # A tint over the whole image is no annotation: the channels' mean, as before.
+    tinted = grey.astype(int) + np.array([0, 30, 60])
+    cv2.imwrite(str(tmp_path / "tinted.png"), np.clip(tinted, 0, 255).astype(np.uint8))
+    mean = np.clip(tinted, 0, 255).mean(-1)
+    expected = (mean - mean.min()) / (mean.max() - mean.min())
+    np.testing.assert_allclose(read_image(tmp_path / "tinted.png"), expected, atol=1e-5)
