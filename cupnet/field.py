@@ -170,6 +170,39 @@ def crop_of_field(field: tuple[float, float, float] | None, height: int, width: 
             min(max(round(cy - radius), 0), height - side), side)
 
 
+def content_crop(image: Tensor | np.ndarray) -> tuple[int, int, int] | None:
+    """The square to cut from an image with no round field whose flat surround frames a
+    narrower picture (a frame pasted on a wide black canvas: a screenshot's window, a
+    capture's padding), where the locator, seeing it whole, found cups too small to see.
+
+    Args:
+        image: ``(H, W)`` or ``(1, H, W)`` intensities in [0, 1].
+    Returns:
+        ``(u0, v0, side)`` pixels: the bounding square of what is not the corners' flat
+        surround (:func:`flat_corners`, whose 5 x 5 window leaves 2 px), 2 px wider a
+        side, kept within the image; None
+        without a flat corner or where it is at least :data:`CROP_BELOW` of the shorter
+        side (text burnt into the canvas widens it, to the whole image where it lies in
+        far corners).
+    """
+    if isinstance(image, Tensor):
+        image = image.detach().float().cpu().numpy()
+    pixels = image.reshape(image.shape[-2:])
+    height, width = pixels.shape
+    stride = max(1, min(height, width) // _FULL_SIDE)  # as round_field looks
+    surround = flat_corners(pixels[::stride, ::stride])
+    rows, cols = np.flatnonzero(~surround.all(1)), np.flatnonzero(~surround.all(0))
+    if not surround.any() or len(rows) == 0:
+        return None
+    v0, v1 = rows[0] * stride - 2, (rows[-1] + 1) * stride + 2
+    u0, u1 = cols[0] * stride - 2, (cols[-1] + 1) * stride + 2
+    side = min(max(v1 - v0, u1 - u0), height, width)
+    if side >= CROP_BELOW * min(height, width):
+        return None
+    return (int(min(max((u0 + u1 - side) // 2, 0), width - side)),
+            int(min(max((v0 + v1 - side) // 2, 0), height - side)), int(side))
+
+
 def outside_field(centres: Tensor, field: tuple[float, float, float] | Tensor | None
                   ) -> Tensor:
     """Which ``centres`` (``(..., 2)`` px) lie beyond ``field`` ``(cx, cy, r)`` px, or each

@@ -62,7 +62,7 @@ from cupnet.detection import (
     wants_another_look,
 )
 from cupnet.ellipse import fit_ellipse
-from cupnet.field import crop_of_field, outside_field, round_field
+from cupnet.field import content_crop, crop_of_field, outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import component_moments, ray_landmarks
 from cupnet.outline import outline_distances, over_dome, sphere_outline
@@ -666,12 +666,14 @@ class CupNet(nn.Module):
             # Found once: the crops come from them, and the later looks keep them (mirrored
             # where the look is; a turned look's locator finds its field afresh).
             fields = self.round_fields(image_list)
-            crops = [crop_of_field(field, *shape)
-                     for field, shape in zip(fields, shapes, strict=True)]
+            # An image with no round field may still be a frame on a wider flat canvas.
+            crops = [crop_of_field(field, *shape) if field is not None
+                     else content_crop(image) if self.config.round_field else None
+                     for field, shape, image in zip(fields, shapes, image_list, strict=True)]
             if any(crops):
                 image_list, geometry = _cropped(image_list, geometry, crops)
-                fields = [field if crop is None else (field[0] - crop[0], field[1] - crop[1],
-                                                      field[2])
+                fields = [field if crop is None or field is None
+                          else (field[0] - crop[0], field[1] - crop[1], field[2])
                           for field, crop in zip(fields, crops, strict=True)]
             # An image (or field) well under the networks' training sizes is enlarged to
             # their smallest first (docs/training.md, item 56).

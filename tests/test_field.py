@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from cupnet.field import CROP_BELOW, field_crop, outside_field, round_field
+from cupnet.field import CROP_BELOW, content_crop, field_crop, outside_field, round_field
 from data_synth import SynthConfig
 from data_synth.formation import form_image
 
@@ -209,3 +209,50 @@ def test_detect_cuts_a_narrow_field_out_of_its_frame_and_answers_in_the_frames_p
     np.testing.assert_array_equal(cup.outline, alone.outline + (left, top))
     assert cup.mask.shape == (600, 900) and cup.mask.sum() == pytest.approx(alone.mask.sum())
     np.testing.assert_array_equal(cup.mask[top:top + side, left:left + side], alone.mask)
+
+
+def test_content_crop_cuts_a_frame_off_a_wide_flat_canvas():
+    """A square frame (no round field) pasted on a black canvas: the bounding square of the
+    frame, 4 px wider a side (2 of the 5 x 5 flatness window, 2 of margin); text burnt
+    into the canvas's far corners, a frame filling the canvas, or an image without a flat
+    corner: none."""
+    rng = np.random.default_rng(0)
+    canvas = np.zeros((2000, 1800), np.float32)
+    canvas[700:1212, 600:1112] = rng.uniform(0.2, 0.8, (512, 512))
+    assert content_crop(canvas) == (596, 696, 520)
+    assert content_crop(torch.from_numpy(canvas)[None]) == (596, 696, 520)
+    text = np.zeros(canvas.shape, np.uint8)
+    cv2.putText(text, "L", (1300, 1900), cv2.FONT_HERSHEY_SIMPLEX, 2.0, 255, 3)
+    # Text widens the square, here to hold it (the frame still inside) ...
+    u0, v0, side = content_crop(np.where(text > 0, 1.0, canvas))
+    assert u0 <= 600 and v0 <= 700 and u0 + side >= 1340 and v0 + side >= 1900
+    # ... and in the canvas's far corners past CROP_BELOW: the image is taken whole.
+    cv2.putText(text, "PATIENT 0421", (20, 60), cv2.FONT_HERSHEY_SIMPLEX, 2.0, 255, 3)
+    assert content_crop(np.where(text > 0, 1.0, canvas)) is None
+    full = np.zeros((600, 600), np.float32)
+    full[20:580, 20:580] = rng.uniform(0.2, 0.8, (560, 560))
+    assert content_crop(full) is None
+    assert content_crop(rng.uniform(0, 1, (300, 300)).astype(np.float32)) is None
+
+
+def test_detect_finds_the_cup_of_a_frame_pasted_on_a_wide_black_canvas():
+    """A 512 px frame without a round field on a 1600 px black canvas: the locator, seeing
+    the canvas whole, had found no cup ('no_cup'); it now looks at the frame's square and
+    answers in the canvas's pixels, as for the frame alone."""
+    from cupnet.geometry import Geometry
+    from cupnet.model import load_model
+    from data_synth import synthesize
+
+    config = SynthConfig(image_size=(512, 512), p_circular_field=0.0, p_bilateral=0.0,
+                         p_no_cup=0.0)
+    sample = synthesize(config, 5, 0)
+    canvas = torch.zeros(1600, 1600)
+    canvas[600:1112, 500:1012] = sample["image"][0]
+    sdd, spacing, u0, v0 = (float(v) for v in sample["geometry"])
+    diameter = float(sample["cup_diameter"][0])
+    model = load_model()
+    (cup,) = model.detect(canvas[None, None], Geometry(sdd, spacing, u0 + 500, v0 + 600),
+                          diameter)[0]
+    truth = sample["ellipse"][0].numpy()
+    assert np.hypot(*(cup.ellipse[:2] - truth[:2] - (500, 600))) < 2.0
+    assert np.abs(cup.pose[:2] - sample["pose"][0, :2].numpy()).max() < 1.0
