@@ -185,15 +185,10 @@ def test_detect_cuts_a_narrow_field_out_of_its_frame_and_answers_in_the_frames_p
     text = np.zeros((600, 900), np.uint8)
     cv2.putText(text, "L HIP 2026-11-03", (5, 30), cv2.FONT_HERSHEY_SIMPLEX, 0.8, 255, 2)
     capture[torch.from_numpy(text > 0)] = 1.0
+    model = load_model()
+    cup = _pasted_cup(model, sample, capture, (194, 44))
     sdd, spacing, u0, v0 = (float(v) for v in sample["geometry"])
     diameter = float(sample["cup_diameter"][0])
-    model = load_model()
-    (cup,) = model.detect(capture[None, None], Geometry(sdd, spacing, u0 + 194, v0 + 44),
-                          diameter)[0]
-    # The cup where the frame shows it, its pose the frame's.
-    truth = sample["ellipse"][0].numpy()
-    assert np.hypot(*(cup.ellipse[:2] - truth[:2] - (194, 44))) < 2.0
-    assert np.abs(cup.pose[:2] - sample["pose"][0, :2].numpy()).max() < 1.0
     # Exactly the detection of the square cut by hand, moved to the capture's pixels.
     left, top, side = field_crop(capture)
     square = capture[top:top + side, left:left + side]
@@ -239,7 +234,6 @@ def test_detect_finds_the_cup_of_a_frame_pasted_on_a_wide_black_canvas():
     """A 512 px frame without a round field on a 1600 px black canvas: the locator, seeing
     the canvas whole, had found no cup ('no_cup'); it now looks at the frame's square and
     answers in the canvas's pixels, as for the frame alone."""
-    from cupnet.geometry import Geometry
     from cupnet.model import load_model
     from data_synth import synthesize
 
@@ -248,11 +242,21 @@ def test_detect_finds_the_cup_of_a_frame_pasted_on_a_wide_black_canvas():
     sample = synthesize(config, 5, 0)
     canvas = torch.zeros(1600, 1600)
     canvas[600:1112, 500:1012] = sample["image"][0]
+    _pasted_cup(load_model(), sample, canvas, (500, 600))
+
+
+def _pasted_cup(model: object, sample: dict, picture: torch.Tensor, offset: tuple[int, int]
+                ) -> object:
+    """The one cup ``model`` detects in ``picture`` ``(H, W)``, which holds ``sample``'s
+    frame pasted at ``offset`` ``(u, v)``, asserted where the frame shows it (centre within
+    2 px) with the frame's pose (angles within 1 deg)."""
+    from cupnet.geometry import Geometry
+
     sdd, spacing, u0, v0 = (float(v) for v in sample["geometry"])
-    diameter = float(sample["cup_diameter"][0])
-    model = load_model()
-    (cup,) = model.detect(canvas[None, None], Geometry(sdd, spacing, u0 + 500, v0 + 600),
-                          diameter)[0]
+    (cup,) = model.detect(picture[None, None],
+                          Geometry(sdd, spacing, u0 + offset[0], v0 + offset[1]),
+                          float(sample["cup_diameter"][0]))[0]
     truth = sample["ellipse"][0].numpy()
-    assert np.hypot(*(cup.ellipse[:2] - truth[:2] - (500, 600))) < 2.0
+    assert np.hypot(*(cup.ellipse[:2] - truth[:2] - offset)) < 2.0
     assert np.abs(cup.pose[:2] - sample["pose"][0, :2].numpy()).max() < 1.0
+    return cup
