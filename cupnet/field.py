@@ -180,10 +180,9 @@ def content_crop(image: Tensor | np.ndarray) -> tuple[int, int, int] | None:
     Returns:
         ``(u0, v0, side)`` pixels: the bounding square of what is not the corners' flat
         surround (:func:`flat_corners`, whose 5 x 5 window leaves 2 px), 2 px wider a
-        side, kept within the image; None
-        without a flat corner or where it is at least :data:`CROP_BELOW` of the shorter
-        side (text burnt into the canvas widens it, to the whole image where it lies in
-        far corners).
+        side, kept within the image; None without a flat corner or where it is at least
+        :data:`CROP_BELOW` of the shorter side (text burnt into the canvas widens it, to
+        the whole image where it lies in far corners).
     """
     if isinstance(image, Tensor):
         image = image.detach().float().cpu().numpy()

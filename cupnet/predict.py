@@ -789,6 +789,8 @@ def _run(args: argparse.Namespace) -> int:
                 complete()
         while in_flight:
             complete()
+        # Only a run that went through every image can tell which rows no image found.
+        _note_unmatched(outputs, geometry_inputs.meta, detector, list(outputs.records))
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -796,8 +798,6 @@ def _run(args: argparse.Namespace) -> int:
         pool.shutdown(wait=False, cancel_futures=True)
         frames.close()
         bar.close()
-        if not interrupted:
-            _note_unmatched(outputs, geometry_inputs.meta, detector, list(outputs.records))
         summary = summarise(outputs.records.values())
         outputs.flush(summary, force=True)
     _print_summary(summary, args.out, not args.no_overlays, time.perf_counter() - start,
