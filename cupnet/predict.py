@@ -802,5 +802,8 @@ def _run(args: argparse.Namespace) -> int:
         outputs.flush(summary, force=True)
     _print_summary(summary, args.out, not args.no_overlays, time.perf_counter() - start,
                    interrupted, outputs.warnings)
-    return 130 if interrupted else 0
+    if interrupted:
+        return 130
+    # A script's `&&` should stop where nothing came of the run (a wrong --meta, no geometry).
+    return 1 if summary["images"] and summary["cups"] + summary["no_cup"] == 0 else 0
 

@@ -562,8 +562,8 @@ def test_spacing_from_patient_plane_pixel_spacing_is_recorded_and_reported(
 def test_several_inputs_as_a_shell_expands_them(tmp_path: Path, blind_checkpoint: Path) -> None:
     for folder in ("a", "b"):
         (tmp_path / folder).mkdir()
-        noise_png(tmp_path / folder / "x.png", size=64)
-    noise_png(tmp_path / "a" / "y.png", size=64)
+        noise_png(tmp_path / folder / "x.png", size=256)
+    noise_png(tmp_path / "a" / "y.png", size=256)
     out = tmp_path / "out"
     specs = [str(tmp_path / "a" / "x.png"), str(tmp_path / "b" / "x.png"), str(tmp_path / "a"),
              f"{tmp_path}/a/*.png"]
@@ -805,3 +805,18 @@ def test_side_file_rows_no_image_found_are_warned_of(tmp_path: Path, blind_check
     assert rows["b.png"][0]["status"] == "no_cup"
     records = {r["image"]: r for r in json.loads((out / "results.json").read_text())["images"]}
     assert records["a.png"]["geometry"]["sdd_mm"]["source"] == "meta.csv"
+
+
+def test_a_run_where_every_image_failed_exits_1(tmp_path: Path, blind_checkpoint: Path,
+                                                 capsys: pytest.CaptureFixture) -> None:
+    """Its rows say why, but a script's `&&` had gone on (exit 0); one image with a row that
+    is no error (here no_cup) makes it 0 again."""
+    images = tmp_path / "images"
+    images.mkdir()
+    noise_png(images / "small.png", size=64)  # under 256 px: an error row
+    (images / "empty.png").write_bytes(b"")
+    common = ["--checkpoint", str(blind_checkpoint), "--assume-defaults", "--quiet"]
+    assert main(["predict", str(images), "--out", str(tmp_path / "a"), *common]) == 1
+    assert "0 without a cup, 2 error rows" in capsys.readouterr().out
+    noise_png(images / "fine.png", size=256)
+    assert main(["predict", str(images), "--out", str(tmp_path / "b"), *common]) == 0
