@@ -26,6 +26,7 @@ CHECK_COLOUR = (255, 0, 255)  # a pose the model doubts: look before trusting it
 TEXT_COLOUR = (255, 255, 255)
 _SHIFT = 4  # fractional bits of OpenCV's sub-pixel drawing
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
+_PANEL_CHARS = 48  # a text panel's least width, in characters
 
 
 @dataclass
@@ -101,7 +102,8 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
         max_side, min_side: bounds of the overlay's longer side (pixels).
     Returns:
         ``(h, w, 3)`` uint8 BGR: ``H, W`` scaled by ``clip(L, min_side, max_side) / L`` with
-        ``L = max(H, W)``.
+        ``L = max(H, W)``; an image too oblong to hold its text gets it on a panel below
+        (then ``h`` and ``w`` are larger; the image keeps the top left).
     """
     longer = max(image.shape)
     scale = min(max_side, max(min_side, longer)) / longer
@@ -138,8 +140,7 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
             cv2.putText(canvas, str(index), (round(cx), round(cy)), _FONT, 0.5 * unit, colour,
                         thickness, cv2.LINE_AA)
     lines = [title] + [line for cup in cups for line in cup.lines]
-    _draw_text_block(canvas, lines, 0.4 * unit, thickness)
-    return canvas
+    return _with_text(canvas, lines, 0.4 * unit, thickness)
 
 
 def _wrap(line: str, width: int, font_scale: float, thickness: int) -> list[str]:
@@ -156,15 +157,38 @@ def _wrap(line: str, width: int, font_scale: float, thickness: int) -> list[str]
     return [*out, current]
 
 
-def _draw_text_block(canvas: np.ndarray, lines: list[str], font_scale: float,
-                     thickness: int) -> None:
-    """Lines of text at the top left on a dark band, readable on any image."""
-    lines = [part for line in lines for part in _wrap(line, canvas.shape[1] - 12, font_scale,
-                                                      thickness)]
-    if not lines:
-        return
+def _with_text(canvas: np.ndarray, lines: list[str], font_scale: float,
+               thickness: int) -> np.ndarray:
+    """``canvas`` with the lines of text at its top left on a dark band, readable on any
+    image; where they would cover more than half of it (a very wide or tall image: a 4000 x
+    300 strip's text had covered it whole, and been cut off), on a panel below it instead,
+    at least :data:`_PANEL_CHARS` characters wide."""
     (_, height), baseline = cv2.getTextSize("Ag", _FONT, font_scale, thickness)
     step = height + baseline + 2
+    wrapped = _wrapped(lines, canvas.shape[1], font_scale, thickness)
+    if step * len(wrapped) + 4 <= canvas.shape[0] // 2:
+        _draw_text_block(canvas, wrapped, font_scale, thickness, height, step)
+        return canvas
+    width = max(canvas.shape[1], 12 + cv2.getTextSize("x" * _PANEL_CHARS, _FONT, font_scale,
+                                                      thickness)[0][0])
+    wrapped = _wrapped(lines, width, font_scale, thickness)
+    panel = np.zeros((step * len(wrapped) + 4, width, 3), np.uint8)
+    _draw_text_block(panel, wrapped, font_scale, thickness, height, step)
+    picture = np.zeros((canvas.shape[0], width, 3), np.uint8)
+    picture[:, :canvas.shape[1]] = canvas
+    return np.vstack([picture, panel])
+
+
+def _wrapped(lines: list[str], width: int, font_scale: float, thickness: int) -> list[str]:
+    return [part for line in lines for part in _wrap(line, width - 12, font_scale, thickness)]
+
+
+def _draw_text_block(canvas: np.ndarray, lines: list[str], font_scale: float, thickness: int,
+                     height: int, step: int) -> None:
+    """Wrapped ``lines`` at the top left of ``canvas`` (in place) on a dark band, a line
+    every ``step`` pixels (``height``: the font's)."""
+    if not lines:
+        return
     width = max(cv2.getTextSize(line, _FONT, font_scale, thickness)[0][0] for line in lines)
     band = canvas[: step * len(lines) + 4, : width + 8]
     band[:] = (band * 0.35).astype(np.uint8)

@@ -820,3 +820,31 @@ def test_a_run_where_every_image_failed_exits_1(tmp_path: Path, blind_checkpoint
     assert "0 without a cup, 2 error rows" in capsys.readouterr().out
     noise_png(images / "fine.png", size=256)
     assert main(["predict", str(images), "--out", str(tmp_path / "b"), *common]) == 0
+
+
+@pytest.mark.parametrize("shape", [(300, 4000), (4000, 300)])
+def test_an_oblong_images_overlay_text_goes_on_a_panel_below(shape: tuple[int, int]) -> None:
+    """A 4000 x 300 strip's overlay (1024 x 77) had its text cover it whole, cut off; a tall
+    one's title was wrapped a word a line and cut. The text now goes on a panel below, at
+    least 48 characters wide, every line of it; the image keeps the top left, as drawn
+    alone; a 512 px image's overlay keeps its size."""
+    from cupnet.overlay import CupDrawing, draw_overlay, pose_lines
+
+    pose = np.array([20.0, 40.0, 1.0, 2.0, 300.0])
+    cups = [CupDrawing(np.array([150.0, 150.0, 60.0, 30.0, 10.0]), None, None,
+                       pose_lines(j, "ambiguous", pose, 0.3, pose + 1, 0.5, False, None),
+                       "ambiguous") for j in range(2)]
+    image = np.random.default_rng(0).uniform(0, 1, shape)
+    canvas = draw_overlay(image, cups, "strip.png: 2 cup(s)")
+    scale = 1024 / max(shape)
+    drawn = (round(shape[0] * scale), round(shape[1] * scale))
+    assert canvas.shape[0] > drawn[0] and canvas.shape[1] >= max(drawn[1], 400)
+    # The image's rows are the image's, undarkened by a text band (grey, not dimmed).
+    picture = canvas[:drawn[0], :drawn[1], 0].astype(float)
+    assert picture.mean() > 0.8 * image.mean() * 255
+    # Every line (the title, then each cup's) on the panel: its ink spans them all.
+    (_, height), baseline = cv2.getTextSize("Ag", cv2.FONT_HERSHEY_SIMPLEX, 0.8, 2)
+    lines = 1 + sum(len(c.lines) for c in cups)
+    ink_rows = np.flatnonzero((canvas[drawn[0]:] > 0).any((1, 2)))
+    assert ink_rows[-1] - ink_rows[0] >= (lines - 1) * (height + baseline + 2)
+    assert draw_overlay(np.zeros((512, 512)), cups, "a.png: 2 cup(s)").shape == (768, 768, 3)
