@@ -180,6 +180,7 @@ def _with_text(canvas: np.ndarray, lines: list[str], font_scale: float,
 
 
 def _wrapped(lines: list[str], width: int, font_scale: float, thickness: int) -> list[str]:
+    """``lines`` each wrapped (:func:`_wrap`) to ``width`` pixels less a margin."""
     return [part for line in lines for part in _wrap(line, width - 12, font_scale, thickness)]
 
 
