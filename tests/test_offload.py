@@ -110,7 +110,7 @@ def test_predict_stops_before_reading_on_a_missing_device(tmp_path: Path,
 
 def test_predict_records_the_device(tmp_path: Path) -> None:
     blank = tmp_path / "blank.png"
-    cv2.imwrite(str(blank), np.zeros((128, 128), np.uint8))
+    cv2.imwrite(str(blank), np.zeros((256, 256), np.uint8))  # 256: runs, no cup
     out = tmp_path / "out"
     assert main(["predict", str(blank), "--out", str(out), "--assume-defaults", "--quiet",
                  "--device", "cpu"]) == 0

@@ -127,7 +127,7 @@ def predict_blank(tmp_path: Path, checkpoint: Path, *flags: str) -> dict:
     """``cupnet predict`` on a blank image with ``flags``; its results.json."""
     tmp_path.mkdir(parents=True, exist_ok=True)
     blank = tmp_path / "blank.png"
-    assert cv2.imwrite(str(blank), np.zeros((128, 128), np.uint8))
+    assert cv2.imwrite(str(blank), np.zeros((256, 256), np.uint8))  # 256: runs, no cup
     out = tmp_path / "out"
     assert main(["predict", str(blank), "--out", str(out), "--assume-defaults", "--quiet",
                  "--checkpoint", str(checkpoint), *flags]) == 0
