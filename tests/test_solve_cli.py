@@ -155,8 +155,9 @@ def test_assume_defaults_fill_what_the_file_lacks_as_predict_does(tmp_path, caps
     write_long(tmp_path / "lm.csv", geometry)
     out = tmp_path / "r.csv"
     flags = ["--pixel-spacing", "0.5", "--cup-diameter", "50"]
+    # Every row an error: exit 1, as cupnet predict (the rows still written, saying why).
     assert main(["solve", str(tmp_path / "lm.csv"), *flags, "--principal-point", "255.5",
-                 "255.5", "--out", str(out)]) == 0
+                 "255.5", "--out", str(out)]) == 1
     assert all(row["status"] == "error: missing source-to-detector distance (--sdd or meta.csv "
                "sdd_mm); or use --assume-defaults" for row in results(out))
     assert main(["solve", str(tmp_path / "lm.csv"), *flags, "--principal-point", "255.5",
@@ -164,7 +165,7 @@ def test_assume_defaults_fill_what_the_file_lacks_as_predict_does(tmp_path, caps
     assert_poses(results(out))
     # The long format gives no image size: the principal point is still the user's to give.
     assert main(["solve", str(tmp_path / "lm.csv"), *flags, "--assume-defaults",
-                 "--out", str(out), "--overwrite"]) == 0
+                 "--out", str(out), "--overwrite"]) == 1
     assert all(row["status"].startswith("error: missing principal point")
                and "--assume-defaults" not in row["status"] for row in results(out))
 
@@ -268,6 +269,8 @@ def test_an_images_row_is_found_by_its_name_its_files_or_a_keys_file_name():
     assert row_for_image(table, "d.dcm#2") == 5     # a frame: its file's row
     assert row_for_image(table, "e.png") == 6       # a Windows path
     assert row_for_image(table, "f.png") is None
+    assert row_for_image(table, "A.PNG") == 1       # another case, one key's alone
+    assert row_for_image({"x.png": 1, "X.png": 2}, "x.PNG") is None  # two: neither
 
 
 def test_a_bad_row_spoils_its_own_cup_alone_and_cups_may_be_written_as_floats(tmp_path):
@@ -300,7 +303,7 @@ def test_long_format_landmarks_take_the_image_centre_from_image_size(tmp_path, c
     out = tmp_path / "r.csv"
     args = ["solve", str(tmp_path / "lm.csv"), "--out", str(out), "--sdd", "1040",
             "--cup-diameter", "50", "--pixel-spacing", str(300.0 / 640)]
-    assert main(args) == 0
+    assert main(args) == 1  # its only row an error
     assert "no image size to take its centre from" in results(out)[0]["status"]
     assert main([*args, "--image-size", "640", "480", "--overwrite"]) == 0
     row = results(out)[0]

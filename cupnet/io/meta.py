@@ -253,14 +253,18 @@ def key_for_image(table: Mapping[str, object], name: str) -> str | None:
     """An image's key in a table keyed by image names (meta.csv rows, landmark sets): its
     name, else its file's name (frames ``name#2``), else that file's name without folders;
     keys given with folders match too where their file name is theirs alone
-    (``images/a.png`` for an image ``a.png`` of a run on ``images/``)."""
+    (``images/a.png`` for an image ``a.png`` of a run on ``images/``), and then a file name
+    of other case where it is one key's alone (``A.PNG``: names typed on Windows)."""
     file_name = name.split("#", 1)[0]
     for key in (name, file_name, _base_name(file_name)):
         if key in table:
             return key
     wanted = _base_name(file_name)
-    keys = [key for key in table if _base_name(key) == wanted]
-    return keys[0] if len(keys) == 1 else None
+    for same in (str.__eq__, lambda a, b: a.casefold() == b.casefold()):
+        keys = [key for key in table if same(_base_name(key), wanted)]
+        if keys:
+            return keys[0] if len(keys) == 1 else None
+    return None
 
 
 def row_for_image(table: Mapping[str, T], name: str) -> T | None:
