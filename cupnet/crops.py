@@ -11,6 +11,7 @@ edge-on still spans many crop pixels across (affine maps keep ellipses ellipses)
 from __future__ import annotations
 
 import math
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -18,6 +19,8 @@ import torch
 import torch.nn.functional as F
 from kornia.geometry.transform import invert_affine_transform, warp_affine
 from torch import Tensor
+
+T = TypeVar("T")
 
 
 def similarity(scale: Tensor, offset_u: Tensor, offset_v: Tensor) -> Tensor:
@@ -50,6 +53,12 @@ def enlargement(height: int, width: int, below: int | None, to: int) -> float:
     if below is None or short >= below:
         return 1.0
     return max(1.0, to / short)
+
+
+def rescaled_pixels(u: T, factor: float | Tensor) -> T:
+    """Pixel positions ``u`` (px: an array, tensor or number) in the image resized ``factor``
+    times, pixel centres at integers in both: ``(u + 0.5) * factor - 0.5``."""
+    return (u + 0.5) * factor - 0.5
 
 
 def enlarged(image: Tensor, factor: float) -> Tensor:

@@ -47,6 +47,7 @@ from cupnet.crops import (
     frame_ellipse,
     letterbox_affine,
     resample_batch,
+    rescaled_pixels,
     square_windows,
     to_image,
 )
@@ -1671,13 +1672,13 @@ def _enlarged(images: list[Tensor], geometry: Geometry,
     """``images`` ``(1, H, W)`` enlarged by their ``factors`` (1: kept;
     :func:`cupnet.crops.enlarged`), with ``geometry`` and the round ``fields`` ``(cx, cy, r)``
     where the enlargement puts them: the pixel spacing divided by the factor, a point ``u``
-    at ``(u + 0.5) f - 0.5``."""
+    at ``(u + 0.5) f - 0.5`` (:func:`cupnet.crops.rescaled_pixels`)."""
     rows = geometry_rows(geometry, len(images))  # a new tensor: the caller's is kept
     scale = rows.new_tensor(factors)
     rows[:, 1] /= scale
-    rows[:, 2:] = (rows[:, 2:] + 0.5) * scale[:, None] - 0.5
-    fields = [field if field is None else ((field[0] + 0.5) * f - 0.5,
-                                           (field[1] + 0.5) * f - 0.5, field[2] * f)
+    rows[:, 2:] = rescaled_pixels(rows[:, 2:], scale[:, None])
+    fields = [field if field is None else (rescaled_pixels(field[0], f),
+                                           rescaled_pixels(field[1], f), field[2] * f)
               for field, f in zip(fields, factors, strict=True)]
     return ([image if f == 1 else enlarged(image, f)
              for image, f in zip(images, factors, strict=True)],

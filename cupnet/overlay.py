@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from cupnet.crops import rescaled_pixels
 from cupnet.io.results import atomic_write
 
 # BGR colours by status.
@@ -115,8 +116,7 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
     canvas = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
     unit = max(canvas.shape[:2]) / 512  # line widths and text grow with the overlay
     thickness = max(1, round(unit))
-    # Pixel centres sit at integers in both images: u' = (u + 0.5) * scale - 0.5.
-    to_view = lambda p: (np.asarray(p, np.float64) + 0.5) * scale - 0.5  # noqa: E731
+    to_view = lambda p: rescaled_pixels(np.asarray(p, np.float64), scale)  # noqa: E731
     for index, cup in enumerate(cups):  # numbered from 0, as the cup column of results.csv
         colour = CHECK_COLOUR if cup.check else STATUS_COLOURS.get(cup.status, ERROR_COLOUR)
         # Landmarks first and small, so the fitted ellipse drawn over them stays visible.
