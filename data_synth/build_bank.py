@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +19,7 @@ from torchio import ScalarImage, Subject
 from tqdm import tqdm
 
 from cupnet.geometry import Geometry
+from cupnet.io.results import atomic_write
 from data_synth.anatomy import ATTENUATION_PER_DENSITY, SHIPPED_BANK
 from data_synth.diffdrr_camera import diffdrr_pose, make_drr
 
@@ -84,20 +83,13 @@ def build_bank(subject: Subject, n: int, size: int, seed: int = 0) -> dict[str, 
 
 
 def save_bank(bank: dict[str, np.ndarray], path: str | Path) -> None:
-    """Write ``bank`` to ``path`` atomically. The temporary file's name is this writer's own:
-    data-loader workers or DDP ranks that all miss the cache render and save the same bank at
-    once, and with one shared name one's rename took the file from under another's."""
+    """Write ``bank`` to ``path`` atomically (:func:`cupnet.io.results.atomic_write`), through
+    a temporary file of this writer's own: data-loader workers or DDP ranks that all miss the
+    cache render and save the same bank at once, and with one shared name one's rename took
+    the file from under another's."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz",
-                                     delete=False) as tmp:
-        try:
-            np.savez_compressed(tmp, **bank)
-        except BaseException:
-            tmp.close()
-            os.unlink(tmp.name)
-            raise
-    os.replace(tmp.name, path)
+    atomic_write(path, lambda f: np.savez_compressed(f, **bank), binary=True)
 
 
 def main(argv: list[str] | None = None) -> int:
