@@ -29,7 +29,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from cupnet.geometry import Geometry
-from cupnet.io.meta import row_for_image
+from cupnet.io.meta import key_for_image, row_for_image
 from cupnet.io.results import ALT_COLUMNS
 from cupnet.pose import ellipse_of_pose, orthographic_pose
 
@@ -154,11 +154,10 @@ def _truth_names(pred_rows: list[dict[str, str]], truth_names: set[str]
                  ) -> list[dict[str, str]]:
     """``pred_rows`` named as the truth names their images: a prediction of a run on the
     parent folder (``images/a.png``) or a truth keyed by paths finds its image by file name
-    where that name is one image's alone (:func:`cupnet.io.meta.row_for_image`)."""
-    table = {name: name for name in truth_names}
+    where that name is one image's alone (:func:`cupnet.io.meta.key_for_image`)."""
     named = {}
     for image in {row["image"] for row in pred_rows}:
-        named[image] = image if image in table else (row_for_image(table, image) or image)
+        named[image] = key_for_image(truth_names, image) or image
     # Two predicted images that find one truth image keep their own names.
     found = Counter(named.values())
     return [row if found[named[row["image"]]] > 1 else {**row, "image": named[row["image"]]}

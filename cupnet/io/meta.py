@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
@@ -249,12 +249,12 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
     return rows
 
 
-def key_for_image(table: Mapping[str, object], name: str) -> str | None:
-    """An image's key in a table keyed by image names (meta.csv rows, landmark sets): its
-    name, else its file's name (frames ``name#2``), else that file's name without folders;
-    keys given with folders match too where their file name is theirs alone
-    (``images/a.png`` for an image ``a.png`` of a run on ``images/``), and then a file name
-    of other case where it is one key's alone (``A.PNG``: names typed on Windows)."""
+def key_for_image(table: Collection[str], name: str) -> str | None:
+    """An image's key among ``table``'s image names (those of meta.csv rows or landmark sets,
+    or a set of names): its name, else its file's name (frames ``name#2``), else that file's
+    name without folders; keys given with folders match too where their file name is theirs
+    alone (``images/a.png`` for an image ``a.png`` of a run on ``images/``), and then a file
+    name of other case where it is one key's alone (``A.PNG``: names typed on Windows)."""
     file_name = name.split("#", 1)[0]
     for key in (name, file_name, _base_name(file_name)):
         if key in table:
@@ -273,7 +273,7 @@ def row_for_image(table: Mapping[str, T], name: str) -> T | None:
     return None if key is None else table[key]
 
 
-def unmatched_keys(table: Mapping[str, object], names: Iterable[str]) -> list[str]:
+def unmatched_keys(table: Collection[str], names: Iterable[str]) -> list[str]:
     """The keys of ``table`` that none of the images ``names`` finds (:func:`key_for_image`):
     rows of a side file a run silently went without (a typo, another folder's images)."""
     found = {key_for_image(table, name) for name in names}
