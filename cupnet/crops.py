@@ -20,6 +20,8 @@ import torch.nn.functional as F
 from kornia.geometry.transform import invert_affine_transform, warp_affine
 from torch import Tensor
 
+from cupnet.batchwise import matmul
+
 T = TypeVar("T")
 
 
@@ -146,18 +148,18 @@ def ellipse_to_view(ellipse: Tensor, crop_to_image: Tensor) -> Tensor:
     bottom[..., 0, 2] = 1
     hom = torch.cat([crop_to_image, bottom], -2)  # view -> image, homogeneous
     conic = params_to_conic(ellipse)
-    return conic_to_params(hom.transpose(-1, -2) @ conic @ hom)
+    return conic_to_params(matmul(matmul(hom.transpose(-1, -2), conic), hom))
 
 
 def to_image(points: Tensor, crop_to_image: Tensor) -> Tensor:
     """View pixels ``(..., N, 2)`` -> original-image pixels with ``(..., 2, 3)`` affines."""
-    return points @ crop_to_image[..., :2].transpose(-1, -2) + crop_to_image[..., None, :, 2]
+    return matmul(points, crop_to_image[..., :2].transpose(-1, -2)) + crop_to_image[..., None, :, 2]
 
 
 def to_view(points: Tensor, crop_to_image: Tensor) -> Tensor:
     """Original-image pixels ``(..., N, 2)`` -> view pixels (inverse of :func:`to_image`)."""
     lin = crop_to_image[..., :2]
-    return (points - crop_to_image[..., None, :, 2]) @ torch.linalg.inv(lin).transpose(-1, -2)
+    return matmul(points - crop_to_image[..., None, :, 2], torch.linalg.inv(lin).transpose(-1, -2))
 
 
 def resample(image: Tensor, crop_to_image: Tensor, size: int, antialias: bool = True) -> Tensor:

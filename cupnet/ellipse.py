@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import FunctionCtx
 
+from cupnet.batchwise import atan2, matmul, quadratic_form, weighted_scatter
 from cupnet.geometry import normalize_conic
 
 MIN_POINTS = 5
@@ -65,7 +66,7 @@ def conic_to_params(conic: Tensor) -> Tensor:
     a = torch.rsqrt(lam_small)
     b = torch.rsqrt(lam_big)
     # atan2(2q, p - r) = 2 * (direction of the larger eigenvalue = minor axis); +90 deg -> major.
-    alpha = torch.rad2deg(0.5 * torch.atan2(-2 * q, r - p)) % 180.0
+    alpha = torch.rad2deg(0.5 * atan2(-2 * q, r - p)) % 180.0
     # A tiny negative angle wraps to exactly 180.0 in floating point: keep [0, 180).
     alpha = torch.where(alpha >= 180.0, alpha - 180.0, alpha)
     return torch.stack([centre[..., 0], centre[..., 1], a, b, alpha], -1)
@@ -109,7 +110,7 @@ def ellipse_points(params: Tensor, t: Tensor) -> Tensor:
 def algebraic_residual(conic: Tensor, points: Tensor) -> Tensor:
     """``p~^T C p~`` for ``(B, 3, 3)`` conics and ``(B, N, 2)`` points -> ``(B, N)``."""
     hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
-    return torch.einsum("bni,bij,bnj->bn", hom, conic, hom)
+    return quadratic_form(hom, conic)
 
 
 def sampson_distance(conic: Tensor, points: Tensor) -> Tensor:
@@ -123,8 +124,8 @@ def sampson_distance(conic: Tensor, points: Tensor) -> Tensor:
         :func:`cupnet.geometry.normalize_conic`.
     """
     hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
-    grad = torch.einsum("bij,bnj->bni", conic[..., :2, :], hom)
-    value = (grad * points).sum(-1) + torch.einsum("bi,bni->bn", conic[..., 2, :], hom)
+    grad = matmul(hom, conic[..., :2, :].transpose(-1, -2))
+    value = (grad * points).sum(-1) + (conic[..., None, 2, :] * hom).sum(-1)
     return value / (2 * torch.linalg.vector_norm(grad, dim=-1))
 
 
@@ -146,6 +147,11 @@ class EllipseFit:
     status: list[str]
 
 
+def _dot(first: Tensor, second: Tensor) -> Tensor:
+    """``x^T y`` of column vectors ``(B, I, 1)`` -> ``(B, 1, 1)``."""
+    return (first * second).sum(-2, keepdim=True)
+
+
 class _PencilEigenvector(torch.autograd.Function):
     """Unit eigenvector ``v`` of the pencil ``S v = lambda C v`` nearest a starting vector,
     by Rayleigh-quotient iteration; backward by the implicit function theorem.
@@ -161,9 +167,9 @@ class _PencilEigenvector(torch.autograd.Function):
     def forward(ctx: FunctionCtx, scatter: Tensor, constraint: Tensor,  # type: ignore[override]
                 vec: Tensor, steps: int) -> Tensor:
         for _ in range(steps):
-            rayleigh = (vec.transpose(-1, -2) @ scatter @ vec) / (
-                vec.transpose(-1, -2) @ constraint @ vec)
-            step, info = torch.linalg.solve_ex(scatter - rayleigh * constraint, constraint @ vec)
+            c_vec = matmul(constraint, vec)
+            rayleigh = _dot(vec, matmul(scatter, vec)) / _dot(vec, c_vec)
+            step, info = torch.linalg.solve_ex(scatter - rayleigh * constraint, c_vec)
             step = step / torch.linalg.vector_norm(step, dim=-2, keepdim=True)
             # An exactly singular pencil means the quotient is already the eigenvalue to the
             # last digit: that item has converged, so it keeps its vector.
@@ -177,14 +183,14 @@ class _PencilEigenvector(torch.autograd.Function):
                  ) -> tuple[Tensor, None, None, None]:
         scatter, constraint, vec = ctx.saved_tensors
         vt = vec.transpose(-1, -2)
-        c_vec = constraint @ vec
-        rayleigh = (vt @ scatter @ vec) / (vt @ c_vec)
+        c_vec = matmul(constraint, vec)
+        rayleigh = _dot(vec, matmul(scatter, vec)) / _dot(vec, c_vec)
         bordered = torch.cat([torch.cat([scatter - rayleigh * constraint, vec], -1),
                               torch.cat([vt, torch.zeros_like(vt[..., :1])], -1)], -2)
         rhs = torch.cat([grad_vec, torch.zeros_like(grad_vec[..., :1, :])], -2)
         z = torch.linalg.solve(bordered, rhs)[..., :3, :]
-        along = (z.transpose(-1, -2) @ c_vec) / (vt @ c_vec)
-        return -z @ vt + along * (vec @ vt), None, None, None
+        along = _dot(z, c_vec) / _dot(vec, c_vec)
+        return -matmul(z, vt) + along * matmul(vec, vt), None, None, None
 
 
 def landmark_batch(points: Tensor, weights: Tensor | None, on_error: str,
@@ -257,7 +263,7 @@ def _fit_problems(points: Tensor, weights: Tensor) -> list[str]:
     total = w.sum(-1).clamp_min(1e-300)
     mean = (w[..., None] * p).sum(-2) / total[..., None]
     d = p - mean[:, None]
-    cov = torch.einsum("bn,bni,bnj->bij", w, d, d) / total[:, None, None]
+    cov = weighted_scatter(w, d, d) / total[:, None, None]
     evals = torch.linalg.eigvalsh(cov)
     flat = evals[:, 0] <= _COLLINEAR_RATIO * evals[:, 1].clamp_min(1e-300)
     # Repeated landmarks add weight, not constraints: 6 landmarks on 4 distinct points leave
@@ -328,13 +334,13 @@ def fit_ellipse(
     x, y = (centred / scale[:, None, None]).unbind(-1)
     quad = torch.stack([x * x, x * y, y * y], -1)
     lin = torch.stack([x, y, torch.ones_like(x)], -1)
-    s1 = torch.einsum("bn,bni,bnj->bij", w, quad, quad)
-    s2 = torch.einsum("bn,bni,bnj->bij", w, quad, lin)
-    s3 = torch.einsum("bn,bni,bnj->bij", w, lin, lin)
+    s1 = weighted_scatter(w, quad, quad)
+    s2 = weighted_scatter(w, quad, lin)
+    s3 = weighted_scatter(w, lin, lin)
     eye = torch.eye(3, dtype=points.dtype, device=points.device)
     s3 = torch.where(valid[:, None, None], s3, eye)
     lin_from_quad = -torch.linalg.solve(s3, s2.transpose(-1, -2))  # (B, 3, 3)
-    reduced = s1 + s2 @ lin_from_quad
+    reduced = s1 + matmul(s2, lin_from_quad)
     reduced = torch.where(valid[:, None, None], 0.5 * (reduced + reduced.transpose(-1, -2)), eye)
     constraint = torch.tensor([[0.0, 0.0, 2.0], [0.0, -1.0, 0.0], [2.0, 0.0, 0.0]],
                               dtype=points.dtype, device=points.device)
@@ -364,7 +370,7 @@ def fit_ellipse(
         polished = _PencilEigenvector.apply(reduced[valid], constraint, quad_coef[valid], 3)
         quad_coef = quad_coef.clone()
         quad_coef[valid] = polished
-    lin_coef = lin_from_quad @ quad_coef
+    lin_coef = matmul(lin_from_quad, quad_coef)
     coeffs = torch.cat([quad_coef, lin_coef], -2).squeeze(-1)
     conic_norm = coefficients_to_conic(coeffs)
     # Back to pixels: x_n = (p - mean) / scale, i.e. (x_n, 1) = N (p, 1).
@@ -373,7 +379,7 @@ def fit_ellipse(
         torch.stack([1 / scale, zero, -mean[:, 0] / scale], -1),
         torch.stack([zero, 1 / scale, -mean[:, 1] / scale], -1),
         torch.stack([zero, zero, one], -1)], -2)
-    conic = normalize_conic(to_norm.transpose(-1, -2) @ conic_norm @ to_norm)
+    conic = normalize_conic(matmul(matmul(to_norm.transpose(-1, -2), conic_norm), to_norm))
 
     # One copy from the device, not one per item.
     for i, ellipse in enumerate(is_ellipse(conic).detach().tolist()):

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from cupnet.batchwise import matmul
+
 
 @dataclass(frozen=True)
 class Geometry:
@@ -116,7 +118,7 @@ def rim_points(pose: Tensor, radius: Tensor | float, t: Tensor) -> Tensor:
     rot = rotation(pose[..., 0], pose[..., 1])  # (..., 3, 3)
     local = torch.stack([torch.cos(t), torch.zeros_like(t), torch.sin(t)], -1)  # (..., N, 3)
     local = local * radius[..., None, None]
-    return pose[..., None, 2:5] + local @ rot.transpose(-1, -2)
+    return pose[..., None, 2:5] + matmul(local, rot.transpose(-1, -2))
 
 
 def project(points: Tensor, geometry: Geometry) -> Tensor:
@@ -189,7 +191,7 @@ def rim_conic(pose: Tensor, radius: Tensor | float, geometry: Geometry) -> Tenso
     cam = camera_matrix(geometry, pose.dtype, pose.device)
     centre = pose[..., 2:5] - source_position(geometry, pose.dtype, pose.device)
     basis = torch.stack([rot[..., 0], rot[..., 2], centre], -1)  # columns e1, e2, c - S
-    homography = cam @ basis
+    homography = matmul(cam, basis)
     # G^-1 is adj(G) / det(G); the conic is defined up to scale, so use adj(G) and skip the
     # inverse: rows of adj(G) are cross products of G's columns. The factor det(G)^2 > 0
     # keeps the sign: points inside the rim get p^T C p < 0.
@@ -198,8 +200,8 @@ def rim_conic(pose: Tensor, radius: Tensor | float, geometry: Geometry) -> Tenso
                             torch.linalg.cross(g0, g1)], -2)
     r2 = (radius**2)[..., None, None]
     quad = adjugate[..., :2, :]
-    conic = quad.transpose(-1, -2) @ quad - r2 * adjugate[..., 2:, :].transpose(-1, -2) @ \
-        adjugate[..., 2:, :]
+    conic = (matmul(quad.transpose(-1, -2), quad)
+             - r2 * matmul(adjugate[..., 2:, :].transpose(-1, -2), adjugate[..., 2:, :]))
     return conic / torch.linalg.matrix_norm(conic)[..., None, None]
 
 

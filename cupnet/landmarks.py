@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from cupnet.batchwise import matmul
 from cupnet.ellipse import params_to_conic
 
 
@@ -32,13 +33,15 @@ def soft_moments(prob: Tensor, eps: float = 1e-6) -> tuple[Tensor, Tensor, Tenso
     _, _, height, width = prob.shape
     u = torch.arange(width, dtype=prob.dtype, device=prob.device)
     v = torch.arange(height, dtype=prob.dtype, device=prob.device)
+    # Products summed, not matmul or einsum: those take batch-size-dependent kernels, so a
+    # map's moments (and every landmark after them) would round differently with the batch.
     rows, cols = prob[:, 0].sum(-1), prob[:, 0].sum(-2)  # (B, H), (B, W) marginals
     mass = rows.sum(-1)
     norm = mass + eps
-    mu_u, mu_v = cols @ u / norm, rows @ v / norm
-    var_u = cols @ u**2 / norm - mu_u**2
-    var_v = rows @ v**2 / norm - mu_v**2
-    cov_uv = torch.einsum("bhw,h,w->b", prob[:, 0], v, u) / norm - mu_u * mu_v
+    mu_u, mu_v = (cols * u).sum(-1) / norm, (rows * v).sum(-1) / norm
+    var_u = (cols * u**2).sum(-1) / norm - mu_u**2
+    var_v = (rows * v**2).sum(-1) / norm - mu_v**2
+    cov_uv = ((prob[:, 0] * u).sum(-1) * v).sum(-1) / norm - mu_u * mu_v
     centre = torch.stack([mu_u, mu_v], -1)
     cov = torch.stack([torch.stack([var_u, cov_uv], -1), torch.stack([cov_uv, var_v], -1)], -2)
     return mass, centre, cov
@@ -116,7 +119,7 @@ def ray_landmarks(prob: Tensor, n_rays: int = 64, n_samples: int = 128, extent: 
     root = 2 * sqrtm_2x2(cov + 0.25 * torch.eye(2, dtype=prob.dtype, device=prob.device))
     t = torch.arange(n_rays, dtype=prob.dtype, device=prob.device) * (2 * math.pi / n_rays)
     unit = torch.stack([torch.cos(t), torch.sin(t)], -1)  # (N, 2)
-    direction = unit @ root.transpose(-1, -2)  # (B, N, 2) pixels per unit s
+    direction = matmul(unit, root.transpose(-1, -2))  # (B, N, 2) pixels per unit s
     s = torch.linspace(0, extent, n_samples, dtype=prob.dtype, device=prob.device)
     samples = centre[:, None, None] + s[None, None, :, None] * direction[:, :, None]
     # grid_sample with align_corners=True: -1 and +1 are the centres of the edge pixels.

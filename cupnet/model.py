@@ -39,6 +39,7 @@ from kornia.geometry.transform import warp_affine
 from torch import Tensor, nn
 from torch.nn.utils.rnn import pad_sequence
 
+from cupnet.batchwise import atan2
 from cupnet.config import TARGET_ACCURACY, CupNetConfig
 from cupnet.crops import (
     ellipse_crop_affine,
@@ -434,7 +435,7 @@ class CupNet(nn.Module):
         evals, evecs = torch.linalg.eigh(cov)
         # A filled ellipse: 4 var = a^2 along each axis.
         axes = 2 * evals.clamp_min(1 / 12).sqrt().flip(-1) * affine[:, :1, 0]
-        angle = torch.rad2deg(torch.atan2(evecs[:, 1, 1], evecs[:, 0, 1])) % 180
+        angle = torch.rad2deg(atan2(evecs[:, 1, 1], evecs[:, 0, 1])) % 180
         rows = torch.cat([centre, axes, angle[:, None]], -1)
         # Per image, its largest components first; ties in label order (a stable sort).
         image, slot, component = [], [], []

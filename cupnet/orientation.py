@@ -22,6 +22,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from cupnet.batchwise import atan2, hypot
 from cupnet.geometry import cup_axis, pose_to_radians
 
 
@@ -37,8 +38,8 @@ def operative_angles(pose: Tensor) -> Tensor:
     k, l, h mm) -> ``(..., 2)`` deg: ``tan(OA) = tan(theta) / cos(phi)``, ``sin(OI) =
     sin(phi) cos(theta)``."""
     lateral, inferior, anterior, phi = _axis_parts(pose)
-    anteversion = torch.atan2(anterior, inferior)
-    inclination = torch.atan2(lateral, torch.hypot(inferior, anterior))
+    anteversion = atan2(anterior, inferior)
+    inclination = atan2(lateral, hypot(inferior, anterior))
     return torch.rad2deg(torch.stack([anteversion, torch.copysign(inclination, phi)], -1))
 
 
@@ -48,6 +49,6 @@ def anatomic_angles(pose: Tensor) -> Tensor:
     cos(phi) cos(theta)``. Where the axis is the longitudinal axis (``theta = phi = 0``) the
     anatomic anteversion is undefined and given as 0."""
     lateral, inferior, anterior, phi = _axis_parts(pose)
-    anteversion = torch.atan2(anterior, lateral)
-    inclination = torch.atan2(torch.hypot(lateral, anterior), inferior)
+    anteversion = atan2(anterior, lateral)
+    inclination = atan2(hypot(lateral, anterior), inferior)
     return torch.rad2deg(torch.stack([anteversion, torch.copysign(inclination, phi)], -1))

@@ -18,6 +18,7 @@ import math
 import torch
 from torch import Tensor
 
+from cupnet.batchwise import atan2
 from cupnet.geometry import Geometry, cup_axis, project
 
 
@@ -62,7 +63,7 @@ def sphere_outline(pose: Tensor, radius: Tensor, geometry: Geometry, n: int,
     e2 = torch.linalg.cross(axis, e1)
     dome = -cup_axis(pose)
     if dome_only:  # half a turn about the direction of the dome in the circle's plane
-        apex = torch.atan2((e2 * dome).sum(-1), (e1 * dome).sum(-1))[:, None]
+        apex = atan2((e2 * dome).sum(-1), (e1 * dome).sum(-1))[:, None]
         t = apex + torch.linspace(-math.pi / 2, math.pi / 2, n, dtype=pose.dtype,
                                   device=pose.device)
     else:
@@ -116,7 +117,7 @@ def outline_distances(centre: Tensor, points: Tensor, radius: Tensor, geom: Tens
     cos_psi = (direction * axis).sum(-1, keepdim=True)
     across = direction - cos_psi * axis  # the ray's direction away from the axis
     sin_psi = across.norm(dim=-1, keepdim=True)
-    psi = torch.atan2(sin_psi, cos_psi)[..., 0]
+    psi = atan2(sin_psi, cos_psi)[..., 0]
     px_per_rad = length[..., 0] ** 2 / (sdd * spacing)
     # d psi / d w = -(direction - cos psi axis) / (D sin psi); d alpha / d w = -tan(alpha) axis / D
     d_psi = -across / (distance[:, None, None] * sin_psi.clamp_min(1e-12))

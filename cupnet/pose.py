@@ -32,6 +32,7 @@ from torch import Tensor
 from torch.autograd.function import FunctionCtx
 from torch.func import jacfwd, vmap
 
+from cupnet.batchwise import atan2, hypot, matmul
 from cupnet.ellipse import conic_to_params, fit_ellipse, landmark_batch
 from cupnet.geometry import (
     Geometry,
@@ -144,7 +145,7 @@ def poses_from_conic(conic: Tensor, geometry: Geometry, radius: Tensor | float) 
     dtype, device = conic.dtype, conic.device
     radius = torch.as_tensor(radius, dtype=dtype, device=device).expand(conic.shape[0])
     cam = camera_matrix(geometry, dtype, device).expand(conic.shape[0], 3, 3)
-    cone = cam.transpose(-1, -2) @ conic @ cam
+    cone = matmul(matmul(cam.transpose(-1, -2), conic), cam)
     cone = 0.5 * (cone + cone.transpose(-1, -2))
     cone = cone / torch.linalg.matrix_norm(cone)[:, None, None]
     evals, evecs = torch.linalg.eigh(cone)
@@ -167,21 +168,21 @@ def poses_from_conic(conic: Tensor, geometry: Geometry, radius: Tensor | float) 
         e2 = torch.zeros_like(n)
         e2[:, 1] = 1.0
         basis = torch.stack([e1, e2, n], -1)  # columns; plane n.X = 1 in eigenframe
-        slice_ = basis.transpose(-1, -2) @ torch.diag_embed(diag) @ basis
+        slice_ = matmul(basis.transpose(-1, -2) * diag[:, None], basis)
         quad = 0.5 * (slice_[:, 0, 0] + slice_[:, 1, 1])
         centre_2d = -slice_[:, :2, 2] / quad[:, None]
         f0 = slice_[:, 2, 2] + (slice_[:, :2, 2] * centre_2d).sum(-1)
         unit_radius = torch.sqrt((-f0 / quad).clamp_min(1e-300))
         depth = radius / unit_radius
         centre_eig = depth[:, None] * (n + centre_2d[:, :1] * e1 + centre_2d[:, 1:] * e2)
-        centre_rel = (frame @ centre_eig[..., None]).squeeze(-1)
-        normal = (frame @ n[..., None]).squeeze(-1)
+        centre_rel = (frame * centre_eig[:, None]).sum(-1)
+        normal = (frame * n[:, None]).sum(-1)
         # The cone's two nappes: the cup lies between source and detector (z_rel < 0).
         front = torch.where(centre_rel[:, 2] > 0, -1.0, 1.0).to(dtype)[:, None]
         centre = sources + front * centre_rel
         normal = torch.where(normal[:, 2:] < 0, -normal, normal)
-        theta = torch.atan2(normal[:, 2], torch.linalg.vector_norm(normal[:, :2], dim=-1))
-        phi = torch.atan2(-normal[:, 0], normal[:, 1])
+        theta = atan2(normal[:, 2], torch.linalg.vector_norm(normal[:, :2], dim=-1))
+        phi = atan2(-normal[:, 0], normal[:, 1])
         poses.append(torch.cat([theta[:, None], phi[:, None], centre], -1))
     return torch.stack(poses, 1)
 
@@ -207,8 +208,8 @@ def _oriented_angles(pose: Tensor) -> tuple[Tensor, Tensor]:
     """(theta in [0, pi/2], phi in (-pi, pi]) of the rim normal oriented towards the source."""
     n = cup_axis(pose)
     n = torch.where(n[..., 2:] < 0, -n, n)
-    theta = torch.atan2(n[..., 2], torch.linalg.vector_norm(n[..., :2], dim=-1))
-    return theta, torch.atan2(-n[..., 0], n[..., 1])
+    theta = atan2(n[..., 2], torch.linalg.vector_norm(n[..., :2], dim=-1))
+    return theta, atan2(-n[..., 0], n[..., 1])
 
 
 def canonical_pose(pose: Tensor) -> Tensor:
@@ -343,11 +344,11 @@ def _initial_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: 
     rot = rotation(pose[:, 0], pose[:, 1])
     cam = camera_matrix(geometry, pose.dtype, pose.device)
     centre = pose[:, 2:5] - source_position(geometry, pose.dtype, pose.device)
-    homography = cam @ torch.stack([rot[..., 0], rot[..., 2], centre], -1)
+    homography = matmul(cam, torch.stack([rot[..., 0], rot[..., 2], centre], -1))
     hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
-    plane = hom @ torch.linalg.inv(homography).transpose(-1, -2)  # (B, N, 3)
+    plane = matmul(hom, torch.linalg.inv(homography).transpose(-1, -2))  # (B, N, 3)
     sign = torch.sign(plane[..., 2])
-    return torch.atan2(sign * plane[..., 1], sign * plane[..., 0])
+    return atan2(sign * plane[..., 1], sign * plane[..., 0])
 
 
 def _noise_variance(dist: Tensor, weights: Tensor) -> Tensor:
@@ -420,8 +421,8 @@ def _normal_equations(pose: Tensor, t: Tensor, u: Tensor, v: Tensor, weights: Te
     dist, jac, off_u, off_v, _ = _signed_distances(pose, t, (u, v), weights, radius, geom,
                                                    corrected)
     res, jac = root_w * dist, root_w[..., None] * jac
-    jtj = jac.transpose(-1, -2) @ jac
-    rhs = (jac.transpose(-1, -2) @ res[..., None]).squeeze(-1)
+    jtj = matmul(jac.transpose(-1, -2), jac)
+    rhs = (jac * res[..., None]).sum(-2)
     # The cost counts the whole offset: its tangential part shrinks as t converges, so the
     # cost falls monotonically with each t step at a fixed pose.
     return jtj, rhs, (weights * (off_u**2 + off_v**2)).sum(-1), t
@@ -461,7 +462,7 @@ def _outline_equations(pose: Tensor, points: Tensor, weights: Tensor, radius: Te
     weighted = weights[..., None] * jac
     jtj = torch.zeros(*pose.shape, 5, dtype=pose.dtype, device=pose.device)
     rhs = torch.zeros_like(pose)
-    jtj[:, 2:, 2:] = jac.transpose(-1, -2) @ weighted
+    jtj[:, 2:, 2:] = matmul(jac.transpose(-1, -2), weighted)
     rhs[:, 2:] = -(weighted * dist[..., None]).sum(-2)
     return jtj, rhs, (weights * dist**2).sum(-1)
 
@@ -590,8 +591,8 @@ class _RefinePose(torch.autograd.Function):
             _, pull_t = torch.func.vjp(lambda tt: equations(pose, tt, points, weights)[0], t)
             f_pt = torch.stack([pull_t(eye[k].expand_as(pose))[0] for k in range(5)], 1)
             # (dF/dz)^T v = (grad_pose, 0), t block eliminated.
-            schur = f_pp.transpose(-1, -2) - f_tp.transpose(-1, -2) @ (
-                f_pt.transpose(-1, -2) / f_tt[..., None])
+            schur = f_pp.transpose(-1, -2) - matmul(f_tp.transpose(-1, -2),
+                                                    f_pt.transpose(-1, -2) / f_tt[..., None])
             v_pose = torch.linalg.solve(schur, grad_pose[..., None]).squeeze(-1)
             v_t = -(f_pt * v_pose[..., None]).sum(-2) / f_tt
             _, pull = torch.func.vjp(lambda x, w: equations(pose, t, x, w), points, weights)
@@ -713,7 +714,7 @@ def _newton_distances(pose: Tensor, t: Tensor, u: Tensor, v: Tensor, radius: Ten
     their rim parameters ``t``; landmarks ``u, v`` ``(B, N)``."""
     t = _closest_rim_parameters(pose, t, (u, v), radius, geom, iterations)
     rim = _rim(pose, t, radius, geom)
-    return torch.hypot(u - rim.u, v - rim.v)
+    return hypot(u - rim.u, v - rim.v)
 
 
 def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geometry,
@@ -944,8 +945,8 @@ def cramer_rao_bound(pose: Tensor, radius: Tensor | float, geometry: Geometry, t
     tangent = tangent.diagonal(dim1=-3, dim2=-1).transpose(-1, -2)  # (B, N, 2) d x_i / d t_i
     normal = torch.stack([-tangent[..., 1], tangent[..., 0]], -1)
     normal = normal / torch.linalg.vector_norm(normal, dim=-1, keepdim=True)
-    rows = torch.einsum("bnk,bnkp->bnp", normal, jac)
-    fisher = rows.transpose(-1, -2) @ rows / sigma_px**2
+    rows = (normal[..., None] * jac).sum(-2)
+    fisher = matmul(rows.transpose(-1, -2), rows) / sigma_px**2
     return pose_to_degrees(torch.linalg.inv(fisher).diagonal(dim1=-2, dim2=-1).sqrt())
 
 
@@ -996,7 +997,7 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         t = _initial_rim_parameters(pose, points, radius, geom)
         t = _closest_rim_parameters(pose, t, (u, v), radius, geom, iterations)
         dist, jac, *_ = _signed_distances(pose, t, (u, v), weights, radius, geom, False)
-        information = jac.transpose(-1, -2) @ (weights[..., None] * jac)
+        information = matmul(jac.transpose(-1, -2), weights[..., None] * jac)
         inverse, info = torch.linalg.inv_ex(information)
         # The unit-weight variance (not _noise_variance's, which is per mean weight): the
         # covariance then stays the same whatever scale the weights come in.

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from cupnet.batchwise import hypot, matmul, quadratic_form, weighted_scatter
 from cupnet.crops import lattice_bilinear
 from cupnet.ellipse import ellipse_points, params_to_conic
 from cupnet.parallel import map_on_cores
@@ -55,7 +56,7 @@ def rim_frame(ellipse: Tensor, n: int) -> tuple[Tensor, Tensor]:
     _, _, a, b, alpha = (x[:, None] for x in ellipse.unbind(-1))
     ang = torch.deg2rad(alpha)
     nx, ny = b * torch.cos(t), a * torch.sin(t)  # the gradient of (x/a)^2 + (y/b)^2, scaled
-    norm = torch.hypot(nx, ny)
+    norm = hypot(nx, ny)
     nx, ny = nx / norm, ny / norm
     normals = torch.stack([nx * torch.cos(ang) - ny * torch.sin(ang),
                            nx * torch.sin(ang) + ny * torch.cos(ang)], -1)
@@ -77,10 +78,10 @@ def normal_crossings(points: Tensor, normals: Tensor, ellipse: Tensor) -> Tensor
     conic = params_to_conic(ellipse.to(points))
     hom = torch.cat([points, torch.ones_like(points[..., :1])], -1)
     direction = torch.cat([normals, torch.zeros_like(normals[..., :1])], -1)
-    cd = torch.einsum("kij,knj->kni", conic, direction)
+    cd = matmul(direction, conic.transpose(-1, -2))
     quad = (direction * cd).sum(-1)  # q(s) = quad s^2 + 2 half s + const
     half = (hom * cd).sum(-1)
-    const = torch.einsum("kni,kij,knj->kn", hom, conic, hom)
+    const = quadratic_form(hom, conic)
     disc = half**2 - quad * const
     # The sign of a unit-norm conic is arbitrary: the larger root is where q turns from
     # inside to outside, whichever the sign.
@@ -141,11 +142,11 @@ def settled_offsets(offset: Tensor, sigma: Tensor, ellipse: Tensor, normals: Ten
     residual = torch.zeros_like(offset)
     for _ in range(iterations):
         weights = 1 / (sigma * (residual.abs() + sigma))  # 1 / sigma^2 at first
-        normal = torch.einsum("kni,kn,knj->kij", basis, weights, basis)
+        normal = weighted_scatter(weights, basis, basis)
         ridge = 1e-6 * normal.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None]
         step = torch.linalg.solve(normal + ridge * eye,
-                                  torch.einsum("kni,kn,kn->ki", basis, weights, offset))
-        residual = offset - torch.einsum("kni,ki->kn", basis, step)
+                                  (basis * (weights * offset)[..., None]).sum(-2))
+        residual = offset - (basis * step[:, None]).sum(-1)
     return residual
 
 
