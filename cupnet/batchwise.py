@@ -10,8 +10,9 @@ round an item by the batch around it:
   elementwise and sum along the last dimension instead.
 - Some elementwise functions (``atan2``, ``hypot``, ``sigmoid``, a power of a fractional
   exponent) take their vectorised path for most elements and a scalar one, rounding
-  differently, for the last few of a tensor, so for whichever item lies last. These pad
-  the flattened tensor to a whole number of vectors first.
+  differently, for the last few of a tensor, so for whichever item lies last. ``atan2``
+  and ``hypot`` here pad the flattened tensor to a whole number of vectors first (the
+  model's ``sigmoid`` and powers are of whole maps, whole vectors already).
 """
 
 from __future__ import annotations
@@ -67,13 +68,3 @@ def hypot(x: Tensor, y: Tensor) -> Tensor:
     """``torch.hypot(x, y)``, each item rounded as alone."""
     return _whole_vectors(torch.hypot, x, y)
 
-
-def sigmoid(x: Tensor) -> Tensor:
-    """``torch.sigmoid(x)``, each item rounded as alone."""
-    return _whole_vectors(torch.sigmoid, x)
-
-
-def power(x: Tensor, exponent: Tensor | float) -> Tensor:
-    """``x ** exponent``, each item rounded as alone."""
-    return _whole_vectors(torch.pow, x, torch.as_tensor(exponent, dtype=x.dtype,
-                                                         device=x.device))

@@ -51,8 +51,6 @@ def test_elementwise_functions_round_each_element_as_alone(generator: torch.Gene
     functions = {
         "atan2": (batchwise.atan2, torch.atan2, (y, x)),
         "hypot": (batchwise.hypot, torch.hypot, (x, y)),
-        "sigmoid": (batchwise.sigmoid, torch.sigmoid, (x,)),
-        "power": (lambda a: batchwise.power(a, 1.7), lambda a: a**1.7, (x.abs(),)),
     }
     for name, (ours, theirs, args) in functions.items():
         whole = ours(*args)
