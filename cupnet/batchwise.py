@@ -17,7 +17,6 @@ round an item by the batch around it:
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import torch
@@ -49,13 +48,12 @@ def quadratic_form(vectors: Tensor, matrices: Tensor) -> Tensor:
 def _whole_vectors(function: Callable[..., Tensor], *tensors: Tensor) -> Tensor:
     """``function`` of the broadcast ``tensors``, flattened and padded to whole vectors (with
     0.5, inside every function's domain here), so that no element takes the scalar tail."""
-    shape = torch.broadcast_shapes(*(tensor.shape for tensor in tensors))
-    count = math.prod(shape)
-    if count % _LANES == 0 and all(tensor.shape == shape and tensor.is_contiguous()
-                                   for tensor in tensors):
+    if any(tensor.shape != tensors[0].shape for tensor in tensors[1:]):
+        tensors = tuple(torch.broadcast_tensors(*tensors))  # torch.broadcast_shapes is Python
+    shape, count = tensors[0].shape, tensors[0].numel()
+    if count % _LANES == 0 and all(tensor.is_contiguous() for tensor in tensors):
         return function(*tensors)  # whole vectors already
-    flat = [F.pad(tensor.expand(shape).reshape(-1), (0, -count % _LANES), value=0.5)
-            for tensor in tensors]
+    flat = [F.pad(tensor.reshape(-1), (0, -count % _LANES), value=0.5) for tensor in tensors]
     return function(*flat)[:count].reshape(shape)
 
 
