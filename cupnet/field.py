@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from cupnet.batchwise import hypot
+
 # Flat: the intensity range over a 5x5 window at most this (of the image's [0, 1]): exact
 # plateaus of 8- and 16-bit images, where the field's quantum noise spans several levels.
 FLAT_RANGE = 1e-3
@@ -210,4 +212,5 @@ def outside_field(centres: Tensor, field: tuple[float, float, float] | Tensor | 
     if field is None:
         return centres.new_zeros(centres.shape[:-1], dtype=bool)
     cx, cy, radius = torch.as_tensor(field, dtype=centres.dtype).unbind(-1)
-    return (centres[..., 0] - cx).hypot(centres[..., 1] - cy) > radius
+    # Each image's blobs judged as alone, whatever shares the batch (cupnet.batchwise).
+    return hypot(centres[..., 0] - cx, centres[..., 1] - cy) > radius
