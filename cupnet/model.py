@@ -847,8 +847,8 @@ class CupNet(nn.Module):
             bright = [turn != turned for turn in judged]
         # Weak blobs, and a later look's blobs at believed cups, are dropped before the cup
         # stages, not after: each cup is solved on its own, so the others' results are the
-        # same (to float rounding: a smaller batch can round differently), and a dropped
-        # blob costs no strips.
+        # same (to the last digit with ONNX Runtime's networks, cupnet.batchwise), and a
+        # dropped blob costs no strips.
         kept = self.kept_blobs(rough, scores)
         for i, ellipses in enumerate(known or []):
             for c in kept[i].nonzero()[:, 0].tolist():
