@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -149,6 +150,26 @@ def test_an_image_gives_the_same_cups_alone_and_in_a_batch(shipped: torch.nn.Mod
         assert len(alone) == len(in_batch) >= 1
         for one, other in zip(alone, in_batch, strict=True):
             np.testing.assert_array_equal(one, other)
+
+
+def test_predict_writes_the_same_rows_whatever_the_batch_size(tmp_path: Path) -> None:
+    """``cupnet predict`` (the shipped model, its networks in ONNX Runtime) writes the same
+    results.csv one image a batch as four, the time each image took aside."""
+    folder = tmp_path / "drrs"
+    assert main(["synth", "--n", "4", "--out", str(folder), "--config",
+                 "configs/synth_eval.yaml", "--size", "512", "512", "--seed", "99"]) == 0
+
+    def rows(batch_size: int) -> list[dict]:
+        out = tmp_path / f"batch{batch_size}"
+        assert main(["predict", str(folder / "images"), "--meta", str(folder / "meta.csv"),
+                     "--out", str(out), "--batch-size", str(batch_size), "--no-overlays",
+                     "--quiet"]) == 0
+        with (out / "results.csv").open() as file:
+            return [{key: value for key, value in row.items() if key != "seconds"}
+                    for row in csv.DictReader(file)]
+
+    one, four = rows(1), rows(4)
+    assert len(one) >= 4 and one == four
 
 
 def predict_blank(tmp_path: Path, checkpoint: Path, *flags: str) -> dict:
