@@ -53,20 +53,19 @@ def write_dicom(path: Path, pixels: np.ndarray, sdd: float, spacing: float,
     from pydicom.dataset import FileMetaDataset
     from pydicom.uid import ExplicitVRLittleEndian, generate_uid
 
-    def uid(what: str) -> str:
-        return generate_uid(entropy_srcs=["cupnet synth", *map(str, stream), what])
+    def uid(*parts: object) -> str:
+        return generate_uid(entropy_srcs=["cupnet synth", *map(str, parts)])
 
     sop_class = "1.2.840.10008.5.1.4.1.1.12.2"  # X-Ray Radiofluoroscopic Image Storage
     meta = FileMetaDataset()
     meta.MediaStorageSOPClassUID = sop_class
-    meta.MediaStorageSOPInstanceUID = uid("instance")
+    meta.MediaStorageSOPInstanceUID = uid(*stream, "instance")
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     ds = pydicom.Dataset()
     ds.file_meta = meta
     ds.SOPClassUID, ds.SOPInstanceUID = sop_class, meta.MediaStorageSOPInstanceUID
     # One study and series a seed: the images of one run belong together.
-    ds.StudyInstanceUID = generate_uid(entropy_srcs=["cupnet synth", str(stream[0]), "study"])
-    ds.SeriesInstanceUID = generate_uid(entropy_srcs=["cupnet synth", str(stream[0]), "series"])
+    ds.StudyInstanceUID, ds.SeriesInstanceUID = uid(stream[0], "study"), uid(stream[0], "series")
     ds.Modality = "RF"
     ds.PatientName, ds.PatientID = "SYNTHETIC^CUPNET", path.stem
     ds.Rows, ds.Columns = pixels.shape
