@@ -6,6 +6,7 @@ import argparse
 import csv
 import itertools
 import math
+import warnings
 from pathlib import Path
 
 import lightning as L
@@ -23,7 +24,13 @@ from train.data import CupDataModule, RoundRobinBatches
 from train.losses import distill_loss, pose_errors, ramp, wrap_angle
 from train.merge import main as merge_main
 from train.merge import merged
-from train.module import CupNetModule, coarse_rim_starts, far_rim_starts, jittered_ellipses
+from train.module import (
+    CosineToFloor,
+    CupNetModule,
+    coarse_rim_starts,
+    far_rim_starts,
+    jittered_ellipses,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -122,9 +129,51 @@ def test_a_resumed_run_goes_on_as_the_stopped_one_would_have(tmp_path, monkeypat
     whole = run("whole", "--trainer.callbacks+=ModelCheckpoint",
                 f"--trainer.callbacks.dirpath={every}",
                 "--trainer.callbacks.every_n_train_steps=3", "--trainer.callbacks.save_top_k=-1")
-    resumed = run("resumed", "--ckpt_path", str(every / "epoch=0-step=3.ckpt"))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        resumed = run("resumed", "--ckpt_path", str(every / "epoch=0-step=3.ckpt"))
+    # Nothing given was dropped, and the schedule's steps are the run's.
+    assert not [w for w in said if "are not used" in str(w.message) or "cosine" in str(w.message)]
     assert [r["step"] for r in resumed] == ["3", "4", "5"]
     assert [r["train/loss"] for r in resumed] == [r["train/loss"] for r in whole[3:]]
+
+
+def test_a_resume_says_which_given_settings_it_drops_and_holds_the_rate_past_its_cosine(
+        tmp_path, monkeypatch):
+    """Resumed with another learning rate and network width, and twice the steps: both are
+    named as not used (Lightning takes the checkpoint's), and the rate stays at its floor
+    (lr / 20) past the checkpoint's cosine, where torch's cosine rose again."""
+    monkeypatch.chdir(tmp_path)
+    smoke = ["fit", "-c", str(SMOKE), "--data.synth", str(ROOT / "configs/synth_smoke.yaml"),
+             "--trainer.limit_val_batches", "0"]
+    main([*smoke, "--trainer.max_steps", "3"])
+    (tmp_path / "runs").rename(tmp_path / "first")
+    with pytest.warns(UserWarning) as said:
+        main([*smoke, "--trainer.max_steps", "6", "--model.lr", "0.01",
+              "--model.model.rim_channels", "8", "--trainer.callbacks+=LearningRateMonitor",
+              "--ckpt_path", str(tmp_path / "first/smoke/checkpoints/last.ckpt")])
+    text = " ".join(str(w.message) for w in said)
+    assert "--model.lr 0.01 (the checkpoint's: 0.003)" in text
+    assert "--model.model.rim_channels '8'" in text
+    assert "cosine runs over 3 steps: it holds its floor" in text
+    rates = [float(r["lr-AdamW"]) for r in _metrics(tmp_path) if r.get("lr-AdamW")]
+    assert len(rates) == 3 and rates == pytest.approx([0.003 / 20] * 3, rel=1e-12)
+
+
+def test_the_rate_follows_torchs_cosine_to_its_floor_and_stays_there():
+    def rates(schedule: type, steps: int) -> list[float]:
+        optimizer = torch.optim.AdamW([torch.nn.Parameter(torch.zeros(1))], lr=2e-3)
+        scheduler = schedule(optimizer, 50, 1e-4)
+        out = []
+        for _ in range(steps):
+            optimizer.step()
+            scheduler.step()
+            out.append(optimizer.param_groups[0]["lr"])
+        return out
+
+    ours, torchs = rates(CosineToFloor, 80), rates(torch.optim.lr_scheduler.CosineAnnealingLR, 80)
+    assert ours[:50] == torchs[:50]  # bit for bit: the shipped recipes' rates
+    assert ours[49:] == [1e-4] * 31 and torchs[55] > 1.1e-4
 
 
 def test_smoke_config_loss_decreases(smoke_run):

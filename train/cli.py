@@ -8,13 +8,50 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 from lightning.pytorch.cli import LightningCLI
+from lightning.pytorch.utilities import rank_zero_warn
 
 SUBCOMMANDS = ("fit", "validate")
 # LightningCLI's others, which the module has no step for: what does their job instead.
 NOT_OFFERED = {"test": "cupnet evaluate (on cupnet synth's images)",
                "predict": "cupnet predict"}
+
+
+def flat_settings(settings: Any, prefix: str = "") -> dict[str, Any]:
+    """Nested dicts (and jsonargparse Namespaces) -> ``{"model.rim_channels": 8, ...}``."""
+    if hasattr(settings, "as_dict"):
+        settings = settings.as_dict()
+    if not isinstance(settings, dict):
+        return {prefix: settings}
+    out: dict[str, Any] = {}
+    for key, value in settings.items():
+        out.update(flat_settings(value, f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+class CupNetCLI(LightningCLI):
+    """LightningCLI that says which model settings a resume drops.
+
+    With ``--ckpt_path`` Lightning takes the module's settings from the checkpoint, over any
+    ``--model.*`` value or config file given; it did so silently, so a changed learning
+    rate or network setting looked taken and was not."""
+
+    def _parse_ckpt_path(self) -> None:
+        command = self.config.get("subcommand")
+        given = flat_settings(self.config[command].get("model")) if command else {}
+        super()._parse_ckpt_path()
+        if not given:
+            return
+        kept = flat_settings(self.config[command].get("model"))
+        dropped = [f"--model.{key} {given[key]!r} (the checkpoint's: {kept.get(key)!r})"
+                   for key in given if kept.get(key) != given[key]]
+        if dropped:
+            rank_zero_warn("resuming from a checkpoint takes its model settings, so these "
+                           "given ones are not used: " + "; ".join(dropped) + ". To change "
+                           "them, start a new stage from the run's export "
+                           "(--model.init_weights) instead of resuming")
 
 
 def lightning_args(argv: list[str]) -> list[str]:
@@ -51,7 +88,7 @@ def main(argv: list[str]) -> int:
     except ValueError as exc:
         print(exc, file=sys.stderr)
         return 2
-    LightningCLI(CupNetModule, CupDataModule, args=args, save_config_kwargs={"overwrite": True})
+    CupNetCLI(CupNetModule, CupDataModule, args=args, save_config_kwargs={"overwrite": True})
     return 0
 
 

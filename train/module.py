@@ -33,6 +33,18 @@ from train.losses import (
 )
 
 
+class CosineToFloor(torch.optim.lr_scheduler.CosineAnnealingLR):
+    """Cosine decay from the optimizer's rate to ``eta_min`` over ``T_max`` steps, then
+    ``eta_min`` held. torch's own goes on round the cosine, so a run resumed with a larger
+    ``max_steps`` than its checkpoint's saw the rate rise again; within ``T_max`` the rates
+    are torch's to the bit (its recursion gives ``eta_min`` exactly at ``T_max``)."""
+
+    def get_lr(self) -> list[float | Tensor]:
+        if self.last_epoch >= self.T_max:
+            return [self.eta_min for _ in self.optimizer.param_groups]
+        return super().get_lr()
+
+
 def batch_geometry(geometry: Tensor) -> Geometry:
     """``(B, 4)`` rows (sdd, spacing, u0, v0) of a collated batch -> :class:`Geometry`."""
     return Geometry.from_rows(geometry.double())
@@ -387,6 +399,7 @@ class CupNetModule(L.LightningModule):
 
     def on_train_start(self) -> None:
         self._freeze_modes()
+        self._warn_of_a_resumed_schedule()
 
     def losses(self, batch: dict, step: int) -> dict[str, Tensor]:
         """All loss terms of one batch and their weighted total (``"loss"``)."""
@@ -589,10 +602,22 @@ class CupNetModule(L.LightningModule):
                                       lr=self.hparams.lr,
                                       weight_decay=self.hparams.weight_decay)
         steps = max(1, int(self.trainer.max_steps)) if self.trainer.max_steps > 0 else 10_000
-        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, steps,
-                                                               self.hparams.lr / 20)
+        scheduler = CosineToFloor(optimizer, steps, self.hparams.lr / 20)
         return {"optimizer": optimizer,
                 "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    def _warn_of_a_resumed_schedule(self) -> None:
+        # A resume restores the schedule of the run that was stopped, over its max_steps.
+        schedule = self.lr_schedulers()
+        if self.trainer.ckpt_path and self.trainer.max_steps > 0 and isinstance(
+                schedule, CosineToFloor) and schedule.T_max != self.trainer.max_steps:
+            rank_zero_warn(
+                f"resumed with max_steps {self.trainer.max_steps}, but the checkpoint's "
+                f"learning-rate cosine runs over {schedule.T_max} steps: "
+                + ("it holds its floor (lr / 20) for the steps past them; to train longer at a "
+                   "higher rate, start a new stage from the run's export (--model.init_weights)"
+                   if schedule.T_max < self.trainer.max_steps else
+                   "the run stops before the rate reaches its floor"))
 
     def on_save_checkpoint(self, checkpoint: dict) -> None:
         # The random draws of the training steps (jittered rim starts, dark views, windows),
