@@ -20,6 +20,7 @@ import argparse
 import hashlib
 import json
 import math
+import os
 import platform
 import sys
 import time
@@ -462,7 +463,10 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
             raise ValueError(f"--out {out} holds the input folder {spec}; give a folder "
                              f"beside it or inside it (such as {Path(spec) / 'cupnet'})")
         for source in find_images(spec, recursive, exclude=out):
-            path = source.path.resolve()
+            # Absolute, links not followed: a file given twice (a folder and a glob in it)
+            # runs once, but a link keeps its own row beside its target's (resolving it lost
+            # whichever of the two names sorted second, and its side-file row with it).
+            path = Path(os.path.abspath(source.path))
             if path in seen:
                 continue
             seen.add(path)

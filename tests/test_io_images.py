@@ -95,6 +95,17 @@ def test_dicom_geometry_tags(tmp_path: Path) -> None:
     assert f_bare.sdd_mm is None and f_bare.pixel_spacing_mm is None and not f_bare.tag_notes
     assert f_skewed.pixel_spacing_mm is None
     assert "not square" in f_skewed.tag_notes["pixel_spacing_mm"]
+    # An unusable ImagerPixelSpacing leaves a usable PixelSpacing to take; both unusable,
+    # both are named.
+    (f_zero,) = read_frames(write_dicom(tmp_path / "zero.dcm", stored,
+                                        ImagerPixelSpacing=[0, 0], PixelSpacing=[0.125, 0.125]))
+    assert f_zero.pixel_spacing_mm == pytest.approx(0.125)
+    assert f_zero.tag_sources == {"pixel_spacing_mm": PATIENT_SPACING_SOURCE}
+    (f_both,) = read_frames(write_dicom(tmp_path / "both.dcm", stored,
+                                        ImagerPixelSpacing=[0, 0], PixelSpacing=[0.1, 0.2]))
+    assert f_both.pixel_spacing_mm is None
+    assert f_both.tag_notes["pixel_spacing_mm"].startswith("DICOM ImagerPixelSpacing [0.0, 0.0] "
+                                                           "unusable; DICOM PixelSpacing is not")
     # Stored values min-max scaled: the ramp comes back.
     np.testing.assert_allclose(f_bare.image, (stored - stored.min()) / np.ptp(stored), atol=1e-6)
 
@@ -522,3 +533,83 @@ def test_coloured_annotations_are_inpainted_and_a_tinted_image_is_averaged(tmp_p
     mean = np.clip(tinted, 0, 255).mean(-1)
     expected = (mean - mean.min()) / (mean.max() - mean.min())
     np.testing.assert_allclose(read_image(tmp_path / "tinted.png"), expected, atol=1e-5)
+
+
+def test_dicom_padding_is_left_out_of_the_stretch_and_shown_black(tmp_path: Path) -> None:
+    """A CR's 12-bit picture in a border of padding at 65535: read as the picture alone
+    would be, the border 0 (it had squeezed the picture into [0, 0.06])."""
+    picture = np.round(gradient() * 4000).astype(np.uint16) + 50
+    alone = read_image(write_dicom(tmp_path / "alone.dcm", picture))
+    padded = np.full((picture.shape[0] + 20, picture.shape[1] + 20), 65535, np.uint16)
+    padded[10:-10, 10:-10] = picture
+    for photometric, expected in (("MONOCHROME2", alone), ("MONOCHROME1", 1 - alone)):
+        image = read_image(write_dicom(tmp_path / f"{photometric}.dcm", padded, photometric,
+                                       PixelPaddingValue=65535))
+        np.testing.assert_allclose(image[10:-10, 10:-10], expected, atol=1e-6)
+        assert image[:10].max() == image[:, -10:].max() == 0
+    # A range of padding values (PixelPaddingRangeLimit), here a dark border of 0-9.
+    padded[:10], padded[-10:] = 0, 9
+    padded[:, :10] = padded[:, -10:] = 5
+    image = read_image(write_dicom(tmp_path / "range.dcm", padded, PixelPaddingValue=9,
+                                   PixelPaddingRangeLimit=0))
+    np.testing.assert_allclose(image[10:-10, 10:-10], alone, atol=1e-6)
+
+
+def test_a_tiffs_palette_is_read_as_the_greys_it_shows(tmp_path: Path) -> None:
+    greys = np.round(gradient() * 255).astype(np.uint8)
+    order = np.random.default_rng(1).permutation(256)  # index i shows grey order[i]
+    indices = np.argsort(order)[greys].astype(np.uint8)
+    page = Image.fromarray(indices, "P")
+    page.putpalette(np.repeat(order[:, None], 3, 1).astype(np.uint8).ravel().tolist())
+    page.save(tmp_path / "palette.tif")
+    np.testing.assert_allclose(read_image(tmp_path / "palette.tif"), greys / 255, atol=1e-6)
+
+
+def test_a_16_bit_raster_of_fewer_bits_fills_its_range(tmp_path: Path) -> None:
+    """10-bit data in a 16-bit PNG reads as a 10-bit image would (it had reached 0.016)."""
+    ramp = np.round(gradient() * 1023).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "ten.png"), ramp)
+    np.testing.assert_allclose(read_image(tmp_path / "ten.png"), ramp / 1023, atol=1e-6)
+    dark = (ramp // 8).astype(np.uint16)  # under 8 bits: as an 8-bit image, not stretched
+    cv2.imwrite(str(tmp_path / "dark.png"), dark)
+    np.testing.assert_allclose(read_image(tmp_path / "dark.png"), dark / 255, atol=1e-6)
+
+
+def test_a_tiff_page_past_the_size_limit_is_that_pages_error(tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch
+                                                            ) -> None:
+    monkeypatch.setattr("cupnet.io.images.MAX_SIDE", 64)
+    pages = [Image.fromarray(np.zeros((32, 32), np.uint8)),
+             Image.fromarray(np.zeros((100, 100), np.uint8))]
+    pages[0].save(tmp_path / "pages.tif", save_all=True, append_images=pages[1:])
+    first, second = read_frames(tmp_path / "pages.tif")
+    assert first.error is None and "too large: 100 x 100 px" in second.error
+
+
+@pytest.mark.parametrize(("frames", "message"), [
+    (-1, "invalid DICOM NumberOfFrames -1"),
+    (3000, "DICOM NumberOfFrames 3000 of 40 x 32 px needs 7,680,000 bytes of pixel data"),
+])
+def test_a_dicom_frame_count_the_file_cannot_hold_is_one_error(tmp_path: Path, frames: int,
+                                                               message: str) -> None:
+    path = write_dicom(tmp_path / "claims.dcm", np.ones((32, 40), np.uint16))
+    ds = pydicom.dcmread(path)
+    ds.NumberOfFrames = frames
+    ds.save_as(path)
+    (frame,) = read_frames(path)  # one row: not none, and not one a claimed frame
+    assert frame.image is None and message in frame.error
+
+
+def test_a_file_is_read_as_what_it_holds_between_dicom_and_raster(tmp_path: Path) -> None:
+    """A DICOM named .png (a PACS export) and a PNG named .dcm are read as what they hold."""
+    stored = np.round(gradient() * 4000).astype(np.uint16)
+    write_dicom(tmp_path / "export.png", stored, DistanceSourceToDetector=1000.0)
+    (frame,) = read_frames(tmp_path / "export.png")
+    assert frame.error is None and frame.sdd_mm == 1000.0
+    np.testing.assert_allclose(frame.image, (stored - stored.min()) / np.ptp(stored), atol=1e-6)
+    cv2.imwrite(str(tmp_path / "picture.png"), np.round(gradient() * 255).astype(np.uint8))
+    (tmp_path / "picture.png").rename(tmp_path / "picture.dcm")
+    (frame,) = read_frames(tmp_path / "picture.dcm")
+    assert frame.error is None
+    np.testing.assert_allclose(frame.image, gradient(), atol=0.5 / 255 + 1e-6)
+    assert [s.name for s in find_images(tmp_path)] == ["export.png", "picture.dcm"]

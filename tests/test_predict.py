@@ -564,15 +564,16 @@ def test_several_inputs_as_a_shell_expands_them(tmp_path: Path, blind_checkpoint
         (tmp_path / folder).mkdir()
         noise_png(tmp_path / folder / "x.png", size=256)
     noise_png(tmp_path / "a" / "y.png", size=256)
+    (tmp_path / "a" / "latest.png").symlink_to("y.png")  # a link keeps its own row
     out = tmp_path / "out"
     specs = [str(tmp_path / "a" / "x.png"), str(tmp_path / "b" / "x.png"), str(tmp_path / "a"),
-             f"{tmp_path}/a/*.png"]
+             f"{tmp_path}/a/*.png", f"{tmp_path}/a/../a/y.png"]
     assert main(["predict", *specs, "--out", str(out), "--checkpoint", str(blind_checkpoint),
                  "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52",
                  "--quiet", "--no-overlays"]) == 0
     names = list(rows_by_image(read_csv(out / "results.csv")))
     # Each file once; the second x.png is named by its path, not merged with the first.
-    assert names == ["x.png", (tmp_path / "b" / "x.png").as_posix(), "y.png"]
+    assert names == ["x.png", (tmp_path / "b" / "x.png").as_posix(), "latest.png", "y.png"]
 
 
 def test_assumptions_printed_once_and_recorded(tmp_path: Path, blind_checkpoint: Path,

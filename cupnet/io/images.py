@@ -116,10 +116,22 @@ def _is_dicom_by_content(path: Path) -> bool:
         return False
 
 
+def _is_raster_by_content(path: Path) -> bool:
+    """Whether PIL recognises the file's content as an image (its header alone is read)."""
+    try:
+        with Image.open(path):
+            return True
+    except Exception:  # noqa: BLE001 - anything PIL cannot open is no raster to it
+        return False
+
+
 def _is_dicom(path: Path) -> bool:
-    suffix = path.suffix.lower()
-    return suffix in DICOM_SUFFIXES or (suffix not in RASTER_SUFFIXES
-                                        and _is_dicom_by_content(path))
+    """The content decides where it can: a ``DICM`` marker makes a DICOM whatever the name
+    (a ``.png`` exported from a PACS), and a ``.dcm`` without one is a bare dataset unless
+    it holds a raster."""
+    if _is_dicom_by_content(path):
+        return True
+    return path.suffix.lower() in DICOM_SUFFIXES and not _is_raster_by_content(path)
 
 
 def _wanted(path: Path) -> bool:
@@ -129,7 +141,7 @@ def _wanted(path: Path) -> bool:
         return not path.name.startswith(".") and suffix in SUPPORTED_SUFFIXES
     if path.name.startswith(".") or not path.is_file():
         return False
-    return suffix in RASTER_SUFFIXES or _is_dicom(path)
+    return suffix in SUPPORTED_SUFFIXES or _is_dicom_by_content(path)
 
 
 def _glob_root(pattern: str) -> Path:
@@ -226,24 +238,35 @@ def _annotations_inpainted(colour: np.ndarray, gray: np.ndarray) -> np.ndarray:
     return cv2.inpaint(gray, mask, 3, cv2.INPAINT_TELEA)
 
 
-def _stretch(values: np.ndarray) -> np.ndarray:
-    """Min-max scale to ``[0, 1]`` float32 (a constant image becomes all zeros)."""
+def _stretch(values: np.ndarray, shown: np.ndarray | None = None) -> np.ndarray:
+    """Min-max scale to ``[0, 1]`` float32 (a constant image becomes all zeros); with a
+    ``shown`` mask ``(H, W)`` bool, the range is that of those pixels (the others may fall
+    outside ``[0, 1]``: the caller sets them)."""
     values = values.astype(np.float32, copy=False)
     if not np.isfinite(values).all():
         raise ImageReadError("image contains NaN or infinite values")
-    lo, hi = float(values.min()), float(values.max())
+    ranged = values if shown is None else values[shown]
+    if ranged.size == 0:
+        return np.zeros_like(values)
+    lo, hi = float(ranged.min()), float(ranged.max())
     return (values - lo) / (hi - lo) if hi > lo else np.zeros_like(values)
 
 
 def to_unit_range(pixels: np.ndarray) -> np.ndarray:
     """Stored pixel values -> float32 ``(H, W)`` in ``[0, 1]``.
 
-    Unsigned 8- and 16-bit images are divided by their type's maximum, so an image keeps
-    its exposure; other types (signed, float) are min-max scaled.
+    Unsigned 8-bit images are divided by 255, so an image keeps its exposure; unsigned
+    16-bit ones by the full scale of the fewest bits (8 to 16) that hold their largest value:
+    a detector's 10- or 12-bit data in a 16-bit file fills its range as it would its own
+    (divided by 65535 it reached 0.016, where the flat-surround and noise rules, set on
+    the whole range, misread it). Other types (signed, float) are min-max scaled.
     """
     gray = _to_gray(pixels)
-    if gray.dtype in (np.uint8, np.uint16):
-        return gray.astype(np.float32) * np.float32(1.0 / np.iinfo(gray.dtype).max)
+    if gray.dtype == np.uint8:
+        return gray.astype(np.float32) * np.float32(1.0 / 255)
+    if gray.dtype == np.uint16:
+        bits = max(8, int(gray.max()).bit_length())
+        return gray.astype(np.float32) * np.float32(1.0 / (2**bits - 1))
     return _stretch(gray)
 
 
@@ -310,18 +333,19 @@ def dicom_geometry(ds: pydicom.Dataset
     if sdd is None and "DistanceSourceToDetector" in ds:
         notes["sdd_mm"] = f"DICOM DistanceSourceToDetector {ds.DistanceSourceToDetector!r} unusable"
     spacing = None
+    unusable = []  # an unusable ImagerPixelSpacing leaves PixelSpacing to try
     for keyword in ("ImagerPixelSpacing", "PixelSpacing"):
         if keyword not in ds:
             continue
         pair = [_positive(v) for v in ds[keyword].value] if ds[keyword].VM == 2 else [None]
         if None in pair:
-            notes["pixel_spacing_mm"] = f"DICOM {keyword} {ds[keyword].value!r} unusable"
-            break
+            unusable.append(f"DICOM {keyword} {ds[keyword].value!r} unusable")
+            continue
         row, col = pair
         if abs(row - col) > _SQUARE_TOL * max(row, col):
-            notes["pixel_spacing_mm"] = (f"DICOM {keyword} is not square ({row} x {col} mm); "
-                                         "give --pixel-spacing")
-            break
+            unusable.append(f"DICOM {keyword} is not square ({row} x {col} mm); give "
+                            "--pixel-spacing")
+            continue
         spacing = (row + col) / 2
         sources["pixel_spacing_mm"] = f"DICOM {keyword}"
         if keyword == "PixelSpacing":
@@ -331,6 +355,8 @@ def dicom_geometry(ds: pydicom.Dataset
                                            "EstimatedRadiographicMagnificationFactor"
                                            if magnification else PATIENT_SPACING_SOURCE)
         break
+    if spacing is None and unusable:
+        notes["pixel_spacing_mm"] = "; ".join(unusable)
     return sdd, spacing, notes, sources
 
 
@@ -404,18 +430,43 @@ def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarr
             raise ImageReadError(f"cannot decode DICOM pixel data compressed as {syntax.name} "
                                  f"(unsupported or damaged: {reason})") from exc
         raise ImageReadError(f"corrupt or truncated DICOM pixel data ({reason})") from exc
+    padding = None
     if stored.ndim == 3 and stored.shape[-1] == 3:
         stored = _to_gray(stored)
-    elif stored.ndim != 2:
+    elif stored.ndim == 2:
+        padding = _padding(stored, ds)
+    else:
         raise ImageReadError(f"unexpected DICOM frame shape {stored.shape}")
     values = apply_voi_lut(apply_modality_lut(stored, ds), ds)
-    image = _stretch(values)
+    image = _stretch(values, None if padding is None else ~padding)
     if str(ds.get("PhotometricInterpretation")) == "MONOCHROME1":
         image = 1.0 - image  # MONOCHROME1: low values are bright
+    if padding is not None:
+        image[padding] = 0  # a flat black surround, as an intensifier's
     return image
 
 
+def _padding(stored: np.ndarray, ds: pydicom.Dataset) -> np.ndarray | None:
+    """The pixels a grey frame marks as padding (PixelPaddingValue, through
+    PixelPaddingRangeLimit where given, in stored values), or None where it marks none.
+
+    A CR or DX image's padding (the plate's edge, a shuttered border) is often the type's
+    largest value; stretched with the rest, it squeezed the picture into a few hundredths of
+    the range, and the cup went unseen."""
+    value = ds.get("PixelPaddingValue")
+    if not isinstance(value, int):  # absent, or unreadable (a byte string of unknown sign)
+        return None
+    limit = ds.get("PixelPaddingRangeLimit")
+    low, high = sorted((value, limit if isinstance(limit, int) else value))
+    padding = (stored >= low) & (stored <= high)
+    return padding if padding.any() else None
+
+
 # -- reading ------------------------------------------------------------------------------------
+# TIFF modes whose stored values are what the page shows (grey levels, or colour channels).
+_TIFF_GREY_OR_RGB = ("1", "L", "LA", "I", "I;16", "I;16B", "I;16L", "I;16N", "F", "RGB", "RGBA")
+
+
 def _read_raster(path: Path, page: int | None, kind: str) -> np.ndarray:
     """One page of a raster file whose content PIL found to be ``kind`` ("PNG", "JPEG",
     "TIFF", ...), whatever its suffix."""
@@ -423,8 +474,12 @@ def _read_raster(path: Path, page: int | None, kind: str) -> np.ndarray:
         try:
             with Image.open(path) as im:
                 im.seek(page or 0)
-                pixels = np.asarray(im)
+                _check_size(*im.size)  # a page's own (the probe saw the first page's)
+                # A palette's (or CMYK's, LAB's) values are no greys: what they show is.
+                pixels = np.asarray(im if im.mode in _TIFF_GREY_OR_RGB else im.convert("RGB"))
         except (OSError, ValueError, EOFError) as exc:
+            if isinstance(exc, ImageReadError):
+                raise
             raise ImageReadError(f"corrupt or truncated TIFF ({exc})") from exc
         return to_unit_range(pixels)  # a decoded file's values: their own error, not "corrupt"
     # libjpeg decodes a cut-off JPEG into a partly grey image without failing, and libpng
@@ -522,9 +577,9 @@ def _probe(source: ImageSource) -> list[_Unit]:
     suffix = path.suffix.lower()
     if _is_dicom(path):
         ds = _dicom_header(path)
-        n = int(ds.get("NumberOfFrames", 1) or 1)
+        n = _frame_count(ds, size)
         return [_Unit(source, i if n > 1 else None, i == n - 1, ds) for i in range(n)]
-    if suffix not in RASTER_SUFFIXES:
+    if suffix not in SUPPORTED_SUFFIXES:
         raise ImageReadError(f"unsupported file type {suffix or '(no suffix)'}; "
                              f"supported: {', '.join(SUPPORTED_SUFFIXES)}")
     try:
@@ -544,6 +599,35 @@ def _probe(source: ImageSource) -> list[_Unit]:
     _check_size(width, height)
     return [_Unit(source, i if n > 1 else None, i == n - 1, kind=kind,
                   orientation=orientation if orientation in _UPRIGHT else 1) for i in range(n)]
+
+
+def _frame_count(ds: pydicom.Dataset, file_bytes: int) -> int:
+    """A DICOM header's NumberOfFrames (absent or 0: one), checked against the file's size
+    where its pixel data is stored uncompressed.
+
+    Raises:
+        ImageReadError: a count that is no whole number above 0, or more uncompressed frames
+            than the file holds (a row each would repeat one error thousands of times).
+    """
+    value = ds.get("NumberOfFrames", 1)
+    try:
+        count = int(value or 1)
+    except (TypeError, ValueError):
+        count = 0
+    if count < 1:
+        raise ImageReadError(f"invalid DICOM NumberOfFrames {value}")
+    syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+    try:  # a deflated file's pixel data is compressed too, with the rest of the dataset
+        compressed = syntax is None or syntax.is_compressed or syntax.is_deflated
+    except ValueError:  # a private transfer syntax: decoding says what it can
+        compressed = True
+    frame_bytes = (int(ds.Rows) * int(ds.Columns) * int(ds.get("SamplesPerPixel", 1) or 1)
+                   * int(ds.get("BitsAllocated", 8) or 8) // 8)
+    if count > 1 and not compressed and count * frame_bytes > file_bytes:
+        raise ImageReadError(
+            f"DICOM NumberOfFrames {count} of {ds.Columns} x {ds.Rows} px needs "
+            f"{count * frame_bytes:,} bytes of pixel data, but the file holds {file_bytes:,}")
+    return count
 
 
 def _frame_name(unit: _Unit) -> str:
