@@ -551,7 +551,8 @@ class _RefinePose(torch.autograd.Function):
     """LM forward; backward by the implicit function theorem at the solution.
 
     The solution ``z* = (pose, t)`` is a root of ``F(z, data)`` (:func:`_stationarity`), so
-    ``d z* / d data = -(dF/dz)^-1 dF/d data``. ``dF/dz`` has a diagonal ``t`` block, so the
+    ``d z* / d data = -(dF/dz)^-1 dF/d data``, the data being the landmarks, their weights,
+    the geometry rows and the radius. ``dF/dz`` has a diagonal ``t`` block, so the
     transposed solve is a 5x5 Schur solve per item, from five forward- and five reverse-mode
     products and one more for the diagonal.
     """
@@ -595,9 +596,13 @@ class _RefinePose(torch.autograd.Function):
                                                     f_pt.transpose(-1, -2) / f_tt[..., None])
             v_pose = torch.linalg.solve(schur, grad_pose[..., None]).squeeze(-1)
             v_t = -(f_pt * v_pose[..., None]).sum(-2) / f_tt
-            _, pull = torch.func.vjp(lambda x, w: equations(pose, t, x, w), points, weights)
-            grad_points, grad_weights = pull((-v_pose, -v_t))
-        return None, grad_points, grad_weights, None, None, None, None, None, None
+            # The data: the landmarks, their weights, and the geometry and radius they are
+            # seen through (a network that learns a calibration or a cup size needs these).
+            _, pull = torch.func.vjp(
+                lambda x, w, g, r: _stationarity(pose, t, x, w, g, r, ctx.corrected),
+                points, weights, geom, radius)
+            grads = pull((-v_pose, -v_t))
+        return None, *grads, None, None, None, None
 
 
 def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tensor | float,
@@ -610,8 +615,8 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
     With ``corrected`` (the default) it solves the curvature-corrected score instead, which
     removes the second-order bias that noise gives the maximum-likelihood fit of thin
     ellipses (see :func:`_curvature_offsets`); noise-free landmarks give the same pose.
-    Gradients with respect to ``points`` and ``weights`` are exact at the solution (implicit
-    function theorem); ``start`` gets none.
+    Gradients with respect to ``points``, ``weights``, ``geometry`` and ``radius`` are exact
+    at the solution (implicit function theorem); ``start`` gets none.
 
     Args:
         start: ``(B, 5)`` initial poses (rad, mm), e.g. from :func:`poses_from_conic`.

@@ -243,6 +243,22 @@ def test_gradcheck_refined_pose_wrt_points_and_weights(generator, corrected):
     assert torch.autograd.gradcheck(refined, (points, weights), atol=1e-6, rtol=1e-4)
 
 
+def test_gradcheck_refined_pose_wrt_geometry_and_cup_diameter(generator):
+    """solve_pose's refined pose against finite differences in every geometry field and the
+    cup's diameter (its backward had given none: a network learning a calibration or the
+    cup's size got a zero or missing gradient)."""
+    truth = torch.tensor([[30.0, 25.0, 15.0, -10.0, 280.0]], dtype=torch.float64)
+    points = rim_landmarks(truth, GEOMETRY, 50.0, n=16)
+    points = points + 0.3 * torch.randn(points.shape, generator=generator, dtype=torch.float64)
+    fields = torch.tensor([1040.0, 1.0, 3.0, -2.0, 50.0], dtype=torch.float64,
+                          requires_grad=True)  # sdd, spacing, u0, v0 (mm, mm, px, px), diameter
+
+    def pose(f: torch.Tensor) -> torch.Tensor:
+        return solve_pose(points, Geometry(*f[:4]), f[4], tol=1e-20, max_iter=50).pose
+
+    assert torch.autograd.gradcheck(pose, (fields,), eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
 def test_gradcheck_closed_form_pose_wrt_points(generator):
     truth = torch.tensor([[25.0, -30.0, -10.0, 20.0, 300.0]], dtype=torch.float64)
     points = rim_landmarks(truth, GEOMETRY, n=7) + 0.2 * torch.randn(
