@@ -49,11 +49,14 @@ def conic_to_params(conic: Tensor) -> Tensor:
         conic: ``(..., 3, 3)`` ellipse conics (any scale and sign).
     Returns:
         ``(..., 5)``: ``(cx, cy, a, b, alpha)`` pixels, pixels, pixels, pixels, degrees.
-        Not an ellipse (hyperbola, parabola, imaginary): NaN; check with :func:`is_ellipse`.
+        Not an ellipse (hyperbola, parabola, imaginary): a row of NaN, whatever else is in
+        the batch; :func:`is_ellipse` tells them apart beforehand.
     """
     quad = conic[..., :2, :2]
     lin = conic[..., :2, 2]
-    centre = torch.linalg.solve(quad, -lin.unsqueeze(-1)).squeeze(-1)
+    # solve_ex: a parabola's singular quadratic part gives a non-finite centre, where
+    # solve raised for the whole batch.
+    centre = torch.linalg.solve_ex(quad, -lin.unsqueeze(-1))[0].squeeze(-1)
     # Value of the conic at the centre: the centred form is x^T quad x + f_c = 0.
     f_c = conic[..., 2, 2] + (lin * centre).sum(-1)
     p = quad[..., 0, 0] / -f_c
@@ -69,7 +72,10 @@ def conic_to_params(conic: Tensor) -> Tensor:
     alpha = torch.rad2deg(0.5 * atan2(-2 * q, r - p)) % 180.0
     # A tiny negative angle wraps to exactly 180.0 in floating point: keep [0, 180).
     alpha = torch.where(alpha >= 180.0, alpha - 180.0, alpha)
-    return torch.stack([centre[..., 0], centre[..., 1], a, b, alpha], -1)
+    params = torch.stack([centre[..., 0], centre[..., 1], a, b, alpha], -1)
+    # A hyperbola's or imaginary conic's axes are NaN where its centre is finite: no part
+    # of such a row is an ellipse's.
+    return torch.where(torch.isfinite(params).all(-1, keepdim=True), params, math.nan)
 
 
 def params_to_conic(params: Tensor) -> Tensor:

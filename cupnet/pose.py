@@ -66,7 +66,9 @@ class PoseSolution:
         alt_pose: ``(B, 5)`` second in-range pose where ``ambiguous``, else NaN.
         ambiguous: ``(B,)`` bool.
         ellipse: ``(B, 5)`` fitted ellipse (cx, cy, a, b, alpha_deg) px.
-        residual_px: ``(B,)`` weighted RMS Sampson distance of the landmarks to the solved rim.
+        residual_px: ``(B,)`` weighted RMS distance of the landmarks to the solved rim
+            (:func:`rim_distances`, two Newton steps to each closest rim point: a few %
+            over the converged distance on thin ellipses with noise of pixels).
         valid: ``(B,)`` bool.
         status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"`` per item.
     """
@@ -774,7 +776,8 @@ def solve_pose(
         corrected, compiled: see :func:`refine_pose`.
     Returns:
         :class:`PoseSolution` in the points' floating dtype (float64 for integer points),
-        differentiable in ``pose`` w.r.t. points and weights.
+        differentiable in ``pose`` w.r.t. points, weights, ``cup_diameter`` and the
+        geometry's fields.
     """
     points, weights, out_dtype = landmark_batch(points, weights, on_error, PoseError)
     batch, dtype, device = points.shape[0], points.dtype, points.device
@@ -797,7 +800,7 @@ def solve_pose(
                          f"{major[i]:.3g} px < {MIN_AXIS_PX} px)")
     _raise_first(status, on_error)
 
-    ok = torch.tensor([s == "ok" for s in status], device=device)
+    ok = torch.tensor([s == "ok" for s in status], dtype=torch.bool, device=device)
     # Unusable items are solved on a stand-in so the batch stays finite; masked at the end.
     safe_geometry = _safe_geometry(geometry, ok, batch, dtype, device)
     safe_radius = torch.where(ok, radius, torch.full_like(radius, 25.0))
@@ -827,7 +830,7 @@ def solve_pose(
             status[i] = (f"error: solved h = {h_i:.1f} mm lies outside (0, SDD = "
                          f"{sdd_i:.0f} mm): check cup diameter, SDD and pixel spacing")
     _raise_first(status, on_error)
-    valid = torch.tensor([s == "ok" for s in status], device=device)
+    valid = torch.tensor([s == "ok" for s in status], dtype=torch.bool, device=device)
     ambiguous = ambiguous & valid
     status = ["ambiguous" if a else s for s, a in zip(status, ambiguous.tolist(), strict=True)]
     nan = torch.full_like(pose, math.nan)

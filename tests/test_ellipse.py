@@ -87,6 +87,23 @@ def test_params_conic_round_trip():
     torch.testing.assert_close(conic_to_params(params_to_conic(params)), params)
 
 
+def test_a_conic_that_is_no_ellipse_gives_a_row_of_nan_beside_the_others():
+    """A hyperbola's centre is finite and its axes NaN, an imaginary ellipse's axes NaN, a
+    parabola has no centre (it raised for the whole batch): each row all NaN, the ellipse's
+    row its own."""
+    ellipse = params_to_conic(torch.tensor([[100.0, 50.0, 30.0, 10.0, 170.0]],
+                                           dtype=torch.float64))
+    hyperbola = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))[None]
+    imaginary = torch.diag(torch.tensor([1.0, 2.0, 1.0], dtype=torch.float64))[None]
+    parabola = torch.tensor([[[1.0, 0.0, 0.0], [0.0, 0.0, -0.5], [0.0, -0.5, 0.0]]],
+                            dtype=torch.float64)  # x^2 - y = 0
+    params = conic_to_params(torch.cat([ellipse, hyperbola, imaginary, parabola]))
+    torch.testing.assert_close(params[0], conic_to_params(ellipse)[0])
+    torch.testing.assert_close(params[0], torch.tensor([100.0, 50.0, 30.0, 10.0, 170.0],
+                                                       dtype=torch.float64))
+    assert params[1:].isnan().all()
+
+
 def test_gradcheck_points_and_weights(generator):
     truth = torch.tensor([3.0, -2.0, 6.0, 2.5, 30.0], dtype=torch.float64)
     t = torch.linspace(0, 2 * math.pi, 9, dtype=torch.float64)[:-1]

@@ -386,3 +386,12 @@ def test_batch_sizes_that_disagree_are_named():
         solve_pose(points, GEOMETRY, torch.tensor([50.0, 52.0, 54.0]))
     with pytest.raises(PoseError, match=r"weights must have the points' shape"):
         solve_pose(points, GEOMETRY, 50.0, torch.ones(16, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("refine", [True, False])
+def test_an_empty_batch_gives_empty_results(refine):
+    """No landmark sets (a batch of images without a cup): empty results, as fit_ellipse
+    gives (a float mask had failed in torch.where)."""
+    sol = solve_pose(torch.zeros(0, 16, 2, dtype=torch.float64), GEOMETRY, 50.0, refine=refine)
+    assert sol.pose.shape == sol.alt_pose.shape == sol.ellipse.shape == (0, 5)
+    assert sol.valid.shape == sol.residual_px.shape == (0,) and sol.status == []
