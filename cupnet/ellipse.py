@@ -23,6 +23,9 @@ MIN_POINTS = 5
 # Relative ridge added to the reduced scatter matrix so its Cholesky factor exists when the
 # points lie exactly on an ellipse (singular scatter); it moves the solution by ~1e-12.
 _RIDGE = 1e-12
+# The Rayleigh-quotient polish's shift off an exactly singular pencil, relative to the
+# scatter matrix's trace (:class:`_PencilEigenvector`).
+_NUDGE = 1e-13
 # Smallest ratio of the point cloud's two principal spreads before it counts as a line.
 _COLLINEAR_RATIO = 1e-10
 
@@ -172,13 +175,23 @@ class _PencilEigenvector(torch.autograd.Function):
     @staticmethod
     def forward(ctx: FunctionCtx, scatter: Tensor, constraint: Tensor,  # type: ignore[override]
                 vec: Tensor, steps: int) -> Tensor:
+        # A hair of the scatter's size: a shift that far off the eigenvalue still gives
+        # the eigenvector's direction to ~1e-13.
+        nudge = _NUDGE * scatter.diagonal(dim1=-2, dim2=-1).abs().sum(-1)[:, None, None]
         for _ in range(steps):
             c_vec = matmul(constraint, vec)
             rayleigh = _dot(vec, matmul(scatter, vec)) / _dot(vec, c_vec)
             step, info = torch.linalg.solve_ex(scatter - rayleigh * constraint, c_vec)
+            # An exactly singular pencil: the quotient is the eigenvalue to the last digit,
+            # but the vector may still be ~1e-11 off its eigenvector (it kept the ridged
+            # start, and the fit jumped by that between neighbouring inputs): solved again
+            # with the shift nudged off the eigenvalue.
+            off, off_info = torch.linalg.solve_ex(scatter - (rayleigh + nudge) * constraint,
+                                                  c_vec)
+            singular = info != 0
+            step = torch.where(singular[:, None, None], off, step)
+            info = torch.where(singular, off_info, info)
             step = step / torch.linalg.vector_norm(step, dim=-2, keepdim=True)
-            # An exactly singular pencil means the quotient is already the eigenvalue to the
-            # last digit: that item has converged, so it keeps its vector.
             usable = (info == 0)[:, None, None] & torch.isfinite(step).all(-2, keepdim=True)
             vec = torch.where(usable, step, vec)
         ctx.save_for_backward(scatter, constraint, vec)
