@@ -274,6 +274,8 @@ def test_truncated_png_jpeg_and_dicom(tmp_path: Path, capfd: pytest.CaptureFixtu
     data = (tmp_path / "full.dcm").read_bytes()
     (tmp_path / "cut.dcm").write_bytes(data[: len(data) - 4000])
     assert "corrupt or truncated DICOM" in read_frames(tmp_path / "cut.dcm")[0].error
+    (tmp_path / "head.dcm").write_bytes(data[:300])  # cut within the header: pydicom reads on
+    assert "cut short in its header" in read_frames(tmp_path / "head.dcm")[0].error
 
 
 def test_a_float_tiff_with_nan_is_named_as_such_not_as_corrupt(tmp_path: Path) -> None:

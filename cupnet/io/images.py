@@ -393,7 +393,9 @@ def _dicom_header(path: Path) -> pydicom.Dataset:
         raise ImageReadError(f"corrupt or truncated DICOM header ({exc})") from exc
     for keyword in ("Rows", "Columns"):
         if keyword not in ds:
-            raise ImageReadError(f"DICOM has no pixel data ({keyword} missing)")
+            # pydicom reads a header cut short without complaint, as far as it goes.
+            raise ImageReadError(f"DICOM has no image ({keyword} missing: a dataset without "
+                                 "pixel data, or a file cut short in its header)")
     _check_size(int(ds.Columns), int(ds.Rows))
     photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2"))
     if photometric not in ("MONOCHROME1", "MONOCHROME2", "RGB", "YBR_FULL", "YBR_FULL_422"):
