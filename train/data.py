@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import lightning as L
+import torch
 from torch.utils.data import DataLoader, IterableDataset, default_collate, get_worker_info
 
 if TYPE_CHECKING:  # data_synth loads where a config is made
@@ -157,4 +158,8 @@ class CupDataModule(L.LightningDataModule):
         source = hp.val_synth if hp.val_synth is not None else self._synth_list()[0]
         dataset = SynthDataset(synth_config(source, hp.val_image_size), seed=hp.val_seed,
                                length=hp.val_length)
-        return DataLoader(dataset, batch_size=hp.batch_size, num_workers=0)
+        # A generator of its own: each validation's iterator draws its base seed from it,
+        # not from torch's global one, whose draws the training steps make (from the
+        # checkpoint's state on a resume, taken before the validation that follows it).
+        return DataLoader(dataset, batch_size=hp.batch_size, num_workers=0,
+                          generator=torch.Generator().manual_seed(hp.val_seed))
