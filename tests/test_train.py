@@ -151,14 +151,26 @@ def test_a_resume_says_which_given_settings_it_drops_and_holds_the_rate_past_its
     (tmp_path / "runs").rename(tmp_path / "first")
     with pytest.warns(UserWarning) as said:
         main([*smoke, "--trainer.max_steps", "6", "--model.lr", "0.01",
-              "--model.model.rim_channels", "8", "--trainer.callbacks+=LearningRateMonitor",
+              "--model.model.rim_channels", "8", "--model.model.crop_size", "96",
+              "--trainer.callbacks+=LearningRateMonitor",
               "--ckpt_path", str(tmp_path / "first/smoke/checkpoints/last.ckpt")])
     text = " ".join(str(w.message) for w in said)
     assert "--model.lr 0.01 (the checkpoint's: 0.003)" in text
     assert "--model.model.rim_channels '8'" in text
+    assert "crop_size" not in text  # given as text, '96' is the checkpoint's 96
     assert "cosine runs over 3 steps: it holds its floor" in text
     rates = [float(r["lr-AdamW"]) for r in _metrics(tmp_path) if r.get("lr-AdamW")]
     assert len(rates) == 3 and rates == pytest.approx([0.003 / 20] * 3, rel=1e-12)
+
+
+def test_a_resume_takes_a_checkpoint_file_not_a_keyword(tmp_path, monkeypatch, capsys):
+    """Lightning takes a checkpoint's settings for a file only: given `last`, it had built
+    the module from the given settings and restored the checkpoint's schedule beside them."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stopped:
+        main(["fit", "-c", str(SMOKE), "--ckpt_path", "last"])
+    assert stopped.value.code == 2
+    assert "--ckpt_path last: no such checkpoint file" in capsys.readouterr().err
 
 
 def test_the_rate_follows_torchs_cosine_to_its_floor_and_stays_there():

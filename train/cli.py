@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
+from pathlib import Path
 from typing import Any
 
+import yaml
 from lightning.pytorch.cli import LightningCLI
 from lightning.pytorch.utilities import rank_zero_warn
 
@@ -31,22 +34,49 @@ def flat_settings(settings: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def same_setting(given: Any, kept: Any) -> bool:
+    """Whether a setting as given (a command line's text, or a config file's value) is the
+    value a checkpoint kept: ``'96'`` is 96, ``'1e-3'`` is 0.001, ``'false'`` is False."""
+    if given == kept:
+        return True
+    if not isinstance(given, str) or isinstance(kept, str) or kept is None:
+        return False
+    try:
+        read = yaml.safe_load(given)
+        return read == kept or (not isinstance(kept, bool) and type(kept)(given) == kept)
+    except (yaml.YAMLError, TypeError, ValueError):
+        return False
+
+
 class CupNetCLI(LightningCLI):
-    """LightningCLI that says which model settings a resume drops.
+    """LightningCLI offering ``fit`` and ``validate``, whose resumes take a checkpoint file
+    and say which model settings they drop.
 
     With ``--ckpt_path`` Lightning takes the module's settings from the checkpoint, over any
     ``--model.*`` value or config file given; it did so silently, so a changed learning
-    rate or network setting looked taken and was not."""
+    rate or network setting looked taken and was not. It does so for a file only: with a
+    keyword (``last``, ``best``) the given settings were built into the module and recorded,
+    while the checkpoint's optimiser and schedule were restored beside them."""
+
+    @staticmethod
+    def subcommands() -> dict[str, set[str]]:
+        return {name: skipped for name, skipped in LightningCLI.subcommands().items()
+                if name in SUBCOMMANDS}
 
     def _parse_ckpt_path(self) -> None:
         command = self.config.get("subcommand")
+        checkpoint = self.config[command].get("ckpt_path") if command else None
+        if checkpoint is not None and not Path(checkpoint).is_file():
+            self.parser.error(f"--ckpt_path {checkpoint}: no such checkpoint file; give the "
+                              "file itself, such as runs/<config>/checkpoints/last.ckpt (a "
+                              "resume takes its model settings from it)")
         given = flat_settings(self.config[command].get("model")) if command else {}
         super()._parse_ckpt_path()
         if not given:
             return
         kept = flat_settings(self.config[command].get("model"))
         dropped = [f"--model.{key} {given[key]!r} (the checkpoint's: {kept.get(key)!r})"
-                   for key in given if kept.get(key) != given[key]]
+                   for key in given if not same_setting(given[key], kept.get(key))]
         if dropped:
             rank_zero_warn("resuming from a checkpoint takes its model settings, so these "
                            "given ones are not used: " + "; ".join(dropped) + ". To change "
@@ -88,7 +118,11 @@ def main(argv: list[str]) -> int:
     except ValueError as exc:
         print(exc, file=sys.stderr)
         return 2
-    CupNetCLI(CupNetModule, CupDataModule, args=args, save_config_kwargs={"overwrite": True})
+    with warnings.catch_warnings():
+        # cupnet train hands LightningCLI its own arguments, not sys.argv's, by design.
+        warnings.filterwarnings("ignore", "LightningCLI's args parameter is intended")
+        CupNetCLI(CupNetModule, CupDataModule, args=args, parser_kwargs={"prog": "cupnet train"},
+                  save_config_kwargs={"overwrite": True})
     return 0
 
 
