@@ -173,6 +173,20 @@ def test_a_resume_takes_a_checkpoint_file_not_a_keyword(tmp_path, monkeypatch, c
     assert "--ckpt_path last: no such checkpoint file" in capsys.readouterr().err
 
 
+def test_a_second_run_into_the_same_folder_leaves_its_own_last_checkpoint(tmp_path,
+                                                                         monkeypatch):
+    """Lightning's version counter had written the second run's as last-v1.ckpt beside the
+    first's last.ckpt, which the documented resume command then resumed."""
+    monkeypatch.chdir(tmp_path)
+    smoke = ["fit", "-c", str(SMOKE), "--data.synth", str(ROOT / "configs/synth_smoke.yaml"),
+             "--trainer.limit_val_batches", "0"]
+    main([*smoke, "--trainer.max_steps", "3"])
+    main([*smoke, "--trainer.max_steps", "2"])
+    folder = tmp_path / "runs/smoke/checkpoints"
+    assert sorted(p.name for p in folder.glob("last*")) == ["last.ckpt"]
+    assert torch.load(folder / "last.ckpt", weights_only=True)["global_step"] == 2
+
+
 def test_the_rate_follows_torchs_cosine_to_its_floor_and_stays_there():
     def rates(schedule: type, steps: int) -> list[float]:
         optimizer = torch.optim.AdamW([torch.nn.Parameter(torch.zeros(1))], lr=2e-3)
