@@ -468,8 +468,9 @@ def test_a_narrower_rim_network_is_taught_by_a_wider_one(tmp_path):
     weights = tmp_path / "wide.safetensors"
     save_model(wide, weights)
     narrow = {**RIM_MODEL, "rim_channels": 4, "coarse_rim_channels": 12, "coarse_rim_passes": 1}
-    module = CupNetModule(model=narrow, rim_only=True, rim_copies=2,
-                          init_weights=str(weights), rim_teacher=str(weights))
+    with pytest.warns(UserWarning, match=r"holds no \['rim'\] this model can take .*afresh$"):
+        module = CupNetModule(model=narrow, rim_only=True, rim_copies=2,
+                              init_weights=str(weights), rim_teacher=str(weights))
     state = module.model.state_dict()
     loaded = {k for k, v in wide.state_dict().items() if not k.startswith("rim.")}
     assert all(torch.equal(wide.state_dict()[k], state[k]) for k in loaded)
@@ -488,6 +489,14 @@ def test_a_narrower_rim_network_is_taught_by_a_wider_one(tmp_path):
     assert distill[-1] < 0.7 * distill[0]
     with pytest.raises(ValueError, match="rim_teacher"):
         CupNetModule(model=narrow, rim_teacher=str(weights))
+    # A network started afresh that the run does not train is named: its export holds it
+    # untrained (the coarse one here, frozen by a fine rim-only run).
+    with pytest.warns(UserWarning, match=r"\['coarse_rim'\] are not trained this run"):
+        CupNetModule(model={**narrow, "coarse_rim_channels": 8}, rim_only=True,
+                     init_weights=str(weights))
+    # A network this model has not built is the cause named first.
+    with pytest.raises(ValueError, match=r"networks this model has not built \['coarse_rim'\]"):
+        CupNetModule(model={**RIM_MODEL, "rim_channels": 12}, init_weights=str(weights))
 
 
 def _make_rules() -> dict[str, tuple[list[str], list[list[str]]]]:

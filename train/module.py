@@ -45,6 +45,11 @@ class CosineToFloor(torch.optim.lr_scheduler.CosineAnnealingLR):
         return super().get_lr()
 
 
+def _networks(keys: list[str]) -> list[str]:
+    """The networks (``rim``, ``locator``, ...) that state-dict ``keys`` belong to."""
+    return sorted({key.split(".")[0] for key in keys})
+
+
 def batch_geometry(geometry: Tensor) -> Geometry:
     """``(B, 4)`` rows (sdd, spacing, u0, v0) of a collated batch -> :class:`Geometry`."""
     return Geometry.from_rows(geometry.double())
@@ -286,7 +291,8 @@ class CupNetModule(L.LightningModule):
             where the data worker takes the other core.
         init_weights: a checkpoint whose network weights start this run (fine-tuning; a
             resume with ``--ckpt_path`` restores the old run's hyper-parameters instead);
-            a rim network of another width than this model's starts afresh.
+            a rim network of another width than this model's starts afresh (warned of,
+            with the ones this run does not train, whose export holds them untrained).
         rim_teacher: a checkpoint whose fine rim network teaches this one (``rim_only``,
             ``rim_stage: fine``): on every training strip, the KL divergence from the
             teacher's offset distribution to this network's, per column, and the absolute
@@ -338,6 +344,7 @@ class CupNetModule(L.LightningModule):
         self.model = CupNet(CupNetConfig.from_dict(model or {}))
         # A resumed run's random state (CPU, CUDA), set at its first step (on_load_checkpoint).
         self._resumed_rng: tuple[Tensor | None, list[Tensor] | None] = (None, None)
+        fresh: list[str] = []  # rim networks init_weights could not start
         if init_weights:
             # A model gaining a rim stage starts from weights without one; a rim network of
             # another width starts afresh.
@@ -347,8 +354,12 @@ class CupNetModule(L.LightningModule):
                              and own[k].shape != v.shape)}
             missing, unexpected = self.model.load_state_dict(state, strict=False)
             if unexpected or any(not k.startswith(("rim.", "coarse_rim.")) for k in missing):
-                raise ValueError(f"{init_weights} does not fit this model: missing "
-                                 f"{missing[:5]}, unexpected {unexpected[:5]}")
+                raise ValueError(
+                    f"{init_weights} does not fit this model: it holds networks this model "
+                    f"has not built {_networks(unexpected)} (a rim stage with 0 passes builds "
+                    f"none) and lacks ones it has {_networks(missing)}; first keys: "
+                    f"unexpected {unexpected[:3]}, missing {missing[:3]}")
+            fresh = _networks(missing)
         if rim_only:
             if rim_stage not in ("fine", "coarse"):
                 raise ValueError(f"rim_stage must be 'fine' or 'coarse', got {rim_stage!r}")
@@ -370,6 +381,16 @@ class CupNetModule(L.LightningModule):
         for net in self._frozen_nets():
             net.requires_grad_(False)
         self._freeze_modes()
+        if fresh:
+            # Not an error: the hour recipe's coarse chain trains the coarse network beside a
+            # fine one it never trains, and train.merge takes the coarse one alone.
+            untrained = [name for name in fresh
+                         if getattr(self.model, name) in self._frozen_nets()]
+            rank_zero_warn(
+                f"{init_weights} holds no {fresh} this model can take (none, or of another "
+                "width: rim_channels, coarse_rim_channels): they start afresh"
+                + (f", and {untrained} are not trained this run, so its export holds them "
+                   "untrained (train.merge can take another run's)" if untrained else ""))
 
     def _trained_rim(self) -> nn.Module | None:
         """The rim network a ``rim_only`` run trains."""
