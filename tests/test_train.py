@@ -187,6 +187,16 @@ def test_a_second_run_into_the_same_folder_leaves_its_own_last_checkpoint(tmp_pa
     assert torch.load(folder / "last.ckpt", weights_only=True)["global_step"] == 2
 
 
+def test_a_resume_of_a_run_that_used_its_max_time_says_no_step_will_run(tmp_path,
+                                                                         monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    smoke = ["fit", "-c", str(SMOKE), "--data.synth", str(ROOT / "configs/synth_smoke.yaml"),
+             "--trainer.limit_val_batches", "0", "--trainer.max_time", "00:00:00:01"]
+    main(smoke)  # stops on its time after its first step
+    with pytest.warns(UserWarning, match="had used its max_time .* no step will run"):
+        main([*smoke, "--ckpt_path", "runs/smoke/checkpoints/last.ckpt"])
+
+
 def test_the_rate_follows_torchs_cosine_to_its_floor_and_stays_there():
     def rates(schedule: type, steps: int) -> list[float]:
         optimizer = torch.optim.AdamW([torch.nn.Parameter(torch.zeros(1))], lr=2e-3)

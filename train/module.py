@@ -8,6 +8,7 @@ from pathlib import Path
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.callbacks import Timer
 from lightning.pytorch.utilities import rank_zero_warn
 from torch import Tensor, nn
 
@@ -627,10 +628,22 @@ class CupNetModule(L.LightningModule):
         return {"optimizer": optimizer,
                 "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
 
+    def on_fit_start(self) -> None:
+        # A resume restores the time the stopped run had used of max_time (Lightning's
+        # Timer stops a depleted one here, before any step, and the run ends quietly).
+        timer = next((c for c in self.trainer.callbacks if isinstance(c, Timer)), None)
+        left = timer.time_remaining() if timer is not None else None
+        if self.trainer.ckpt_path and left is not None and left <= 0:
+            rank_zero_warn(f"the checkpoint's run had used its max_time "
+                           f"({timer.time_elapsed():.0f} s), so no step will run: give a "
+                           "larger --trainer.max_time to train on")
+
     def _warn_of_a_resumed_schedule(self) -> None:
-        # A resume restores the schedule of the run that was stopped, over its max_steps.
+        # A resume restores the stopped run's schedule, over its max_steps.
+        if not self.trainer.ckpt_path:
+            return
         schedule = self.lr_schedulers()
-        if self.trainer.ckpt_path and self.trainer.max_steps > 0 and isinstance(
+        if self.trainer.max_steps > 0 and isinstance(
                 schedule, CosineToFloor) and schedule.T_max != self.trainer.max_steps:
             rank_zero_warn(
                 f"resumed with max_steps {self.trainer.max_steps}, but the checkpoint's "
