@@ -341,11 +341,14 @@ def _field_value(name: str, value: Any, hint: str) -> Any:
     jsonargparse cannot type its keys) gives strings, read here as YAML values.
     """
     kinds = {part.strip() for part in hint.split("|")}
-    if isinstance(value, str) and "str" not in kinds:
+    if isinstance(value, str) and ("str" not in kinds or "None" in kinds):
         try:
-            value = yaml.safe_load(value)
+            read = yaml.safe_load(value)
         except yaml.YAMLError:
-            pass  # left a string: the check below names the field
+            read = value  # left a string: the check below names the field
+        # Text is kept for a text field, but YAML's null (the 'null' of a command line's
+        # --model.model.encoder_weights null) is None for one that takes None.
+        value = read if "str" not in kinds or read is None else value
     if value is None and "None" in kinds:
         return None
     for kind in kinds:

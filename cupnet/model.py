@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -1858,6 +1859,9 @@ def save_model(model: CupNet, checkpoint: str | Path) -> Path:
     save_file(state, str(checkpoint))
     config = asdict(model.config)
     config_path(checkpoint).write_text(json.dumps(config, indent=2) + "\n")
+    # safetensors writes its file readable by its owner alone (0600); the JSON beside it has
+    # the umask's mode, which a model shared with other users needs too.
+    shutil.copymode(config_path(checkpoint), checkpoint)
     return checkpoint
 
 

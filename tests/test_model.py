@@ -489,6 +489,8 @@ def test_checkpoint_round_trip(tmp_path):
     path = save_model(model, tmp_path / "net.safetensors")
     loaded = load_model(path)
     assert loaded.config == model.config
+    # The weights as readable as their config (safetensors alone wrote 0600).
+    assert path.stat().st_mode & 0o777 == (tmp_path / "net.json").stat().st_mode & 0o777
     x = torch.rand(2, 1, 64, 64)
     with torch.no_grad():
         assert torch.equal(model.refiner(x), loaded.refiner(x))
@@ -646,6 +648,9 @@ def test_unknown_speed_preset_is_named_with_the_choices() -> None:
     ({"decoder_channels": "[16, 8]", "search_anteversions": [3, 10]},
      {"decoder_channels": (16, 8), "search_anteversions": (3.0, 10.0)}),
     ({"second_look": "true", "encoder": "resnet18"}, {"second_look": True, "encoder": "resnet18"}),
+    # A text field that takes None: YAML's null is None, other text stays text.
+    ({"encoder_weights": "null"}, {"encoder_weights": None}),
+    ({"encoder_weights": "w.safetensors"}, {"encoder_weights": "w.safetensors"}),
 ])
 def test_config_reads_each_field_as_its_type(values: dict, expected: dict) -> None:
     """Command-line strings (a training config's ``--model.model.KEY VALUE`` reach the dict
