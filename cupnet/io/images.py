@@ -479,9 +479,9 @@ def _read_raster(path: Path, page: int | None, kind: str) -> np.ndarray:
                 _check_size(*im.size)  # a page's own (the probe saw the first page's)
                 # A palette's (or CMYK's, LAB's) values are no greys: what they show is.
                 pixels = np.asarray(im if im.mode in _TIFF_GREY_OR_RGB else im.convert("RGB"))
+        except ImageReadError:
+            raise  # the page's size, named as such
         except (OSError, ValueError, EOFError) as exc:
-            if isinstance(exc, ImageReadError):
-                raise
             raise ImageReadError(f"corrupt or truncated TIFF ({exc})") from exc
         return to_unit_range(pixels)  # a decoded file's values: their own error, not "corrupt"
     # libjpeg decodes a cut-off JPEG into a partly grey image without failing, and libpng
