@@ -261,6 +261,10 @@ class NetworkDetector:
     def file_values(self, name: str) -> dict[str, float]:
         return {}
 
+    def cup_numbers(self, name: str, count: int) -> list[int]:
+        """results.csv's ``cup`` of each of an image's ``count`` cups: left to right."""
+        return list(range(count))
+
     def input_error(self, frame: Frame) -> str | None:
         """An image too small for the model: its poses would be far off, not just worse."""
         from cupnet.model import MIN_IMAGE_SIDE
@@ -308,6 +312,12 @@ class LandmarkDetector:
     def file_values(self, name: str) -> dict[str, float]:
         cups = [c for c in self.cups_of(name) if c.error is None]
         return cups[0].geometry_values() if cups else {}
+
+    def cup_numbers(self, name: str, count: int) -> list[int]:
+        """results.csv's ``cup`` of each of an image's cups: the file's own labels, as
+        ``cupnet solve`` writes them (numbered by position, a file labelling its cups 1 and
+        2 had its cup 2's pose under predict's cup 1)."""
+        return [landmarks.cup for landmarks in self.cups_of(name)][:count]
 
     def __call__(self, frames: list[Frame], geometries: list[ResolvedGeometry]) -> list[list]:
         from cupnet.detection import CupDetection
@@ -634,12 +644,13 @@ class Predictor:
                 compute_seconds: float) -> dict:
         start = time.perf_counter()
         record = {"image": frame.name, "geometry": geometry.to_json()}
+        numbers = self.detector.cup_numbers(frame.name, len(cups))  # results.csv's cup
         if not self.args.no_overlays:
             drawings = [CupDrawing(c.ellipse, c.landmarks, c.weights,
                                    pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose,
                                               c.doubt, c.check, c.pose_sd),
                                    c.status, c.outline, c.check)
-                        for j, c in enumerate(cups)]
+                        for j, c in zip(numbers, cups, strict=True)]
             title = f"{frame.name}: " + (f"{len(cups)} cup(s)" if cups else "no_cup")
             if self.args.rotate:
                 title += f", turned {self.args.rotate} deg clockwise (--rotate)"
@@ -656,10 +667,11 @@ class Predictor:
             masks = [self._written(f"masks/{output_name(frame.name, f'_cup{j}.png')}",
                                    np.round(np.clip(cup.mask, 0, 1) * 255).astype(np.uint8),
                                    frame.name)
-                     for j, cup in enumerate(cups) if cup.mask is not None]
+                     for j, cup in zip(numbers, cups, strict=True) if cup.mask is not None]
             record["masks"] = [rel for rel in masks if rel is not None]
         seconds = frame.seconds + compute_seconds + time.perf_counter() - start
-        record["rows"] = ([cup_row(frame.name, j, c, seconds) for j, c in enumerate(cups)]
+        record["rows"] = ([cup_row(frame.name, j, c, seconds)
+                           for j, c in zip(numbers, cups, strict=True)]
                           or [status_row(frame.name, "no_cup", seconds)])
         return record
 

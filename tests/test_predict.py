@@ -370,18 +370,24 @@ def test_landmarks_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
     geometry = Geometry.for_image(512, 512, sdd=1000.0, pixel_spacing=0.4)
     right, left = [25.0, 40.0, -60.0, 10.0, 300.0], [20.0, -35.0, 55.0, 15.0, 280.0]
     lines = ["image,cup,u,v"]
-    for cup, pose in enumerate((right, left)):
+    for cup, pose in enumerate((right, left), start=1):  # the file's own labels, 1 and 2
         points = rim_landmarks(pose, 52.0, geometry)
         lines += [f"pelvis.png,{cup},{u:.9f},{v:.9f}" for u, v in points]
     (tmp_path / "landmarks.csv").write_text("\n".join(lines) + "\n")
     out = tmp_path / "out"
+    geometry_flags = ["--sdd", "1000", "--pixel-spacing", "0.4", "--cup-diameter", "52"]
     assert main(["predict", str(images), "--out", str(out), "--landmarks",
-                 str(tmp_path / "landmarks.csv"), "--sdd", "1000", "--pixel-spacing", "0.4",
-                 "--cup-diameter", "52", "--quiet"]) == 0
+                 str(tmp_path / "landmarks.csv"), *geometry_flags, "--quiet"]) == 0
     by_image = rows_by_image(read_csv(out / "results.csv"))
     assert [r["status"] for r in by_image["blank.png"]] == ["no_cup"]
     rows = by_image["pelvis.png"]
-    assert [r["cup"] for r in rows] == ["0", "1"]
+    # The file's labels, as cupnet solve writes them (predict had numbered them 0, 1).
+    assert [r["cup"] for r in rows] == ["1", "2"]
+    assert main(["solve", str(tmp_path / "landmarks.csv"), "--out", str(tmp_path / "s.csv"),
+                 *geometry_flags, "--image-size", "512", "512"]) == 0
+    solved = read_csv(tmp_path / "s.csv")
+    assert [(r["cup"], r["anteversion_deg"]) for r in solved] == [
+        (r["cup"], r["anteversion_deg"]) for r in rows]
     for row, truth in zip(rows, (right, left), strict=True):
         assert row["status"] == "ok"
         got = [float(row[c]) for c in POSE_COLUMNS]
