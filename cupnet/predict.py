@@ -404,17 +404,25 @@ class Outputs:
         document = {**self.header, "assumptions": self.assumptions, "warnings": self.warnings,
                     "summary": summary or summarise(self.records.values()),
                     "images": list(self.records.values())}
-        atomic_write(self.json_path, lambda f: json.dump(document, f, indent=1, default=_json))
+        atomic_write(self.json_path,
+                     lambda f: json.dump(standard_json(document), f, indent=1, allow_nan=False))
         write_results_csv(self.csv_path, self.records.values())
         write_review_page(self.out / "review.html", self.records.values(), document["summary"])
         self.last_flush = time.monotonic()
         self.flush_interval = max(FLUSH_SECONDS, FLUSH_RATIO * (self.last_flush - start))
 
 
-def _json(value: object) -> object:
+def standard_json(value: object) -> object:
+    """``value`` as standard JSON holds it: numpy scalars as numbers, non-finite numbers as
+    null (json.dump wrote ``Infinity`` for ``--denoise-above inf`` and ``NaN`` for a meta
+    cell, which strict parsers, JavaScript's among them, reject)."""
+    if isinstance(value, dict):
+        return {key: standard_json(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [standard_json(item) for item in value]
     if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"not JSON serialisable: {type(value)}")
+        value = value.item()
+    return None if isinstance(value, float) and not math.isfinite(value) else value
 
 
 def summarise(records: Iterable[dict]) -> dict:

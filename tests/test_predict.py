@@ -71,6 +71,11 @@ def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
                  "--meta", str(meta), "--cup-diameter", "52", "--sdd", "990", "--quiet",
                  "--save-masks"])
     assert code == 0
+    # As readable as any file the user makes there (they were 0600: tempfile's own mode).
+    (out / "mine.txt").write_text("")
+    assert {(out / name).stat().st_mode & 0o777 for name in (
+        "results.csv", "results.json", "review.html", "mine.txt")} == {
+        (out / "mine.txt").stat().st_mode & 0o777}
     by_image = rows_by_image(read_csv(out / "results.csv"))
     assert set(by_image) == {"a16.png", "b8.png", "c.dcm", "empty.png", "text.png", "cut.png",
                              "thumb.png"}
@@ -663,6 +668,8 @@ def test_overlay_text_gives_the_standard_errors_where_there_are_any() -> None:
                           (["--keep-outside-field"], None, {"round_field": False}),
                           (["--min-score", "0"], None, {"min_score": 0.0}),
                           (["--denoise-above", "0.02"], None, {"denoise_above": 0.02}),
+                          # Never denoise: standard JSON has no Infinity, so null.
+                          (["--denoise-above", "inf"], None, {"denoise_above": None}),
                           (["--enlarge-below", "0"], None, {"enlarge_below": 0})])
 def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
         tmp_path: Path, flags: list[str], preset: str | None, changed: dict) -> None:
@@ -685,7 +692,9 @@ def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
     args = ["predict", str(tmp_path / "a.png"), "--out", str(out), "--checkpoint", str(weights),
             "--assume-defaults", "--quiet", *flags]
     assert main(args) == 0
-    model_info = json.loads((out / "results.json").read_text())["model"]
+    model_info = json.loads((out / "results.json").read_text(),
+                            parse_constant=lambda name: pytest.fail(f"{name} in results.json"))
+    model_info = model_info["model"]
     assert model_info["speed_preset"] == preset
     expected = json.loads(json.dumps(vars(CupNetConfig(**stored)) | changed))  # as JSON has it
     assert model_info["config"] == expected

@@ -9,7 +9,7 @@ from __future__ import annotations
 import csv
 import math
 import os
-import tempfile
+import uuid
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -90,18 +90,21 @@ def atomic_write(path: Path, write: Callable[[Any], None], binary: bool = False)
     disk, no permission) the temporary file is removed, not left beside the results, and the
     error raised."""
     options: dict[str, Any] = {} if binary else {"newline": "", "encoding": "utf-8"}
-    with tempfile.NamedTemporaryFile("wb" if binary else "w", dir=path.parent, suffix=".tmp",
-                                     delete=False, **options) as tmp:
+    name = path.parent / f"tmp{uuid.uuid4().hex}.tmp"
+    # Created as open() creates a file (0666 less the umask): tempfile's own are 0600, and
+    # results a colleague or a web server is to read were the owner's alone.
+    descriptor = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    with os.fdopen(descriptor, "wb" if binary else "w", **options) as tmp:
         try:
             write(tmp)
         except BaseException:
             tmp.close()
-            os.unlink(tmp.name)
+            os.unlink(name)
             raise
     try:
-        os.replace(tmp.name, path)
+        os.replace(name, path)
     except OSError:
-        os.unlink(tmp.name)
+        os.unlink(name)
         raise
 
 
