@@ -76,6 +76,10 @@ def solve_cup(cup: LandmarkSet, geometry: Geometry, diameter: float, refine: boo
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.out.is_dir():
+        print(f"cupnet solve: --out {args.out} is a folder; give the results file, such as "
+              f"{args.out / 'results.csv'}", file=sys.stderr)
+        return 2
     if args.out.exists() and not args.overwrite:
         print(f"cupnet solve: {args.out} exists; pass --overwrite to replace it", file=sys.stderr)
         return 2
@@ -93,14 +97,16 @@ def run(args: argparse.Namespace) -> int:
         rows = []
         for cup in cups:
             start = time.perf_counter()
+            # An error row keeps its cup's label: a bilateral image's two had read as one
+            # row written twice, which cupnet evaluate refuses.
             if cup.error is not None:  # a bad row: no geometry to resolve for it
-                rows.append(status_row(image, f"error: {cup.error}", 0.0))
+                rows.append(status_row(image, f"error: {cup.error}", 0.0, cup.cup))
                 continue
             size = cup.size() or (None if args.image_size is None
                                   else (args.image_size[1], args.image_size[0]))
             resolved = geometry_inputs.resolve(image, size, file_values=cup.geometry_values())
             if not resolved.complete:
-                rows.append(status_row(image, resolved.error(), 0.0))
+                rows.append(status_row(image, resolved.error(), 0.0, cup.cup))
             else:
                 for text in implausible_once(resolved.values, warned, image, resolved.sources):
                     print(f"cupnet solve: warning: {text}", file=sys.stderr)

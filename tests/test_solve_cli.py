@@ -98,6 +98,34 @@ def test_meta_wins_over_flags_and_missing_values_are_named(tmp_path):
     rows = results(out)
     assert_poses(rows[:1])
     assert rows[1]["status"].startswith("error: missing principal point")
+    assert rows[1]["cup"] == "0"  # the file's cup, as a solved row gives it
+
+
+def test_a_bilateral_images_error_rows_keep_their_cups_and_evaluate_takes_them(tmp_path):
+    """Two cups of an image without geometry: two error rows, cups 0 and 1 (they had both
+    been blank, and cupnet evaluate refused the file as two appended ones)."""
+    rows = ["image,cup,u,v"]
+    for cup, (cx, cy) in enumerate(((100.0, 120.0), (300.0, 140.0))):
+        rows += [f"x.png,{cup},{cx + 40 * np.cos(t):.4f},{cy + 25 * np.sin(t):.4f}"
+                 for t in np.linspace(0, 2 * np.pi, 24, endpoint=False)]
+    (tmp_path / "lm.csv").write_text("\n".join(rows) + "\n")
+    out = tmp_path / "r.csv"
+    assert main(["solve", str(tmp_path / "lm.csv"), "--out", str(out)]) == 1
+    assert [(r["cup"], r["status"][:6]) for r in results(out)] == [("0", "error:"),
+                                                                   ("1", "error:")]
+    (tmp_path / "truth.csv").write_text(
+        "image,cup,theta_deg,phi_deg,k_mm,l_mm,h_mm,ellipse_cx_px,ellipse_cy_px,ellipse_a_px,"
+        "ellipse_b_px,ellipse_angle_deg\n"
+        "x.png,0,20,30,0,0,300,100,120,40,25,0\nx.png,1,20,-30,0,0,300,300,140,40,25,0\n")
+    assert main(["evaluate", "--pred", str(out), "--truth", str(tmp_path / "truth.csv"),
+                 "--out", str(tmp_path / "ev")]) == 0
+
+
+def test_an_out_that_is_a_folder_is_named(tmp_path, capsys):
+    write_paper(tmp_path / "label.csv")
+    assert main(["solve", str(tmp_path / "label.csv"), "--out", str(tmp_path),
+                 "--overwrite"]) == 2  # it had failed with a bare IsADirectoryError
+    assert "is a folder; give the results file" in capsys.readouterr().err
 
 
 def test_existing_output_is_not_overwritten(tmp_path, capsys):

@@ -79,9 +79,10 @@ def cup_row(name: str, index: int, cup: Any, seconds: float) -> dict:
     return row
 
 
-def status_row(name: str, status: str, seconds: float) -> dict:
-    """The row of an image without a cup result: ``no_cup`` or ``error: <reason>``."""
-    return {"image": name, "cup": None, "status": status, "seconds": seconds}
+def status_row(name: str, status: str, seconds: float, cup: int | None = None) -> dict:
+    """The row of an image without a cup result, ``no_cup`` or ``error: <reason>``, or of
+    a known ``cup`` (a landmark file's) that could not be solved."""
+    return {"image": name, "cup": cup, "status": status, "seconds": seconds}
 
 
 def atomic_write(path: Path, write: Callable[[Any], None], binary: bool = False) -> None:
