@@ -696,6 +696,8 @@ def _note_unmatched(outputs: Outputs, meta: dict, detector: object, names: list[
             outputs.warnings[f"unmatched_{what}"] = (
                 f"{len(unused)} {what} row(s) matched no image of the run (first: "
                 f"{unused[0]}); check their names against the images'")
+        else:  # a resumed run's images may have found the rows an earlier part left unused
+            outputs.warnings.pop(f"unmatched_{what}", None)
 
 
 def _software() -> dict:

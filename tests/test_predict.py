@@ -821,6 +821,14 @@ def test_side_file_rows_no_image_found_are_warned_of(tmp_path: Path, blind_check
     assert rows["b.png"][0]["status"] == "no_cup"
     records = {r["image"]: r for r in json.loads((out / "results.json").read_text())["images"]}
     assert records["a.png"]["geometry"]["sdd_mm"]["source"] == "meta.csv"
+    # Resumed with the image the typo meant: the row is used, and no warning says otherwise
+    # (the first part's had stayed in the summary and results.json).
+    noise_png(images / "B_typo.png")
+    assert main(["predict", str(images), "--out", str(out), "--meta", str(meta),
+                 "--landmarks", str(landmarks), "--quiet", "--resume"]) == 0
+    warnings = json.loads((out / "results.json").read_text())["warnings"]
+    assert "unmatched_meta.csv" not in warnings and "(first: c.png)" in warnings[
+        "unmatched_landmark"]
 
 
 def test_a_run_where_every_image_failed_exits_1(tmp_path: Path, blind_checkpoint: Path,
