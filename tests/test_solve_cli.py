@@ -287,6 +287,15 @@ def test_csv_files_saved_by_excel_with_a_byte_order_mark_are_read(tmp_path):
     assert read_meta(tmp_path / "meta.csv") == {"a.png": {"sdd_mm": 1000.0}}
 
 
+def test_a_meta_row_given_twice_with_other_values_is_refused(tmp_path):
+    """The later of two rows for one image had silently won; the same row twice is fine."""
+    (tmp_path / "same.csv").write_text("image,sdd_mm\na.png,1000\na.png,1000.0\n")
+    assert read_meta(tmp_path / "same.csv") == {"a.png": {"sdd_mm": 1000.0}}
+    (tmp_path / "meta.csv").write_text("image,sdd_mm\na.png,1077\nb.png,990\na.png,1000\n")
+    with pytest.raises(ValueError, match="line 4: a.png is given again, with other values"):
+        read_meta(tmp_path / "meta.csv")
+
+
 def test_an_images_row_is_found_by_its_name_its_files_or_a_keys_file_name():
     table = {"a.png": 1, "run/b.png": 2, "x/c.png": 3, "y/c.png": 4, "d.dcm": 5,
              "C:\\images\\e.png": 6}

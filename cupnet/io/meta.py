@@ -230,7 +230,8 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
     """meta.csv rows by image name: ``{image: {column: value}}`` (blank cells left out).
 
     Raises:
-        ValueError: no ``image`` column, an unknown column, or a non-numeric cell (with its line).
+        ValueError: no ``image`` column, an unknown column, a non-numeric cell, or an image
+            given twice with other values (with its line: the later row had silently won).
     """
     with path.open(newline="", encoding="utf-8-sig") as f:
         reader = csv.DictReader(f)
@@ -242,10 +243,15 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
         rows: dict[str, dict[str, float]] = {}
         for line, row in enumerate(reader, 2):
             try:
-                rows[row["image"]] = {k: float(v) for k, v in row.items()
-                                      if k != "image" and v not in (None, "")}
+                values = {k: float(v) for k, v in row.items()
+                          if k != "image" and v not in (None, "")}
             except ValueError as exc:
                 raise ValueError(f"{path}, line {line}: {exc}") from exc
+            if rows.get(row["image"], values) != values:
+                raise ValueError(f"{path}, line {line}: {row['image']} is given again, with "
+                                 f"other values ({rows[row['image']]} before, {values} here); "
+                                 "give each image once")
+            rows[row["image"]] = values
     return rows
 
 
