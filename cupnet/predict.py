@@ -17,12 +17,15 @@ does not grow with the number of images.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import math
 import os
 import platform
+import signal
 import sys
+import threading
 import time
 from collections import Counter, deque
 from collections.abc import Iterable, Iterator
@@ -684,6 +687,33 @@ class Predictor:
         return record
 
 
+# Signals that end a run as Ctrl-C does, what finished written and the summary saying how to
+# go on: a scheduler's time limit, `timeout`, `docker stop` (SIGTERM), a closed terminal
+# (SIGHUP). Uncaught, they had ended it without the last rows or the summary.
+STOPPING_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP")
+                         if hasattr(signal, name))
+
+
+@contextlib.contextmanager
+def signals_interrupt(received: list[int]) -> Iterator[None]:
+    """Within it, :data:`STOPPING_SIGNALS` raise KeyboardInterrupt in the main thread, their
+    number appended to ``received``; elsewhere (a thread) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(number: int, _frame: object) -> None:
+        received.append(number)
+        raise KeyboardInterrupt
+
+    previous = {number: signal.signal(number, stop) for number in STOPPING_SIGNALS}
+    try:
+        yield
+    finally:
+        for number, handler in previous.items():
+            signal.signal(number, handler)
+
+
 def _note_unmatched(outputs: Outputs, meta: dict, detector: object, names: list[str]) -> None:
     """Warn of ``--meta`` rows and ``--landmarks`` sets that no image of the run found (frames
     find their file's): each was left unused without a word."""
@@ -807,7 +837,7 @@ def _run(args: argparse.Namespace) -> int:
         bar.update(sum(f.last_of_source for f in files))
         outputs.flush()
 
-    try:
+    def run_all() -> None:
         for files in _batches(frames, args.batch_size):
             batch = predictor.prepare([f for f in files if not f.skipped])
             in_flight.append((files, batch, pool.submit(predictor.detect, batch)))
@@ -817,6 +847,11 @@ def _run(args: argparse.Namespace) -> int:
             complete()
         # Only a run that went through every image can tell which rows no image found.
         _note_unmatched(outputs, geometry_inputs.meta, detector, list(outputs.records))
+
+    stopped_by: list[int] = []  # the signal that ended the run as Ctrl-C does, if one did
+    try:
+        with signals_interrupt(stopped_by):
+            run_all()
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -829,7 +864,7 @@ def _run(args: argparse.Namespace) -> int:
     _print_summary(summary, args.out, not args.no_overlays, time.perf_counter() - start,
                    interrupted, outputs.warnings)
     if interrupted:
-        return 130
+        return 128 + (stopped_by[0] if stopped_by else signal.SIGINT)  # the shell's way
     # A script's `&&` should stop where nothing came of the run (a wrong --meta, no geometry).
     return 1 if summary["images"] and summary["cups"] + summary["no_cup"] == 0 else 0
 

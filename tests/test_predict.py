@@ -5,6 +5,8 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
+import signal
 from pathlib import Path
 
 import cv2
@@ -221,6 +223,37 @@ def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
     assert final["im0.png"] == first["im0.png"]  # kept, not recomputed
     document = json.loads((out / "results.json").read_text())
     assert [r["image"] for r in document["images"]] == [f"im{i}.png" for i in range(5)]
+
+
+def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path: Path, blind_checkpoint: Path,
+                                           monkeypatch: pytest.MonkeyPatch,
+                                           capsys: pytest.CaptureFixture) -> None:
+    """A scheduler's time limit (SIGTERM) had ended the run without its last rows, its
+    summary or the hint to resume."""
+    assert signal.SIGTERM in predict.STOPPING_SIGNALS  # (else the signal below ends pytest)
+    images = tmp_path / "images"
+    images.mkdir()
+    for i in range(5):
+        noise_png(images / f"im{i}.png")
+    out = tmp_path / "out"
+    args = ["predict", str(images), "--out", str(out), "--checkpoint", str(blind_checkpoint),
+            "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet",
+            "--batch-size", "2", "--no-overlays"]
+    real = predict.NetworkDetector.__call__
+    calls = []
+
+    def terminated_on_third_batch(self, *args):  # the first is written by then
+        calls.append(args)
+        if len(calls) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(self, *args)
+
+    monkeypatch.setattr(predict.NetworkDetector, "__call__", terminated_on_third_batch)
+    assert main(args) == 128 + signal.SIGTERM
+    printed = capsys.readouterr()
+    assert "interrupted" in printed.out and "--resume" in printed.out + printed.err
+    assert {"im0.png", "im1.png"} <= set(rows_by_image(read_csv(out / "results.csv")))
+    assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # restored after the run
 
 
 @pytest.mark.parametrize(("error", "status"), [
