@@ -108,7 +108,8 @@ class Matched:
         images: ``M`` image names.
         pred, true: ``(M, 5)`` poses (deg, deg, mm, mm, mm).
         pred_ellipse, true_ellipse: ``(M, 5)`` (cx, cy, a, b, alpha_deg) px.
-        n_true: true cups; n_pred: predicted cups; n_images: predicted images.
+        n_true: true cups; n_pred: predicted cups (less those that stand for truth rows
+            left out); n_images: predicted images.
         seconds: seconds per predicted image (its first row).
         errors: images whose prediction is an error row.
         ambiguous: matched cups the solver flagged ambiguous.
@@ -200,6 +201,12 @@ def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]]
         for p, t in zip(*linear_sum_assignment(cost), strict=True):
             if cost[p, t] <= truth_ellipse[indices[t], 2]:
                 pairs.append((candidates[p], indices[t]))
+    # A cup whose truth row is left out (no whole pose) is no false positive when found: an
+    # image's predictions left unpaired are discounted up to its left-out truth rows.
+    left_out = Counter(truth_rows[i]["image"] for i in np.flatnonzero(~complete & predicted))
+    paired = Counter(p["image"] for p, _ in pairs)
+    unscored = sum(min(count, len(pred_by_image.get(image, [])) - paired[image])
+                   for image, count in left_out.items())
     # Images: those predicted (a truth without rows for an image means it has no cup).
     evaluated = list(first_rows.values())
     seconds = np.array([_number(r.get("seconds")) for r in evaluated])
@@ -210,7 +217,7 @@ def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]]
         pred_ellipse=_array([p for p, _ in pairs], ELLIPSE),
         true_ellipse=truth_ellipse[[t for _, t in pairs]].reshape(len(pairs), 5),
         n_true=len(truth_rows_ok),
-        n_pred=sum(len(v) for v in pred_by_image.values()),
+        n_pred=sum(len(v) for v in pred_by_image.values()) - unscored,
         n_images=len(evaluated),
         seconds=seconds[np.isfinite(seconds)],
         errors=sum(r["status"].startswith("error") for r in evaluated),
@@ -325,6 +332,12 @@ def evaluate_results(pred_csv: str | Path, truth_csv: str | Path,
 
 def _load(pred_csv: Path, truth_csv: Path, meta_csv: Path | None) -> Matched:
     pred_rows = read_rows(pred_csv, ("image", "status", *POSE, *ELLIPSE[:2]))
+    # Any other status had read as a missed cup without a word ('OK' from a spreadsheet).
+    unknown = sorted({r["status"] for r in pred_rows if r["status"] not in (*FOUND, "no_cup")
+                      and not r["status"].startswith("error")})
+    if unknown:
+        raise ValueError(f"{pred_csv}: unknown status value(s) {unknown[:5]}: results.csv's "
+                         "status is ok, ambiguous, no_cup or error: <reason>")
     truth_rows = read_rows(truth_csv, ("image", *POSE), TRUTH_ALIASES)
     meta = ({r["image"]: r for r in read_rows(meta_csv, ("image",))}
             if meta_csv is not None else {})

@@ -228,3 +228,11 @@ def test_what_the_files_hold_that_cannot_be_scored_is_said(tmp_path: Path,
     blank = [{**row, "h_mm": ""} if row["image"] == "b.png" else row for row in rows]
     metrics = evaluate_results(pred, write_csv(tmp_path / "blank.csv", blank))
     assert metrics["truth_rows_incomplete"] == 1 and metrics["true_cups"] == 3
+    # Its cup, found, is no false positive (it had counted as one): the far one alone is.
+    assert metrics["false_positives"] == 1
+    # A status no results.csv holds ('OK' from a spreadsheet) had read as a missed cup.
+    shouted = [{**row, "status": "OK"} if row["image"] == "a.png" else row
+               for row in predicted_rows()]
+    assert main(["evaluate", "--pred", str(write_csv(tmp_path / "shout.csv", shouted)),
+                 "--truth", str(truth), *out]) == 2
+    assert "unknown status value(s) ['OK']" in capsys.readouterr().err
