@@ -23,6 +23,7 @@ import json
 import math
 import os
 import platform
+import re
 import signal
 import sys
 import threading
@@ -455,12 +456,14 @@ def summarise(records: Iterable[dict]) -> dict:
 
 
 def output_name(name: str, suffix: str) -> str:
-    """File name under overlays/ or masks/ for an image name (frames: '#' -> '_frame'); a
-    name given by its path (two inputs of one name, :func:`gather_images`) stays under that
-    folder: a root is dropped and each ``..`` becomes ``__``."""
+    """File name under overlays/ or masks/ for an image name (a frame's ``#N`` ending ->
+    ``_frameN``; a ``#`` elsewhere is the file's own); a name given by its path (two inputs
+    of one name, :func:`gather_images`) stays under that folder: a root is dropped and each
+    ``..`` becomes ``__``."""
     parts = [("__" if part == ".." else part) for part in PurePosixPath(name).parts
              if part not in ("/", ".")]
-    return "/".join(parts).replace("#", "_frame") + suffix
+    # Every '#' had become '_frame': a file named a#1.png took a_frame1.png's overlay.
+    return re.sub(r"#(\d+)$", r"_frame\1", "/".join(parts)) + suffix
 
 
 # -- the run ----------------------------------------------------------------------------------

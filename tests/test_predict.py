@@ -782,6 +782,10 @@ def test_overlays_of_inputs_named_by_their_paths_stay_under_out(tmp_path: Path,
     names = list(rows_by_image(read_csv(tmp_path / "work" / "out" / "results.csv")))
     assert names == ["a.png", "../in/d2/a.png", (tmp_path / "in" / "d3" / "a.png").as_posix()]
     assert predict.output_name("../in/d2/a.png", ".png") == "__/in/d2/a.png.png"
+    # A frame's '#N' ending is marked; a '#' of the file's own stays (a#1.png had taken
+    # a_frame1.png's overlay).
+    assert predict.output_name("run.dcm#2", ".png") == "run.dcm_frame2.png"
+    assert predict.output_name("a#1.png", ".png") != predict.output_name("a_frame1.png", ".png")
     written = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.png.png"))
     assert len(written) == 3 and all(p.startswith("work/out/overlays/") for p in written)
     assert sorted(p.name for p in (tmp_path / "in" / "d2").iterdir()) == ["a.png"]

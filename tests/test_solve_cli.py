@@ -304,6 +304,8 @@ def test_an_images_row_is_found_by_its_name_its_files_or_a_keys_file_name():
     assert row_for_image(table, "b.png") == 2       # the key with a folder, alone of its name
     assert row_for_image(table, "c.png") is None    # two keys of that name: neither
     assert row_for_image(table, "d.dcm#2") == 5     # a frame: its file's row
+    # A '#' of the file's own name is no frame's (the name had been cut at it).
+    assert row_for_image({"hash2/hip#2.png": 7}, "hip#2.png") == 7
     assert row_for_image(table, "e.png") == 6       # a Windows path
     assert row_for_image(table, "f.png") is None
     assert row_for_image(table, "A.PNG") == 1       # another case, one key's alone

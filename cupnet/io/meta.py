@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import re
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -261,7 +262,7 @@ def key_for_image(table: Collection[str], name: str) -> str | None:
     name without folders; keys given with folders match too where their file name is theirs
     alone (``images/a.png`` for an image ``a.png`` of a run on ``images/``), and then a file
     name of other case where it is one key's alone (``A.PNG``: names typed on Windows)."""
-    file_name = name.split("#", 1)[0]
+    file_name = re.sub(r"#\d+$", "", name)  # a frame's file (a '#' elsewhere is the name's)
     for key in (name, file_name, _base_name(file_name)):
         if key in table:
             return key
