@@ -192,16 +192,21 @@ def test_overwrite_removes_the_overlays_of_the_run_it_replaces(tmp_path: Path,
     assert sorted(p.name for p in (out / "overlays").iterdir()) == ["a.png.png", "mine.png"]
 
 
-def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
-                                      monkeypatch: pytest.MonkeyPatch) -> None:
+def five_images_in_batches_of_two(tmp_path: Path, checkpoint: Path) -> tuple[Path, list[str]]:
+    """``cupnet predict``'s arguments for five noise images, two a batch; and its --out."""
     images = tmp_path / "images"
     images.mkdir()
     for i in range(5):
         noise_png(images / f"im{i}.png")
     out = tmp_path / "out"
-    args = ["predict", str(images), "--out", str(out), "--checkpoint", str(blind_checkpoint),
-            "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet",
-            "--batch-size", "2", "--no-overlays"]
+    return out, ["predict", str(images), "--out", str(out), "--checkpoint", str(checkpoint),
+                 "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet",
+                 "--batch-size", "2", "--no-overlays"]
+
+
+def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
+                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    out, args = five_images_in_batches_of_two(tmp_path, blind_checkpoint)
     real = predict.NetworkDetector.__call__
     calls = []
 
@@ -231,14 +236,7 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path: Path, blind_checkpoint: Pat
     """A scheduler's time limit (SIGTERM) had ended the run without its last rows, its
     summary or the hint to resume."""
     assert signal.SIGTERM in predict.STOPPING_SIGNALS  # (else the signal below ends pytest)
-    images = tmp_path / "images"
-    images.mkdir()
-    for i in range(5):
-        noise_png(images / f"im{i}.png")
-    out = tmp_path / "out"
-    args = ["predict", str(images), "--out", str(out), "--checkpoint", str(blind_checkpoint),
-            "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet",
-            "--batch-size", "2", "--no-overlays"]
+    out, args = five_images_in_batches_of_two(tmp_path, blind_checkpoint)
     real = predict.NetworkDetector.__call__
     calls = []
 
