@@ -343,7 +343,8 @@ def test_long_format_landmarks_take_the_image_centre_from_image_size(tmp_path, c
     args = ["solve", str(tmp_path / "lm.csv"), "--out", str(out), "--sdd", "1040",
             "--cup-diameter", "50", "--pixel-spacing", str(300.0 / 640)]
     assert main(args) == 1  # its only row an error
-    assert "no image size to take its centre from" in results(out)[0]["status"]
+    assert "no image size to take its centre from: give --image-size W H" in results(out)[0][
+        "status"]
     assert main([*args, "--image-size", "640", "480", "--overwrite"]) == 0
     row = results(out)[0]
     pose = [float(row[c]) for c in ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")]

@@ -95,9 +95,10 @@ class ResolvedGeometry:
         for key in self.missing:
             if key in PRINCIPAL_KEYS:
                 if key == PRINCIPAL_KEYS[0]:  # one part for the pair
+                    # Only a landmark file without image sizes (cupnet solve) lacks one.
                     parts.append("principal point (--principal-point or meta.csv "
                                  f"{', '.join(PRINCIPAL_KEYS)}; no image size to take its "
-                                 "centre from)")
+                                 "centre from: give --image-size W H)")
                 continue
             name, flag = REQUIRED[key]
             note = f"; {notes[key]}" if notes and key in notes else ""
