@@ -141,7 +141,7 @@ def test_geometry_precedence_and_assumptions() -> None:
     assert sizeless.error() == (
         "error: missing pixel spacing (--pixel-spacing or meta.csv pixel_spacing_mm), "
         "principal point (--principal-point or meta.csv principal_u_px, principal_v_px; no "
-        "image size to take its centre from)")
+        "image size to take its centre from: give --image-size W H)")
     # A value no geometry has is its image's error row before the networks run (the
     # solver had said so after them, as "no pose from the rim found").
     bad = resolve_geometry((100, 200), {"sdd_mm": 0.0, "cup_diameter_mm": math.nan,
