@@ -338,6 +338,15 @@ def _load(pred_csv: Path, truth_csv: Path, meta_csv: Path | None) -> Matched:
     if unknown:
         raise ValueError(f"{pred_csv}: unknown status value(s) {unknown[:5]}: results.csv's "
                          "status is ok, ambiguous, no_cup or error: <reason>")
+    # A found cup without a whole pose had counted as matched and been left out of that
+    # angle's MAE without a word.
+    posed = [r for r in pred_rows if r["status"] in FOUND]
+    partial = [r["image"] for r, finite in zip(posed, np.isfinite(_array(posed, POSE)).all(1),
+                                               strict=True) if not finite]
+    if partial:
+        raise ValueError(f"{pred_csv}: {len(partial)} row(s) of status ok or ambiguous without "
+                         f"a whole pose (first: {partial[0]}): each such row gives "
+                         f"{', '.join(POSE)}")
     truth_rows = read_rows(truth_csv, ("image", *POSE), TRUTH_ALIASES)
     meta = ({r["image"]: r for r in read_rows(meta_csv, ("image",))}
             if meta_csv is not None else {})

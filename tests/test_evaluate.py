@@ -236,3 +236,10 @@ def test_what_the_files_hold_that_cannot_be_scored_is_said(tmp_path: Path,
     assert main(["evaluate", "--pred", str(write_csv(tmp_path / "shout.csv", shouted)),
                  "--truth", str(truth), *out]) == 2
     assert "unknown status value(s) ['OK']" in capsys.readouterr().err
+    # A found cup without a whole pose had been left out of that angle's MAE silently.
+    partial = [{**row, POSE[0]: ""} if row["image"] == "a.png" else row
+               for row in predicted_rows()]
+    assert main(["evaluate", "--pred", str(write_csv(tmp_path / "partial.csv", partial)),
+                 "--truth", str(truth), *out]) == 2
+    assert "2 row(s) of status ok or ambiguous without a whole pose (first: a.png)" in \
+        capsys.readouterr().err
