@@ -1,7 +1,8 @@
 """``cupnet train`` / ``python -m train``: LightningCLI over CupNetModule and CupDataModule.
 
 ``cupnet train --config configs/cpu.yaml`` runs ``fit``; LightningCLI's ``fit`` and ``validate``
-work too (``cupnet train fit -c configs/cpu.yaml --ckpt_path last.ckpt`` resumes).
+work too (``cupnet train fit -c configs/cpu.yaml --ckpt_path
+runs/cpu/checkpoints/last.ckpt`` resumes: the checkpoint's file, not Lightning's ``last``).
 """
 
 from __future__ import annotations
