@@ -675,3 +675,55 @@ def test_batches_after_a_resume_are_those_the_stopped_run_would_have_made(worker
                             persistent_workers=workers > 0)
         epochs = [b["index"].tolist() for _ in range(2) for b in loader]
         assert epochs == (whole + batches(12, 3))[first:first + 10]
+
+
+_RECORDER = '''
+import json
+import lightning as L
+import torch
+
+
+class RecordBatches(L.Callback):
+    """Each rank's batch indices, and a digest of its weights at the end."""
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+        with open(f"rank{trainer.global_rank}.jsonl", "a") as f:
+            f.write(json.dumps({"index": batch["index"].tolist(),
+                                "world": trainer.world_size}) + "\\n")
+
+    def on_train_end(self, trainer, pl_module):
+        digest = sum(float(p.double().square().sum()) for p in pl_module.parameters())
+        with open(f"rank{trainer.global_rank}.jsonl", "a") as f:
+            f.write(json.dumps({"digest": digest}) + "\\n")
+'''
+
+
+def test_two_process_ddp_runs_from_lightnings_flags_alone(tmp_path):
+    """``--trainer.devices 2 --trainer.strategy ddp`` (gloo on the CPU, as NCCL on GPUs):
+    the two processes train on disjoint shares of the stream, end with the same weights (DDP
+    averaged their gradients), and one export is written that loads."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "record_batches.py").write_text(_RECORDER)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    run = subprocess.run(
+        [sys.executable, "-m", "train", "fit", "-c", str(SMOKE),
+         "--data.synth", str(ROOT / "configs/synth_smoke.yaml"), "--trainer.max_steps", "3",
+         "--trainer.devices", "2", "--trainer.strategy", "ddp",
+         "--trainer.callbacks+=record_batches.RecordBatches"],
+        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    ranks = [[json.loads(line) for line in (tmp_path / f"rank{r}.jsonl").read_text().splitlines()]
+             for r in (0, 1)]
+    seen = [[i for row in rows if "index" in row for i in row["index"]] for rows in ranks]
+    assert all(row["world"] == 2 for rows in ranks for row in rows if "world" in row)
+    assert len(seen[0]) == len(seen[1]) == 3 * 4  # 3 steps of the smoke config's batch of 4
+    assert not set(seen[0]) & set(seen[1])
+    digests = [rows[-1]["digest"] for rows in ranks]
+    assert digests[0] == pytest.approx(digests[1], rel=1e-12)
+    export = tmp_path / "runs" / "smoke" / "cupnet.safetensors"
+    assert load_model(str(export)) is not None
+    assert (tmp_path / "runs" / "smoke" / "checkpoints" / "last.ckpt").exists()
