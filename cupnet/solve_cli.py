@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -26,10 +27,19 @@ from cupnet.io.results import cup_row, status_row, write_results_csv
 from cupnet.pose import pose_standard_errors, solve_pose
 
 
+def results_file(text: str) -> Path:
+    """``--out``'s value as a path. A name ending in a separator names a folder: refused
+    here, since ``Path`` drops the separator and the folder's name would become a file's."""
+    if text.endswith(("/", os.sep)):
+        raise argparse.ArgumentTypeError(f"{text} names a folder; give the results file, such "
+                                         f"as {Path(text) / 'results.csv'}")
+    return Path(text)
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("landmarks", type=Path,
                         help="landmark file: image,u,v (long format) or the paper's label.csv")
-    parser.add_argument("--out", type=Path, required=True, help="results.csv to write")
+    parser.add_argument("--out", type=results_file, required=True, help="results.csv to write")
     add_geometry_arguments(parser)
     parser.add_argument("--image-size", type=int, nargs=2, metavar=("W", "H"),
                         help="the images' size in pixels, for a landmark file that does not "

@@ -126,6 +126,13 @@ def test_an_out_that_is_a_folder_is_named(tmp_path, capsys):
     assert main(["solve", str(tmp_path / "label.csv"), "--out", str(tmp_path),
                  "--overwrite"]) == 2  # it had failed with a bare IsADirectoryError
     assert "is a folder; give the results file" in capsys.readouterr().err
+    # A folder not yet made, named with its trailing slash: argparse's Path had dropped the
+    # slash, and the results went to a file of the folder's name.
+    with pytest.raises(SystemExit) as stop:
+        main(["solve", str(tmp_path / "label.csv"), "--out", f"{tmp_path / 'new'}/"])
+    assert stop.value.code == 2
+    assert "new/ names a folder; give the results file" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
 
 
 def test_existing_output_is_not_overwritten(tmp_path, capsys):
