@@ -471,7 +471,8 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
     """The inputs of every spec (folder, file or glob), each file once.
 
     Names are relative to their spec's folder; where two specs give the same name (a shell
-    expanding ``*/a.png``), the later file is named by its path so results stay apart.
+    expanding ``*/a.png``), each of those files is named by its path, so results stay apart
+    and a side file's rows given by folder (``d1/a.png``, ``d2/a.png``) find theirs.
 
     Raises:
         ValueError: ``out`` is a file, or holds an input folder (its contents are skipped).
@@ -479,7 +480,7 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
     """
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a folder for the results")
-    sources: dict[str, ImageSource] = {}
+    found: list[ImageSource] = []
     seen: set[Path] = set()
     for spec in specs:
         if Path(spec).is_dir() and Path(spec).resolve().is_relative_to(out.resolve()):
@@ -494,10 +495,13 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
             if path in seen:
                 continue
             seen.add(path)
-            name = (source.name if source.name not in sources
-                    else display_name(source.path.as_posix()))
-            sources[name] = ImageSource(source.path, name)
-    return list(sources.values())
+            found.append(source)
+    # The first of a name had kept it, and a meta row of its folder (d1/a.png, beside
+    # d2/a.png) then matched neither file by name alone.
+    names = Counter(source.name for source in found)
+    return [source if names[source.name] == 1
+            else ImageSource(source.path, display_name(source.path.as_posix()))
+            for source in found]
 
 
 def _check_args(args: argparse.Namespace) -> str | None:

@@ -614,8 +614,9 @@ def test_several_inputs_as_a_shell_expands_them(tmp_path: Path, blind_checkpoint
                  "--sdd", "1000", "--pixel-spacing", "0.3", "--cup-diameter", "52",
                  "--quiet", "--no-overlays"]) == 0
     names = list(rows_by_image(read_csv(out / "results.csv")))
-    # Each file once; the second x.png is named by its path, not merged with the first.
-    assert names == ["x.png", (tmp_path / "b" / "x.png").as_posix(), "latest.png", "y.png"]
+    # Each file once; both x.png are named by their paths, not merged.
+    assert names == [(tmp_path / "a" / "x.png").as_posix(), (tmp_path / "b" / "x.png").as_posix(),
+                     "latest.png", "y.png"]
 
 
 def test_assumptions_printed_once_and_recorded(tmp_path: Path, blind_checkpoint: Path,
@@ -778,7 +779,8 @@ def test_overlays_of_inputs_named_by_their_paths_stay_under_out(tmp_path: Path,
                  "--out", "out", "--checkpoint", str(blind_checkpoint), "--assume-defaults",
                  "--quiet"]) == 0
     names = list(rows_by_image(read_csv(tmp_path / "work" / "out" / "results.csv")))
-    assert names == ["a.png", "../in/d2/a.png", (tmp_path / "in" / "d3" / "a.png").as_posix()]
+    assert names == ["../in/d1/a.png", "../in/d2/a.png",
+                     (tmp_path / "in" / "d3" / "a.png").as_posix()]
     assert predict.output_name("../in/d2/a.png", ".png") == "__/in/d2/a.png.png"
     # A frame's '#N' ending is marked; a '#' of the file's own stays (a#1.png had taken
     # a_frame1.png's overlay).
@@ -787,6 +789,17 @@ def test_overlays_of_inputs_named_by_their_paths_stay_under_out(tmp_path: Path,
     written = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.png.png"))
     assert len(written) == 3 and all(p.startswith("work/out/overlays/") for p in written)
     assert sorted(p.name for p in (tmp_path / "in" / "d2").iterdir()) == ["a.png"]
+    # Meta rows given by folder find each file's own: the first of the name had kept it
+    # alone ("a.png"), which both folders' rows matched, so neither was taken.
+    (tmp_path / "work" / "meta.csv").write_text(
+        "image,sdd_mm,pixel_spacing_mm,cup_diameter_mm\n"
+        "d1/a.png,1001,0.31,50\nd2/a.png,1002,0.32,54\nd3/a.png,1003,0.33,56\n")
+    assert main(["predict", "../in/d1", "../in/d2", str(tmp_path / "in" / "d3"), "--out", "out2",
+                 "--checkpoint", str(blind_checkpoint), "--meta", "meta.csv", "--quiet",
+                 "--no-overlays"]) == 0
+    document = json.loads((tmp_path / "work" / "out2" / "results.json").read_text())
+    assert [r["geometry"]["sdd_mm"] for r in document["images"]] == [
+        {"value": 1000.0 + i, "source": "meta.csv"} for i in (1, 2, 3)]
 
 
 def test_an_overlay_that_cannot_be_written_loses_no_row(tmp_path: Path, blind_checkpoint: Path,

@@ -317,6 +317,15 @@ def test_an_images_row_is_found_by_its_name_its_files_or_a_keys_file_name():
     assert row_for_image(table, "f.png") is None
     assert row_for_image(table, "A.PNG") == 1       # another case, one key's alone
     assert row_for_image({"x.png": 1, "X.png": 2}, "x.PNG") is None  # two: neither
+    # Two inputs of one name, named by their paths: rows given by folder find theirs, the
+    # longest key ending the path first; a key "a.png" had been taken for every one.
+    by_folder = {"d1/a.png": 1, "d2/a.png": 2, "a.png": 3, "D3/B.png": 4}
+    assert row_for_image(by_folder, "../in/d1/a.png") == 1
+    assert row_for_image(by_folder, "/data/in/d2/a.png") == 2
+    assert row_for_image(by_folder, "/data/in/d4/a.png") == 3
+    assert row_for_image(by_folder, "x/d3/b.png") == 4  # another case
+    assert row_for_image({"d1/a.png": 1, "e1/d1/a.png": 2}, "e1/d1/a.png") == 2
+    assert row_for_image({"x/d1/a.png": 1, "y/d1/a.png": 2}, "d1/a.png") is None
 
 
 def test_a_bad_row_spoils_its_own_cup_alone_and_cups_may_be_written_as_floats(tmp_path):

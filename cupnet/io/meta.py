@@ -259,17 +259,31 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
 
 def key_for_image(table: Collection[str], name: str) -> str | None:
     """An image's key among ``table``'s image names (those of meta.csv rows or landmark sets,
-    or a set of names): its name, else its file's name (frames ``name#2``), else that file's
-    name without folders; keys given with folders match too where their file name is theirs
-    alone (``images/a.png`` for an image ``a.png`` of a run on ``images/``), and then a file
-    name of other case where it is one key's alone (``A.PNG``: names typed on Windows)."""
+    or a set of names): its name, else its file's name (frames ``name#2``), else the longest
+    key that ends that file's path (``d1/a.png`` for an image ``../in/d1/a.png``, ``a.png``
+    for ``sub/a.png``); keys given with other folders match too where their file name is
+    theirs alone (``images/a.png`` for an image ``a.png`` of a run on ``images/``); and then
+    each rule again with names of other case (``A.PNG``: names typed on Windows). Where two
+    keys match alike, neither is taken."""
     file_name = re.sub(r"#\d+$", "", name)  # a frame's file (a '#' elsewhere is the name's)
-    for key in (name, file_name, _base_name(file_name)):
+    for key in (name, file_name):
         if key in table:
             return key
-    wanted = _base_name(file_name)
-    for same in (str.__eq__, lambda a, b: a.casefold() == b.casefold()):
-        keys = [key for key in table if same(_base_name(key), wanted)]
+    wanted = _parts(file_name)
+    if not wanted:
+        return None
+    for fold in (str, str.casefold):
+        path = [fold(part) for part in wanted]
+        # Two inputs of one name are named by their paths (cupnet.predict.gather_images):
+        # rows given by folder find theirs by the path's end.
+        tails = {key: len(parts) for key in table
+                 if (parts := [fold(part) for part in _parts(key)])
+                 and parts == path[len(path) - len(parts):]}
+        if tails:
+            most = max(tails.values())
+            longest = [key for key, length in tails.items() if length == most]
+            return longest[0] if len(longest) == 1 else None
+        keys = [key for key in table if fold(_base_name(key)) == path[-1]]
         if keys:
             return keys[0] if len(keys) == 1 else None
     return None
@@ -291,6 +305,11 @@ def unmatched_keys(table: Collection[str], names: Iterable[str]) -> list[str]:
 def _base_name(name: str) -> str:
     """A path's last part, with either separator (a meta.csv written on Windows)."""
     return name.replace("\\", "/").rsplit("/", 1)[-1]
+
+
+def _parts(name: str) -> list[str]:
+    """A path's parts, with either separator, less empty and ``.`` parts."""
+    return [part for part in name.replace("\\", "/").split("/") if part not in ("", ".")]
 
 
 def meta_row(meta: dict[str, dict[str, float]], name: str) -> dict[str, float]:
