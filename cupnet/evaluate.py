@@ -165,6 +165,10 @@ def _truth_names(pred_rows: list[dict[str, str]], truth_names: set[str]
             for row in pred_rows]
 
 
+# Cost of a pair too far apart to match: above any sum of real distances in pixels.
+_UNMATCHABLE = 1e12
+
+
 def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]],
                truth_ellipse: np.ndarray) -> Matched:
     """Pairs of predicted and true cups per image by ellipse centre (Hungarian assignment).
@@ -197,9 +201,14 @@ def match_cups(pred_rows: list[dict[str, str]], truth_rows: list[dict[str, str]]
             continue
         centres = _array(candidates, ELLIPSE[:2])
         true_centres = truth_ellipse[indices, :2]
-        cost = np.linalg.norm(centres[:, None] - true_centres[None], axis=-1)
+        distance = np.linalg.norm(centres[:, None] - true_centres[None], axis=-1)
+        # Pairs farther apart than the true semi-major axis are no match, so they must not
+        # take part in the assignment: a false cup far off had outbid a found one, whose
+        # sum of distances came out higher, and both pairs were then dropped.
+        within = distance <= truth_ellipse[indices, 2][None]
+        cost = np.where(within, distance, _UNMATCHABLE)
         for p, t in zip(*linear_sum_assignment(cost), strict=True):
-            if cost[p, t] <= truth_ellipse[indices[t], 2]:
+            if within[p, t]:
                 pairs.append((candidates[p], indices[t]))
     # A cup whose truth row is left out (no whole pose) is no false positive when found: an
     # image's predictions left unpaired are discounted up to its left-out truth rows.

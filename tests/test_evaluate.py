@@ -83,6 +83,27 @@ def test_known_perturbation_gives_known_errors(tmp_path: Path) -> None:
     assert metrics["gross_failures"] == 0
 
 
+def test_a_far_false_cup_does_not_outbid_a_found_one(tmp_path: Path) -> None:
+    """Two true cups (u 300 and 700), one found 10 px off the left one, a false cup at u 0:
+    the assignment over all distances had paired the false cup with the left cup (300 px)
+    and the found one with the right (390 px; 690 in all, against 10 + 700), and both
+    pairs, past the semi-major axis, were dropped: 0 of 2 found, 2 false positives."""
+    pose = [20.0, 30.0, 0.0, 0.0, 300.0]
+    truth = write_csv(tmp_path / "truth.csv", [
+        {"image": "x.png", "cup": j, **dict(zip(POSE + ELLIPSE, [*pose[:4], h, u, 300, 40, 25, 0],
+                                                strict=True))}
+        for j, (u, h) in enumerate(((300, 300.0), (700, 310.0)))])
+    found = [21.0, *pose[1:], 310, 300, 40, 25, 0]
+    false = [*pose, 0, 300, 40, 25, 0]
+    pred = write_csv(tmp_path / "pred.csv", [
+        {"image": "x.png", "cup": j, "status": "ok", "seconds": 1.0,
+         **dict(zip(POSE + ELLIPSE, values, strict=True))}
+        for j, values in enumerate((found, false))])
+    metrics = evaluate_results(pred, truth)
+    assert metrics["matched_cups"] == 1 and metrics["false_positives"] == 1
+    assert metrics["perspective"]["anteversion_deg"]["mae"] == pytest.approx(1.0)
+
+
 def test_inclination_error_wraps_and_gross_failures(tmp_path: Path) -> None:
     truth = write_csv(tmp_path / "truth.csv", truth_rows()[2:3])  # b.png, phi = 89
     row = {"image": "b.png", "status": "ok", "seconds": 1.0,
