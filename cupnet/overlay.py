@@ -43,6 +43,8 @@ class CupDrawing:
         outline: ``(M, 2)`` (u, v) along the dome's outline (an open curve, drawn thin), or
             None.
         check: ... unless the model doubts the pose (drawn in ``CHECK_COLOUR``).
+        number: the label drawn at its centre, results.csv's ``cup`` (a landmark file's own
+            labels under ``--landmarks``); None: its place in the list, from 0.
     """
 
     ellipse: np.ndarray | None
@@ -52,6 +54,7 @@ class CupDrawing:
     status: str = "ok"
     outline: np.ndarray | None = None
     check: bool = False
+    number: int | None = None
 
 
 def display_image(image: np.ndarray) -> np.ndarray:
@@ -117,7 +120,7 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
     unit = max(canvas.shape[:2]) / 512  # line widths and text grow with the overlay
     thickness = max(1, round(unit))
     to_view = lambda p: rescaled_pixels(np.asarray(p, np.float64), scale)  # noqa: E731
-    for index, cup in enumerate(cups):  # numbered from 0, as the cup column of results.csv
+    for index, cup in enumerate(cups):
         colour = CHECK_COLOUR if cup.check else STATUS_COLOURS.get(cup.status, ERROR_COLOUR)
         # Landmarks first and small, so the fitted ellipse drawn over them stays visible.
         if cup.landmarks is not None:
@@ -137,7 +140,8 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
             axes = (_fixed(cup.ellipse[2] * scale), _fixed(cup.ellipse[3] * scale))
             cv2.ellipse(canvas, (_fixed(cx), _fixed(cy)), axes, float(cup.ellipse[4]), 0, 360,
                         colour, thickness, cv2.LINE_AA, _SHIFT)
-            cv2.putText(canvas, str(index), (round(cx), round(cy)), _FONT, 0.5 * unit, colour,
+            label = str(index if cup.number is None else cup.number)
+            cv2.putText(canvas, label, (round(cx), round(cy)), _FONT, 0.5 * unit, colour,
                         thickness, cv2.LINE_AA)
     lines = [title] + [line for cup in cups for line in cup.lines]
     return _with_text(canvas, lines, 0.4 * unit, thickness)

@@ -667,7 +667,7 @@ class Predictor:
             drawings = [CupDrawing(c.ellipse, c.landmarks, c.weights,
                                    pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose,
                                               c.doubt, c.check, c.pose_sd),
-                                   c.status, c.outline, c.check)
+                                   c.status, c.outline, c.check, j)
                         for j, c in zip(numbers, cups, strict=True)]
             title = f"{frame.name}: " + (f"{len(cups)} cup(s)" if cups else "no_cup")
             if self.args.rotate:

@@ -7,6 +7,7 @@ import json
 import math
 import os
 import signal
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -655,6 +656,20 @@ def test_overlay_draws_the_dome_outline_where_given() -> None:
     assert dist.min(1).max() < 2.0  # every drawn pixel on the arc (chords sag < 0.2 px)
     assert dist.min(0).max() < 2.0  # the whole arc drawn, and not closed:
     assert not green[300, 300:500].any()
+
+
+def test_overlay_labels_a_cup_with_its_results_number() -> None:
+    """A cup drawn with ``number`` 1 carries the label a second cup of the list gets, not the
+    first's "0": under --landmarks a file's cups 1 and 2 had been labelled 0 and 1 on the
+    overlay, beside results.csv's 1 and 2."""
+    from cupnet.overlay import CupDrawing, draw_overlay
+
+    cup = CupDrawing(np.array([400.0, 300.0, 80.0, 50.0, 20.0]), None, None, [])
+    nothing = CupDrawing(None, None, None, [])
+    labelled = draw_overlay(np.zeros((600, 800)), [replace(cup, number=1)], "")
+    second = draw_overlay(np.zeros((600, 800)), [nothing, cup], "")
+    first = draw_overlay(np.zeros((600, 800)), [cup], "")
+    assert np.array_equal(labelled, second) and not np.array_equal(labelled, first)
 
 
 @pytest.mark.parametrize("check", [False, True])
