@@ -21,7 +21,7 @@ from cupnet.model import load_model, save_model
 from data_synth.dataset import stream_share
 from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule, RoundRobinBatches
-from train.losses import distill_loss, pose_errors, ramp, wrap_angle
+from train.losses import distill_loss, ellipse_loss, pose_errors, pose_loss, ramp, wrap_angle
 from train.merge import main as merge_main
 from train.merge import merged
 from train.module import (
@@ -78,6 +78,27 @@ def test_phi_errors_wrap_at_180_degrees():
     assert torch.allclose(err[:, 0], torch.tensor([-2.0, 0.0], dtype=torch.float64))
     assert torch.allclose(err[:, 1], torch.tensor([-2.0, 60.0], dtype=torch.float64))
     assert float(wrap_angle(torch.tensor(181.0))) == pytest.approx(1.0)
+
+
+def test_a_cup_without_truth_is_left_out_of_the_pose_and_ellipse_losses():
+    """A NaN truth row (a missing cup) is left out as an invalid one: it had made each loss,
+    and every gradient of its step, NaN."""
+    pred = torch.tensor([[20.0, 10.0, 1.0, 2.0, 300.0], [30.0, 5.0, 0.0, 0.0, 250.0]],
+                        dtype=torch.float64, requires_grad=True)
+    truth = torch.tensor([[21.0, 10.0, 1.0, 2.0, 300.0], [math.nan] * 5], dtype=torch.float64)
+    valid = torch.tensor([True, True])
+    loss = pose_loss(pred, truth, valid)
+    assert torch.equal(loss, pose_loss(pred[:1], truth[:1], valid[:1]))
+    loss.backward()
+    assert torch.isfinite(pred.grad).all() and pred.grad[1].abs().sum() == 0
+    circle = torch.diag(torch.tensor([1.0, 1.0, -100.0], dtype=torch.float64))[None].repeat(2, 1, 1)
+    t = torch.linspace(0, 6.0, 16, dtype=torch.float64)
+    rim = torch.stack([10.5 * torch.cos(t), 10.5 * torch.sin(t)], -1)[None].repeat(2, 1, 1)
+    rim[1, 3] = math.nan
+    scale = torch.ones(2, dtype=torch.float64)
+    assert torch.equal(ellipse_loss(circle, rim, scale, valid),
+                       ellipse_loss(circle[:1], rim[:1], scale[:1], valid[:1]))
+    assert torch.isfinite(ellipse_loss(circle, rim, scale, valid))
 
 
 def test_schedule_ramps_in():

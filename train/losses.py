@@ -29,15 +29,18 @@ def segmentation_loss(logits: Tensor, target: Tensor, eps: float = 1.0) -> Tenso
 
 
 def ellipse_loss(conic: Tensor, rim: Tensor, pixel_scale: Tensor, valid: Tensor) -> Tensor:
-    """Mean absolute Sampson distance of true rim points to predicted conics.
+    """Huber loss (smooth L1, quadratic within 1 crop pixel) of the Sampson distances of true
+    rim points to predicted conics, averaged over points.
 
     Args:
         conic: ``(K, 3, 3)`` predicted conics, image pixels.
-        rim: ``(K, M, 2)`` true rim points, image pixels.
+        rim: ``(K, M, 2)`` true rim points, image pixels; an item with a NaN point (a cup
+            without truth) is left out, as an invalid one.
         pixel_scale: ``(K,)`` image pixels per crop pixel (distances are reported in crop
             pixels so large and small cups weigh alike).
         valid: ``(K,)`` bool, items with a usable fit.
     """
+    valid = valid & torch.isfinite(rim).all(-1).all(-1)
     if not bool(valid.any()):
         return conic.sum() * 0.0
     dist = sampson_distance(conic[valid], rim[valid]).abs() / pixel_scale[valid, None]
@@ -96,8 +99,11 @@ def pose_loss(pred: Tensor, truth: Tensor, valid: Tensor) -> Tensor:
     """Huber loss of pose errors, each component divided by :data:`POSE_SCALE`.
 
     Args:
-        pred, truth: ``(K, 5)`` public units; ``valid``: ``(K,)`` bool (solved poses).
+        pred, truth: ``(K, 5)`` public units; ``valid``: ``(K,)`` bool (solved poses). A
+            truth row with a NaN (a cup without truth) is left out, as an invalid one: it
+            had made the loss NaN, and every gradient of the step with it.
     """
+    valid = valid & torch.isfinite(truth).all(-1)
     if not bool(valid.any()):
         return pred.nan_to_num().sum() * 0.0
     scale = torch.tensor(POSE_SCALE, dtype=pred.dtype, device=pred.device)
