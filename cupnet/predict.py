@@ -53,14 +53,11 @@ from cupnet.io.images import (
     turned_clockwise,
 )
 from cupnet.io.meta import (
-    ASSUMED_CUP_DIAMETER_MM,
-    ASSUMED_DETECTOR_WIDTH_MM,
-    ASSUMED_SDD_MM,
     PRINCIPAL_KEYS,
-    REQUIRED,
     GeometryInputs,
     ResolvedGeometry,
     add_geometry_arguments,
+    assumptions_once,
     implausible_once,
     row_for_image,
     unmatched_keys,
@@ -102,11 +99,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     speed = parser.add_mutually_exclusive_group()
     speed.add_argument("--fast", dest="preset", action="store_const", const="fast",
                        help="skip the model's verification and search of doubtful cups "
-                            "(verify_gate): 3-7x faster, less accurate "
-                            "(docs/training.md, items 12 and 16)")
+                            "(verify_gate): 2-3.5x faster end to end (512 to 1024 px), "
+                            "less accurate (docs/training.md, items 12 and 16)")
     speed.add_argument("--fastest", dest="preset", action="store_const", const="fastest",
-                       help="also skip the dome-outline refinement (so no doubt and no "
-                            "check flag either) and the thin-rim hypotheses: segmentation, "
+                       help="also skip the dome-outline refinement (so no doubt, and a "
+                            "check flag only for a pose through the detector) and the "
+                            "thin-rim hypotheses: segmentation, "
                             "rim stages and solver alone, 7-18x faster than the default, "
                             "several times less accurate (docs/benchmarks.md)")
     parser.add_argument("--check-doubt", type=float, metavar="DOUBT",
@@ -567,17 +565,8 @@ class Predictor:
         self.geometry_inputs = geometry_inputs
 
     def _note_assumptions(self, geometry: ResolvedGeometry, width: int) -> None:
-        for key, source in geometry.sources.items():
-            if source != "assumed" or key in self.outputs.assumptions:
-                continue
-            text = {"sdd_mm": f"{ASSUMED_SDD_MM:g} mm",
-                    "cup_diameter_mm": f"{ASSUMED_CUP_DIAMETER_MM:g} mm",
-                    "pixel_spacing_mm": f"{ASSUMED_DETECTOR_WIDTH_MM:g} mm / image width "
-                                        f"(e.g. {ASSUMED_DETECTOR_WIDTH_MM / width:.4g} mm/px "
-                                        f"at {width} px)"}[key]
-            self.outputs.assumptions[key] = text
-            tqdm.write(f"assuming {REQUIRED[key][0]} = {text} where not given "
-                       "(--assume-defaults)", file=sys.stderr)
+        for text in assumptions_once(geometry.sources, self.outputs.assumptions, width):
+            tqdm.write(text, file=sys.stderr)
 
     def _note_implausible(self, name: str, geometry: ResolvedGeometry) -> None:
         """Warn, once per value, of a geometry value outside

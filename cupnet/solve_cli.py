@@ -22,7 +22,12 @@ import torch
 from cupnet.detection import CupDetection
 from cupnet.geometry import Geometry
 from cupnet.io.landmarks import LandmarkSet, read_landmarks
-from cupnet.io.meta import GeometryInputs, add_geometry_arguments, implausible_once
+from cupnet.io.meta import (
+    GeometryInputs,
+    add_geometry_arguments,
+    assumptions_once,
+    implausible_once,
+)
 from cupnet.io.results import cup_row, status_row, write_results_csv
 from cupnet.pose import pose_standard_errors, solve_pose
 
@@ -103,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     records, failures, solved, flagged = [], 0, 0, 0
     warned: dict[str, str] = {}
+    assumed: dict[str, str] = {}  # what --assume-defaults filled, said once, as predict says
     for image, cups in landmark_sets.items():
         rows = []
         for cup in cups:
@@ -118,6 +124,8 @@ def run(args: argparse.Namespace) -> int:
             if not resolved.complete:
                 rows.append(status_row(image, resolved.error(), 0.0, cup.cup))
             else:
+                for text in assumptions_once(resolved.sources, assumed, size[1] if size else 0):
+                    print(f"cupnet solve: {text}", file=sys.stderr)
                 for text in implausible_once(resolved.values, warned, image, resolved.sources):
                     print(f"cupnet solve: warning: {text}", file=sys.stderr)
                 detection = solve_cup(cup, resolved.geometry(),

@@ -195,9 +195,15 @@ def test_assume_defaults_fill_what_the_file_lacks_as_predict_does(tmp_path, caps
                  "255.5", "--out", str(out)]) == 1
     assert all(row["status"] == "error: missing source-to-detector distance (--sdd or meta.csv "
                "sdd_mm); or use --assume-defaults" for row in results(out))
+    capsys.readouterr()
     assert main(["solve", str(tmp_path / "lm.csv"), *flags, "--principal-point", "255.5",
                  "255.5", "--assume-defaults", "--out", str(out), "--overwrite"]) == 0
     assert_poses(results(out))
+    # What it assumed is said once, as predict says it (solve had said nothing).
+    err = capsys.readouterr().err
+    assert err.count("assuming source-to-detector distance = 1040 mm where not given "
+                     "(--assume-defaults)") == 1
+    assert "assuming" not in err.replace("assuming source-to-detector", "")
     # The long format gives no image size: the principal point is still the user's to give.
     assert main(["solve", str(tmp_path / "lm.csv"), *flags, "--assume-defaults",
                  "--out", str(out), "--overwrite"]) == 1
@@ -366,7 +372,10 @@ def test_long_format_landmarks_take_the_image_centre_from_image_size(tmp_path, c
     pose = [float(row[c]) for c in ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")]
     assert pose == pytest.approx(TRUTH[0].tolist(), abs=1e-4)
     # --assume-defaults' spacing, 300 mm over the given width, is the spacing used above.
+    capsys.readouterr()
     assert main(["solve", str(tmp_path / "lm.csv"), "--out", str(out), "--assume-defaults",
                  "--sdd", "1040", "--cup-diameter", "50", "--image-size", "640", "480",
                  "--overwrite"]) == 0
     assert float(results(out)[0]["h_mm"]) == pytest.approx(float(TRUTH[0, 4]), abs=1e-3)
+    assert ("assuming pixel spacing = 300 mm / image width (e.g. 0.4688 mm/px at 640 px)"
+            in capsys.readouterr().err)

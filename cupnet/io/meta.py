@@ -69,6 +69,25 @@ def implausible_once(values: dict[str, float], warned: dict[str, str], image: st
     return new
 
 
+def assumptions_once(sources: dict[str, str], noted: dict[str, str], width: int
+                     ) -> list[str]:
+    """The values ``--assume-defaults`` filled for an image ``width`` px wide (``sources``
+    ``"assumed"``; a pixel spacing is assumed only where the width is known) not in
+    ``noted`` (key -> what was assumed) yet, each as a line to print; added to ``noted`` (in
+    place), so a run says each once."""
+    new = []
+    for key, source in sources.items():
+        if source != "assumed" or key in noted:
+            continue
+        noted[key] = (f"{ASSUMED_DETECTOR_WIDTH_MM:g} mm / image width (e.g. "
+                      f"{ASSUMED_DETECTOR_WIDTH_MM / width:.4g} mm/px at {width} px)"
+                      if key == "pixel_spacing_mm" else
+                      f"{ASSUMED_SDD_MM if key == 'sdd_mm' else ASSUMED_CUP_DIAMETER_MM:g} mm")
+        new.append(f"assuming {REQUIRED[key][0]} = {noted[key]} where not given "
+                   "(--assume-defaults)")
+    return new
+
+
 @dataclass
 class ResolvedGeometry:
     """The geometry of one image: ``values`` by key, where each came from, what is missing,
