@@ -12,12 +12,15 @@ import argparse
 import csv
 import dataclasses
 import sys
+import zipfile
 from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 from tqdm import tqdm
 
+from data_synth.anatomy import bank_path, load_bank
 from data_synth.config import SynthConfig
 from data_synth.dataset import synthesize
 
@@ -81,16 +84,35 @@ def _fmt(value: float) -> str:
     return f"{value:.6f}"
 
 
-def run(args: argparse.Namespace) -> int:
+def _config(args: argparse.Namespace) -> SynthConfig:
+    """The run's config, checked, with the anatomy it draws from read once: a bad bank or
+    CT had failed mid-run, after the outputs were begun (so the rerun asked for
+    --overwrite). Raises ValueError naming the problem."""
     try:
         config = (SynthConfig.from_yaml(args.config) if args.config else SynthConfig())
-        if args.size is not None:
-            config = dataclasses.replace(config, image_size=tuple(args.size))
-        if args.n < 1:
-            raise ValueError(f"--n must be >= 1, got {args.n}")
-        if args.seed < 0:
-            raise ValueError(f"--seed must be >= 0, got {args.seed}")
-    except (ValueError, FileNotFoundError) as error:
+    except yaml.YAMLError as error:
+        raise ValueError(f"--config {args.config} is no YAML file: {error}") from error
+    except OSError as error:
+        raise ValueError(f"--config {args.config}: {error.strerror or error}") from error
+    if args.size is not None:
+        config = dataclasses.replace(config, image_size=tuple(args.size))
+    if args.n < 1:
+        raise ValueError(f"--n must be >= 1, got {args.n}")
+    if args.seed < 0:
+        raise ValueError(f"--seed must be >= 0, got {args.seed}")
+    if config.p_anatomy > 0:
+        source = config.anatomy_bank or config.anatomy_ct or "the shipped anatomy bank"
+        try:
+            load_bank(str(bank_path(config.anatomy_bank, config.anatomy_ct)))
+        except (OSError, RuntimeError, ValueError, EOFError, zipfile.BadZipFile) as error:
+            raise ValueError(f"anatomy from {source} cannot be used: {error}") from error
+    return config
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        config = _config(args)
+    except ValueError as error:
         print(f"cupnet synth: {error}", file=sys.stderr)
         return 2
     out = Path(args.out)
@@ -103,10 +125,14 @@ def run(args: argparse.Namespace) -> int:
               "to replace them", file=sys.stderr)
         return 2
     images = out / "images"
-    if images.exists():
-        for old in images.glob("synth_*.*"):
-            old.unlink()
-    images.mkdir(parents=True, exist_ok=True)
+    try:
+        if images.exists():
+            for old in images.glob("synth_*.*"):
+                old.unlink()
+        images.mkdir(parents=True, exist_ok=True)
+    except OSError as error:  # a file on the way (--out under a file), no permission
+        print(f"cupnet synth: cannot make {images}: {error.strerror or error}", file=sys.stderr)
+        return 2
 
     with open(out / "meta.csv", "w", newline="") as meta_file, \
             open(out / "truth.csv", "w", newline="") as truth_file:

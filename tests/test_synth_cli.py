@@ -87,3 +87,28 @@ def test_refuses_to_overwrite_and_names_bad_config_keys(tmp_path, capsys):
     (tmp_path / "afile").write_text("")
     assert main(["synth", "--n", "1", "--out", str(tmp_path / "afile")]) == 2
     assert "is a file; give a folder" in capsys.readouterr().err
+
+
+def test_a_bad_config_or_anatomy_is_named_before_any_output_is_made(tmp_path, capsys):
+    """A config that is no YAML, a folder given as the config, an anatomy bank without maps
+    and an output under a file had each ended in a traceback; the bank's, mid-run, had left
+    empty outputs behind that made the corrected rerun ask for --overwrite."""
+    def synth(out: str, *extra: str) -> int:
+        return main(["synth", "--n", "1", "--out", str(tmp_path / out), "--size", "32", "32",
+                     *extra])
+
+    (tmp_path / "broken.yaml").write_text("image_size: [512, 512\n")
+    assert synth("a", "--config", str(tmp_path / "broken.yaml")) == 2
+    assert "broken.yaml is no YAML file" in capsys.readouterr().err
+    assert synth("a", "--config", str(tmp_path)) == 2
+    assert "Is a directory" in capsys.readouterr().err
+    np.savez(tmp_path / "nomaps.npz", x=np.zeros(3))
+    (tmp_path / "nomaps.yaml").write_text(f"anatomy_bank: {tmp_path / 'nomaps.npz'}\n"
+                                          "p_anatomy: 1.0\n")
+    assert synth("b", "--config", str(tmp_path / "nomaps.yaml")) == 2
+    assert "nomaps.npz cannot be used: anatomy bank" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()
+    assert synth("b") == 0  # the rerun, its config mended
+    (tmp_path / "afile").write_text("")
+    assert synth("afile/sub") == 2
+    assert "cannot make" in capsys.readouterr().err
