@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import numbers
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -49,6 +50,12 @@ def render_bones(bones: list[Part], geometry: Geometry, width: int, height: int)
     full = cv2.resize(small.numpy(), ((width + 1) // 2 * 2, (height + 1) // 2 * 2),
                       interpolation=cv2.INTER_LINEAR)
     return torch.from_numpy(full[:height, :width])
+
+
+def is_count(value: object) -> bool:
+    """``value`` is a non-negative integer of any integer type (numpy's too), not a bool."""
+    return (isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+            and value >= 0)
 
 
 def sample_rng(seed: int, index: int) -> np.random.Generator:
@@ -141,7 +148,7 @@ def synthesize(config: SynthConfig, seed_or_generator: int | np.random.Generator
     """
     if isinstance(seed_or_generator, np.random.Generator):
         rng = seed_or_generator
-    elif isinstance(seed_or_generator, int) and seed_or_generator >= 0 and index >= 0:
+    elif is_count(seed_or_generator) and is_count(index):
         rng = sample_rng(seed_or_generator, index)
     else:
         raise ValueError("synthesize needs a non-negative integer seed and index or a "
@@ -216,11 +223,12 @@ class SynthDataset(IterableDataset):
 
     def __init__(self, config: SynthConfig, seed: int, length: int | None = None) -> None:
         super().__init__()
-        if not isinstance(seed, int) or seed < 0:
+        if not is_count(seed):
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-        if length is not None and (not isinstance(length, int) or length < 0):
+        if length is not None and not is_count(length):
             raise ValueError(f"length must be a non-negative integer or None, got {length!r}")
-        self.config, self.seed, self.length = config, seed, length
+        self.config, self.seed = config, int(seed)
+        self.length = None if length is None else int(length)
 
     def __len__(self) -> int:
         if self.length is None:

@@ -158,3 +158,9 @@ def test_seed_errors_and_generator_input():
     a = synthesize(config, np.random.default_rng([2, 5]))
     b = synthesize(config, 2, 5)
     assert torch.equal(a["image"], b["image"]) and torch.equal(a["pose"], b["pose"])
+    # numpy's integers are integers (np.int64(2) had been refused, naming itself as the
+    # problem); a bool is none (True had run as seed 1).
+    assert torch.equal(synthesize(config, np.int64(2), np.int32(5))["image"], b["image"])
+    assert SynthDataset(config, seed=np.int64(3), length=np.int64(1)).seed == 3
+    with pytest.raises(ValueError, match="seed"):
+        synthesize(config, True, 0)
