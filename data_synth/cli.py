@@ -139,8 +139,11 @@ def run(args: argparse.Namespace) -> int:
         meta, truth = csv.writer(meta_file), csv.writer(truth_file)
         meta.writerow(META_COLUMNS)
         truth.writerow(TRUTH_COLUMNS)
+        overhanging, cups = 0, 0
         for index in tqdm(range(args.n), desc="cupnet synth", unit="image"):
             sample = synthesize(config, args.seed, index)
+            overhanging += int(rims_overhanging(sample).sum())
+            cups += int(sample["cup_valid"].sum())
             name = f"synth_{index:06d}.{args.format}"
             pixels = np.round(sample["image"][0].numpy() * 65535).astype(np.uint16)
             sdd, spacing, u0, v0 = sample["geometry"].tolist()
@@ -157,4 +160,17 @@ def run(args: argparse.Namespace) -> int:
                                 *map(_fmt, sample["ellipse"][cup].tolist()),
                                 _fmt(float(sample["cup_diameter"][cup]))])
     print(f"wrote {args.n} images, meta.csv and truth.csv to {out}")
+    if overhanging:
+        print(f"cupnet synth: warning: {overhanging} of {cups} cups reach past the image's "
+              "edge (truth.csv gives their whole rims): the field is narrow for the config's "
+              "cups; widen image_size or pixel_spacing_mm, or narrow cup_diameter_mm or h_mm",
+              file=sys.stderr)
     return 0
+
+
+def rims_overhanging(sample: dict) -> np.ndarray:
+    """``(MAX_CUPS,)`` bool: the sample's cups whose true rim points reach past its image."""
+    height, width = sample["image"].shape[-2:]
+    u, v = sample["rim"][..., 0].numpy(), sample["rim"][..., 1].numpy()
+    outside = (u < 0) | (u > width - 1) | (v < 0) | (v > height - 1)
+    return sample["cup_valid"].numpy() & outside.any(-1)

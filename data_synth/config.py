@@ -38,7 +38,9 @@ class SynthConfig:
 
     Pose: ``theta, phi`` (deg) and ``h`` (mm) from their ranges; ``k, l`` from theirs but
     redrawn (up to ``placement_tries`` times, then shrunk towards the centre) until the rim
-    ellipse lies inside the field of view with ``field_margin`` (fraction of the image size).
+    ellipse lies inside the field of view with ``field_margin`` (fraction of the image size);
+    a cup too large for the field even at its centre (a narrow field: few pixels, a fine
+    spacing) is kept there, its rim past the field's edge (``cupnet synth`` counts them).
     ``p_bilateral`` is the chance of trying a second cup on the other hip; it stays only
     when both rims fit the field (about a third of tries with the default geometry, since
     the hips lie 150-210 mm apart), so ~8 % of default images are bilateral.

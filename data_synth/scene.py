@@ -108,8 +108,10 @@ def sample_poses(config: SynthConfig, rng: np.random.Generator, geometry: Geomet
     """Cup poses ``(n, 5)`` public units and diameters ``(n,)`` mm placed in the field.
 
     ``theta, phi, h`` and the diameter follow the config; ``k, l`` are redrawn until the rim
-    ellipse(s) fit. A bilateral pair puts the second cup on the other hip (``phi`` mirrored,
-    ``k`` shifted by the inter-hip distance); when no draw fits both, one cup is kept.
+    ellipse(s) fit, then shrunk towards the principal point, where a cup that fits at all
+    fits; one that does not fit even there is kept there. A bilateral pair puts the second
+    cup on the other hip (``phi`` mirrored, ``k`` shifted by the inter-hip distance); when
+    no draw fits both, one cup is kept.
     """
     width, height = config.image_size
     tries = config.placement_tries

@@ -112,3 +112,16 @@ def test_a_bad_config_or_anatomy_is_named_before_any_output_is_made(tmp_path, ca
     (tmp_path / "afile").write_text("")
     assert synth("afile/sub") == 2
     assert "cannot make" in capsys.readouterr().err
+
+
+def test_cups_the_field_cannot_hold_are_counted(tmp_path, capsys):
+    """A field too narrow for the cups (64 px at 0.3 mm: 19 mm) keeps each cup centred, its
+    rim past the image: the run says how many, where it had said nothing; a wide field has
+    none to count."""
+    narrow = tmp_path / "narrow.yaml"
+    narrow.write_text("pixel_spacing_mm: [0.3, 0.3]\np_no_cup: 0.0\np_bilateral: 0.0\n")
+    assert main(["synth", "--n", "2", "--out", str(tmp_path / "a"), "--size", "64", "64",
+                 "--config", str(narrow)]) == 0
+    assert "warning: 2 of 2 cups reach past the image's edge" in capsys.readouterr().err
+    assert main(["synth", "--n", "2", "--out", str(tmp_path / "b"), "--size", "64", "64"]) == 0
+    assert "reach past" not in capsys.readouterr().err
