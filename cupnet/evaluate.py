@@ -386,6 +386,10 @@ def metrics_table(metrics: dict) -> str:
         f"{'-' if rate is None else f'{100 * rate:.1f} %'} | {metrics['false_positives']} | "
         f"{metrics['gross_failures']} ({'-' if gross is None else f'{100 * gross:.1f} %'}) | "
         f"{metrics['error_images']} | {_fmt(metrics['seconds_per_image'])} |",
+        "",
+        "Seconds / image: the mean of results.csv's `seconds`, each image's share of its "
+        "batch's time; `cupnet predict` runs two batches at once, so this exceeds its run's "
+        "wall time per image, which its summary prints.",
     ]
     check = metrics["check"]
     if check["flagged"]:

@@ -428,7 +428,9 @@ def standard_json(value: object) -> object:
 
 
 def summarise(records: Iterable[dict]) -> dict:
-    """Counts over image records: images, cups found, statuses, failures by reason."""
+    """Counts over image records: images, cups found, statuses, failures by reason, and
+    the mean of the images' ``seconds`` (each its share of its batch's time: batches run
+    two at once, so it exceeds the run's wall time per image)."""
     statuses: Counter[str] = Counter()
     images = cups = check = bright = cleaned = enlarged = patient_spacing = 0
     seconds = 0.0
