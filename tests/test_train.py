@@ -735,7 +735,8 @@ def test_two_process_ddp_runs_from_lightnings_flags_alone(tmp_path):
          "--data.synth", str(ROOT / "configs/synth_smoke.yaml"), "--trainer.max_steps", "3",
          "--trainer.devices", "2", "--trainer.strategy", "ddp",
          "--trainer.callbacks+=record_batches.RecordBatches"],
-        cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+        cwd=tmp_path, env=env, capture_output=True, encoding="utf-8", errors="replace",
+        timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     ranks = [[json.loads(line) for line in (tmp_path / f"rank{r}.jsonl").read_text().splitlines()]
              for r in (0, 1)]
