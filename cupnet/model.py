@@ -202,21 +202,43 @@ def _standardise(views: Tensor) -> Tensor:
     return (views - mean) / (std + 1e-3)
 
 
+# Pixel values past these are no [0, 1] image: 8-, 12- or 16-bit counts not yet scaled, or
+# pixels standardised to zero mean. The networks standardise each view and may still find the
+# cup, but the noise measure and the gamma looks read [0, 1]: an 8-bit image's noise went
+# unmeasured, and a noisy one was not denoised (theta 16.6 deg off, against 0.44 scaled).
+# The margin leaves room for images a little outside the range (noise added, a filter's ring).
+PIXEL_RANGE = (-0.5, 1.5)
+
+
+def checked_pixels(image: Tensor, index: int) -> None:
+    """Raise a ValueError naming image ``index`` where its pixels are not floats in [0, 1]
+    (:data:`PIXEL_RANGE`): an integer dtype, NaN or infinite values, or values far outside."""
+    if not image.is_floating_point():
+        raise ValueError(f"image {index}: pixels of {image.dtype}, where floats in [0, 1] are "
+                         f"needed (divide by the bit depth's full scale, such as 255 or "
+                         f"4095, or read the file with cupnet.io.images.read_image)")
+    low, high = (float(v) for v in torch.aminmax(image))  # one pass: cheap for 4096^2 images
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise ValueError(f"image {index}: contains NaN or infinite values")
+    if low < PIXEL_RANGE[0] or high > PIXEL_RANGE[1]:
+        raise ValueError(f"image {index}: pixels span [{low:.4g}, {high:.4g}], where [0, 1] is "
+                         f"needed (unscaled counts? divide by the bit depth's full scale, or "
+                         f"read the file with cupnet.io.images.read_image)")
+
+
 def _as_image_list(images: Tensor | list, dtype: torch.dtype) -> list[Tensor]:
     """``(B, 1, H, W)`` tensor or a list of ``(H, W)`` / ``(1, H, W)`` arrays -> ``(1, H, W)``s
-    of ``dtype``."""
+    of ``dtype``, each checked (:func:`checked_pixels`)."""
     items = list(images) if not isinstance(images, Tensor) or images.ndim == 4 else [images]
     out = []
     for i, image in enumerate(items):
         t = torch.as_tensor(np.asarray(image) if not isinstance(image, Tensor) else image)
-        t = t.to(dtype)
         if t.ndim == 2:
             t = t[None]
         if t.ndim != 3 or t.shape[0] != 1:
             raise ValueError(f"image {i}: expected (1, H, W) or (H, W), got {tuple(t.shape)}")
-        if not torch.isfinite(t.sum()):  # one reduction: cheap even for 4096^2 images
-            raise ValueError(f"image {i}: contains NaN or infinite values")
-        out.append(t)
+        checked_pixels(t, i)
+        out.append(t.to(dtype))
     return out
 
 
@@ -594,10 +616,16 @@ class CupNet(nn.Module):
         Returns:
             :class:`CupNetOutput` with ``K`` = number of crops segmented.
         """
-        image_list = (_as_image_list(images, self.dtype) if not isinstance(images, Tensor)
-                      else images)
-        if isinstance(images, Tensor) and images.ndim != 4:
-            raise ValueError(f"images must be (B, 1, H, W), got {tuple(images.shape)}")
+        if isinstance(images, Tensor):
+            if images.ndim != 4:
+                raise ValueError(f"images must be (B, 1, H, W), got {tuple(images.shape)}")
+            for i, image in enumerate(images.detach()):
+                checked_pixels(image, i)
+            # Kept a batch (one tensor for the networks), of the model's dtype: a float64
+            # batch had failed deep in a convolution ("expected scalar type Double").
+            image_list = images.to(self.dtype)
+        else:
+            image_list = _as_image_list(images, self.dtype)
         locator_logits, letterbox = self.locate(list(image_list))
         if crop_frames is None:
             rough = self.ellipses_from_locator(locator_logits, letterbox)[0]

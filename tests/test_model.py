@@ -503,9 +503,22 @@ def test_checkpoint_round_trip(tmp_path):
 
 def test_bad_image_is_rejected_with_a_clear_error():
     model = CupNet(TINY)
+    geometry = Geometry(1040.0, 0.3, 32, 32)
     with pytest.raises(ValueError, match="NaN"):
-        model.detect([np.full((64, 64), np.nan, dtype=np.float32)], Geometry(1040.0, 0.3, 32, 32),
-                     50.0)
+        model.detect([np.full((64, 64), np.nan, dtype=np.float32)], geometry, 50.0)
+    # Pixels not scaled to [0, 1] (an 8-bit PNG's counts, a 12-bit DICOM's, pixels
+    # standardised to zero mean) had run: the networks standardise, but a noisy 8-bit image
+    # went undenoised (its noise, measured on [0, 1], came out NaN).
+    counts = np.random.default_rng(0).integers(0, 256, (64, 64))
+    with pytest.raises(ValueError, match=r"image 1: pixels of torch.uint8, where floats in "):
+        model.detect([np.zeros((64, 64), np.float32), counts.astype(np.uint8)], geometry, 50.0)
+    with pytest.raises(ValueError, match=r"image 0: pixels span \[0, 4095\], where \[0, 1\]"):
+        model.detect(torch.tensor(counts * 4095.0 / 255)[None, None], geometry, 50.0)
+    with pytest.raises(ValueError, match=r"image 0: pixels span \[-1, 1\]"):
+        model(torch.linspace(-1, 1, 64 * 64).reshape(1, 1, 64, 64), geometry, torch.tensor([50.0]))
+    # Floats of another dtype, and a little past the range (added noise), run.
+    noisy = torch.rand(1, 1, 64, 64, dtype=torch.float64) * 1.2 - 0.1
+    assert model(noisy, geometry, torch.tensor([50.0])).locator_logits.shape[0] == 1
 
 
 class DarkBlindNet(CupNet):
