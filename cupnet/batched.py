@@ -37,7 +37,15 @@ import torch
 from torch import Tensor
 
 from cupnet.geometry import Geometry
-from cupnet.model import CupNet, geometry_rows, rim_second_poses, takes_pick
+from cupnet.model import (
+    CupNet,
+    checked_pixels,
+    cup_diameters,
+    evaluating,
+    geometry_rows,
+    rim_second_poses,
+    takes_pick,
+)
 from cupnet.polarity import metals_show_bright
 from cupnet.pose import PoseSolution, ellipse_of_pose
 
@@ -67,17 +75,34 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
     """Cups of a batch of images, every stage on all of them at once (module docstring).
 
     Args:
-        model: a CupNet in eval mode, on the images' device.
-        images: ``(B, 1, H, W)`` float32 in [0, 1].
+        model: a CupNet on the images' device (run in eval mode, its mode restored after).
+        images: ``(B, 1, H, W)`` floats in [0, 1] (cast to the model's dtype).
         geometry: fields ``(B,)`` or scalars, principal point in image pixels.
-        cup_diameter: ``(B,)`` mm.
+        cup_diameter: ``(B,)`` or scalar, mm.
         outline: refine the solved poses with the dome's outline and order each ambiguous
             pair by the rim network's doubt, as ``detect`` does (:func:`outlined`).
     Returns:
         :class:`BatchedCups`, on the images' device.
+    Raises:
+        ValueError: images of another shape, or not in [0, 1], or NaN
+            (:func:`cupnet.model.checked_pixels`: a NaN image had given no cup), geometry or
+            diameters of other than one value or one per image, as ``detect`` names them.
     """
-    if images.ndim != 4 or len(images) == 0:
-        raise ValueError(f"images must be (B, 1, H, W) with B >= 1, got {tuple(images.shape)}")
+    if not isinstance(images, Tensor) or images.ndim != 4 or len(images) == 0:
+        raise ValueError("images must be a (B, 1, H, W) tensor with B >= 1, got "
+                         f"{tuple(images.shape) if isinstance(images, Tensor) else type(images)}")
+    for i, image in enumerate(images):
+        checked_pixels(image, i)
+    cup_diameter = cup_diameters(cup_diameter, len(images))
+    geometry_rows(geometry, len(images))  # checked here, before any network runs
+    # In train mode the BatchNorms would take the batch's statistics, and keep them.
+    with evaluating(model):
+        return _batched_cups(model, images.to(model.dtype), geometry, cup_diameter, outline)
+
+
+def _batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter: Tensor,
+                  outline: bool) -> BatchedCups:
+    """:func:`batched_cups` of checked inputs, ``cup_diameter`` ``(B,)`` float64."""
     cfg = model.config
     if cfg.metal == "bright":
         images = 1 - images
@@ -118,9 +143,8 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
     # pose in range is ambiguous, with that pose.
     single = (picks.valid & ~torch.isfinite(picks.alt_pose).all(-1)).nonzero()[:, 0]
     if len(single):
-        other, in_range = rim_second_poses(
-            picks.pose[single], index[single], geometry,
-            torch.as_tensor(cup_diameter, dtype=torch.float64).expand(len(images)))
+        other, in_range = rim_second_poses(picks.pose[single], index[single], geometry,
+                                           cup_diameter)
         picks.alt_pose[single[in_range]] = other[in_range].to(picks.alt_pose)
     return BatchedCups(cup_index, picks.pose, picks.ellipse, picks.valid, picks.alt_pose)
 

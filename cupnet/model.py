@@ -24,10 +24,11 @@ Images may have any size; every resampling is an exactly known affine (:mod:`cup
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
@@ -74,6 +75,7 @@ from cupnet.polarity import metal_shows_bright
 from cupnet.pose import (
     PoseSolution,
     canonical_pose,
+    check_geometry_batch,
     ellipse_of_pose,
     other_circle_pose,
     refine_pose_with_outline,
@@ -242,7 +244,22 @@ def _as_image_list(images: Tensor | list, dtype: torch.dtype) -> list[Tensor]:
     return out
 
 
-def _cup_diameters(cup_diameter: Tensor | float, batch: int) -> Tensor:
+@contextlib.contextmanager
+def evaluating(model: nn.Module) -> Iterator[None]:
+    """``model`` in eval mode within the block, its mode restored after: in train mode its
+    BatchNorms would use and update the batch's statistics. Switched only when needed (smp's
+    ``train()`` walks every submodule, ~2 ms a call)."""
+    was_training = model.training
+    if was_training:
+        model.eval()
+    try:
+        yield
+    finally:
+        if was_training:
+            model.train()
+
+
+def cup_diameters(cup_diameter: Tensor | float, batch: int) -> Tensor:
     """``(B,)`` float64 cup diameters (mm) of a batch from a scalar or ``(B,)``; another
     shape is a ValueError naming it."""
     diameter = torch.as_tensor(cup_diameter, dtype=torch.float64)
@@ -289,7 +306,9 @@ def rim_second_poses(pose: Tensor, image: Tensor, geometry: Geometry,
 
 
 def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
-    """``(B, 4)`` float64 rows (sdd, spacing, u0, v0) of a batch geometry."""
+    """``(B, 4)`` float64 rows (sdd, spacing, u0, v0) of a batch geometry; a field of other
+    than one value or one per image is a ValueError naming it (it had failed in a reshape)."""
+    check_geometry_batch(geometry, batch)
     return torch.stack([t.expand(batch) if t.ndim == 0 else t.reshape(batch)
                         for t in geometry.tensors(torch.float64)], -1)
 
@@ -682,14 +701,10 @@ class CupNet(nn.Module):
         screenshot or secondary capture with wide margins) is cut to the field's square
         first (:func:`cupnet.field.field_crop`), and its cups given back in its own pixels.
         """
-        # Switch modes only when needed: smp's train() walks every submodule (~2 ms a call).
-        was_training = self.training
-        if was_training:
-            self.eval()
-        try:
+        with evaluating(self):
             # Checked and converted once: every look takes these, or a subset of them.
             image_list = _as_image_list(images, self.dtype)
-            diameter = _cup_diameters(cup_diameter, len(image_list))
+            diameter = cup_diameters(cup_diameter, len(image_list))
             noises = self.image_noises(image_list)
             image_list = [image if not cleaned else denoised(image, noise)
                           for image, (noise, cleaned) in zip(image_list, noises, strict=True)]
@@ -727,9 +742,6 @@ class CupNet(nn.Module):
                      for cups, factor, side in zip(found, factors, sides, strict=True)]
             return [cups if crop is None else [moved(cup, crop[:2], shape) for cup in cups]
                     for cups, crop, shape in zip(found, crops, shapes, strict=True)]
-        finally:
-            if was_training:
-                self.train()
 
     def image_noises(self, images: list[Tensor]) -> list[tuple[float | None, bool | None]]:
         """Whether each image's noise exceeds ``denoise_above``, so that :meth:`detect`

@@ -89,8 +89,9 @@ def _batch_geometry(geometry: Geometry, batch: int, dtype: torch.dtype,
     return torch.stack(fields, -1)
 
 
-def _check_geometry_batch(geometry: Geometry, batch: int) -> None:
-    """A PoseError naming a geometry field of other than one value or one per item."""
+def check_geometry_batch(geometry: Geometry, batch: int) -> None:
+    """A PoseError (a ValueError) naming a geometry field of other than one value or one per
+    item of a batch of ``batch``."""
     for name, t in zip(("sdd", "pixel_spacing", "principal_u", "principal_v"),
                        geometry.tensors(), strict=True):
         if t.ndim > 1 or (t.ndim == 1 and t.shape[0] != batch):
@@ -786,7 +787,7 @@ def solve_pose(
         raise PoseError(f"cup_diameter must be a scalar or one per item ({batch}), got "
                         f"{radius.numel()} values")
     radius = radius.reshape(-1).expand(batch) / 2
-    _check_geometry_batch(geometry, batch)
+    check_geometry_batch(geometry, batch)
     fit = fit_ellipse(points, weights, on_error="flag")
     status = [s if s == "ok" else f"error: {s}" for s in fit.status]
     for i, problem in enumerate(geometry_problems(geometry, radius.detach())):
