@@ -18,6 +18,7 @@ networks have no gradients.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import importlib.metadata
@@ -127,7 +128,10 @@ def exported_graph(module: nn.Module, side: int | None = None,
         temporary.write_bytes(graph)
         temporary.replace(path)  # atomic: a concurrent run reads a whole graph or none
     except OSError as error:
-        temporary.unlink(missing_ok=True)
+        # A cache folder that cannot be made (a file on its path) fails this too, and an
+        # error here had passed over the warning and stopped the run.
+        with contextlib.suppress(OSError):
+            temporary.unlink(missing_ok=True)
         warnings.warn(f"cannot cache the exported network in {path.parent} ({error}); it "
                       "is exported again next time (set CUPNET_CACHE_DIR)", stacklevel=2)
     return graph

@@ -76,6 +76,21 @@ def test_graphs_are_cached_by_weights(onnx_cache: Path) -> None:
         torch.testing.assert_close(again(strips), other(strips), atol=1e-4, rtol=1e-4)
 
 
+def test_a_cache_folder_that_cannot_be_made_is_warned_of(tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """CUPNET_CACHE_DIR with a file on its path: the network runs, exported for the run
+    alone, with a warning; the temporary file's clean-up had raised NotADirectoryError over
+    the warning and stopped the run."""
+    (tmp_path / "afile").write_text("")
+    monkeypatch.setenv("CUPNET_CACHE_DIR", str(tmp_path / "afile"))
+    rim = rim_net(3)
+    with pytest.warns(UserWarning, match="cannot cache the exported network"):
+        wrapped = InOnnxRuntime(rim)
+    strips = torch.rand(2, 1, 64, 128)
+    with torch.no_grad():
+        torch.testing.assert_close(wrapped(strips), rim(strips), atol=1e-4, rtol=1e-4)
+
+
 def test_a_failing_session_hands_over_to_pytorch(monkeypatch: pytest.MonkeyPatch) -> None:
     rim = rim_net(0)
     wrapped = InOnnxRuntime(rim)
