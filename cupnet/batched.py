@@ -91,8 +91,7 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
     if not isinstance(images, Tensor) or images.ndim != 4 or len(images) == 0:
         raise ValueError("images must be a (B, 1, H, W) tensor with B >= 1, got "
                          f"{tuple(images.shape) if isinstance(images, Tensor) else type(images)}")
-    for i, image in enumerate(images):
-        checked_pixels(image, i)
+    checked_pixels(images)
     cup_diameter = cup_diameters(cup_diameter, len(images))
     geometry_rows(geometry, len(images))  # checked here, before any network runs
     # In train mode the BatchNorms would take the batch's statistics, and keep them.

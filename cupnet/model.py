@@ -212,20 +212,22 @@ def _standardise(views: Tensor) -> Tensor:
 PIXEL_RANGE = (-0.5, 1.5)
 
 
-def checked_pixels(image: Tensor, index: int) -> None:
-    """Raise a ValueError naming image ``index`` where its pixels are not floats in [0, 1]
-    (:data:`PIXEL_RANGE`): an integer dtype, NaN or infinite values, or values far outside."""
-    if not image.is_floating_point():
-        raise ValueError(f"image {index}: pixels of {image.dtype}, where floats in [0, 1] are "
+def checked_pixels(images: Tensor, first: int = 0) -> None:
+    """Raise a ValueError naming the first of ``images`` ``(B, ...)`` (numbered from
+    ``first``) whose pixels are not floats in [0, 1] (:data:`PIXEL_RANGE`): an integer dtype,
+    NaN or infinite values, or values far outside. One reduction and one host sync a batch."""
+    if not images.is_floating_point():
+        raise ValueError(f"image {first}: pixels of {images.dtype}, where floats in [0, 1] are "
                          f"needed (divide by the bit depth's full scale, such as 255 or "
                          f"4095, or read the file with cupnet.io.images.read_image)")
-    low, high = (float(v) for v in torch.aminmax(image))  # one pass: cheap for 4096^2 images
-    if not (math.isfinite(low) and math.isfinite(high)):
-        raise ValueError(f"image {index}: contains NaN or infinite values")
-    if low < PIXEL_RANGE[0] or high > PIXEL_RANGE[1]:
-        raise ValueError(f"image {index}: pixels span [{low:.4g}, {high:.4g}], where [0, 1] is "
-                         f"needed (unscaled counts? divide by the bit depth's full scale, or "
-                         f"read the file with cupnet.io.images.read_image)")
+    lows, highs = (v.tolist() for v in images.detach().reshape(len(images), -1).aminmax(dim=-1))
+    for index, (low, high) in enumerate(zip(lows, highs, strict=True), first):
+        if not (math.isfinite(low) and math.isfinite(high)):
+            raise ValueError(f"image {index}: contains NaN or infinite values")
+        if low < PIXEL_RANGE[0] or high > PIXEL_RANGE[1]:
+            raise ValueError(f"image {index}: pixels span [{low:.4g}, {high:.4g}], where [0, 1] "
+                             f"is needed (unscaled counts? divide by the bit depth's full "
+                             f"scale, or read the file with cupnet.io.images.read_image)")
 
 
 def _as_image_list(images: Tensor | list, dtype: torch.dtype) -> list[Tensor]:
@@ -638,8 +640,7 @@ class CupNet(nn.Module):
         if isinstance(images, Tensor):
             if images.ndim != 4:
                 raise ValueError(f"images must be (B, 1, H, W), got {tuple(images.shape)}")
-            for i, image in enumerate(images.detach()):
-                checked_pixels(image, i)
+            checked_pixels(images)
             # Kept a batch (one tensor for the networks), of the model's dtype: a float64
             # batch had failed deep in a convolution ("expected scalar type Double").
             image_list = images.to(self.dtype)
