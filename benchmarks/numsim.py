@@ -34,6 +34,7 @@ from cupnet.pose import (
     solve_pose,
     solve_pose_paper,
 )
+from train.losses import pose_errors
 
 SDD, SPACING, DIAMETER, LANDMARKS = 1040.0, 1.0, 50.0, 100
 GEOMETRY = Geometry(SDD, SPACING, 0.0, 0.0)
@@ -64,8 +65,10 @@ def landmarks(poses: torch.Tensor, t: torch.Tensor, noise: float, rounding: bool
 
 
 def errors(estimate: torch.Tensor, truth: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Absolute errors per case: theta, phi (deg), k/l pooled (mm, 2 per case), h (mm)."""
-    diff = (estimate - truth).abs()
+    """Absolute errors per case: theta, phi (deg; wrapped into [-90, 90) as ``cupnet
+    evaluate`` and the training losses score it: 89.9 for a truth of -89.9 had counted 179.8
+    deg, not 0.2), k/l pooled (mm, 2 per case), h (mm)."""
+    diff = pose_errors(estimate, truth).abs()
     return {"theta": diff[:, 0], "phi": diff[:, 1], "kl": diff[:, 2:4].flatten(),
             "h": diff[:, 4]}
 
@@ -74,8 +77,8 @@ def resolve_ambiguity(pose: torch.Tensor, alt: torch.Tensor, truth: torch.Tensor
                       ) -> torch.Tensor:
     """Of an ambiguous pair, the pose nearer the truth: what a second view, the dome's
     silhouette or the surgeon's knowledge of the side would pick."""
-    closer = (alt - truth).abs().nan_to_num(math.inf).max(-1).values < (
-        pose - truth).abs().max(-1).values
+    closer = pose_errors(alt, truth).abs().nan_to_num(math.inf).max(-1).values < (
+        pose_errors(pose, truth).abs().max(-1).values)
     return torch.where(closer[:, None], alt, pose)
 
 
@@ -90,7 +93,7 @@ def robust_ratios(estimate: torch.Tensor, truth: torch.Tensor, bound: torch.Tens
                   subset: torch.Tensor) -> list[float]:
     """Per parameter, ``median(|error| / bound) / 0.6745`` over ``subset`` (1.0: at the
     bound). estimate, truth, bound ``(n, 5)``; subset ``(n,)`` bool."""
-    ratio = (estimate - truth).abs() / bound
+    ratio = pose_errors(estimate, truth).abs() / bound
     return [float(v) for v in ratio[subset].median(0).values / 0.6745]
 
 
@@ -148,7 +151,8 @@ def run(cases: int, paper_cases: int, seed: int) -> str:
                         *robust_ratios(plain.pose[sel], truth[sel], bound, everything)])
                     reported = pose_standard_errors(sol.pose[sel], points[sel], GEOMETRY,
                                                     DIAMETER)
-                    covered = ((sol.pose[sel] - truth[sel]).abs() < 1.96 * reported).double()
+                    covered = (pose_errors(sol.pose[sel], truth[sel]).abs()
+                               < 1.96 * reported).double()
                     se_rows.append([
                         label, *(float(v) for v in (reported / bound).median(0).values),
                         *(f"{100 * float(v):.1f}" for v in covered.mean(0))])
@@ -170,7 +174,8 @@ def run(cases: int, paper_cases: int, seed: int) -> str:
         f"Command: `python -m benchmarks.numsim --cases {cases} --paper-cases "
         f"{paper_cases} --seed {seed}`; {machine()}.",
         f"{cases} cases per condition, {LANDMARKS} landmarks, SDD {SDD:g} mm, "
-        f"{SPACING:g} mm/px, cup {DIAMETER:g} mm. Errors are absolute; MAE in deg / mm. "
+        f"{SPACING:g} mm/px, cup {DIAMETER:g} mm. Errors are absolute, phi's "
+        "wrapped modulo 180 deg as `cupnet evaluate` scores it; MAE in deg / mm. "
         "The first four columns score the solver's first pose; `amb %` is the share it flags "
         "ambiguous (both circle poses of the ellipse in range: landmarks alone cannot tell "
         "them apart, and the solver returns both). `resolved` columns score the returned pose "
