@@ -109,7 +109,10 @@ def ray_landmarks(prob: Tensor, n_rays: int = 64, n_samples: int = 128, extent: 
     ``b^2 / a >= 1`` px; a thinner region covers its tips' pixels only in part, so its
     semi-major axis comes out short (``a`` = 50 px: by 0.1 px at ``b`` = 7, 0.24 at 5, 0.7
     at 3, 1.7 at 2), whatever ``n_samples``. (CupNet's crops stretch the minor axis, and its
-    rim stage places the landmarks it solves.)
+    rim stage places the landmarks it solves.) A region cut by the map's edge ends its rays
+    there at full weight, landmarks on the edge, not on the region's boundary; weighting them
+    down by the region's value past the edge was measured and not taken (docs/training.md,
+    item 60: the shipped model's stages were tuned with these weights).
 
     Args:
         prob: ``(B, 1, H, W)`` coverage in [0, 1].
