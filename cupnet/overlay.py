@@ -144,7 +144,23 @@ def draw_overlay(image: np.ndarray, cups: Sequence[CupDrawing], title: str,
             cv2.putText(canvas, label, (round(cx), round(cy)), _FONT, 0.5 * unit, colour,
                         thickness, cv2.LINE_AA)
     lines = [title] + [line for cup in cups for line in cup.lines]
-    return _with_text(canvas, lines, 0.4 * unit, thickness)
+    drawn = [to_view(points) for cup in cups for points in _drawn_points(cup)]
+    return _with_text(canvas, lines, 0.4 * unit, thickness,
+                      np.concatenate(drawn) if drawn else np.zeros((0, 2)))
+
+
+def _drawn_points(cup: CupDrawing) -> list[np.ndarray]:
+    """``(M, 2)`` original-image pixels along what is drawn of ``cup``: its ellipse (every 5
+    deg), landmarks and outline, which the text must not cover."""
+    parts = [p for p in (cup.landmarks, cup.outline) if p is not None]
+    if cup.ellipse is not None and np.isfinite(cup.ellipse).all():
+        cx, cy, a, b, alpha = cup.ellipse
+        t = np.deg2rad(np.arange(0, 360, 5))
+        turn = np.deg2rad(alpha)
+        u, v = a * np.cos(t), b * np.sin(t)
+        parts.append(np.stack([cx + u * np.cos(turn) - v * np.sin(turn),
+                               cy + u * np.sin(turn) + v * np.cos(turn)], -1))
+    return [np.asarray(p, np.float64).reshape(-1, 2) for p in parts]
 
 
 def _wrap(line: str, width: int, font_scale: float, thickness: int) -> list[str]:
@@ -162,16 +178,25 @@ def _wrap(line: str, width: int, font_scale: float, thickness: int) -> list[str]
 
 
 def _with_text(canvas: np.ndarray, lines: list[str], font_scale: float,
-               thickness: int) -> np.ndarray:
-    """``canvas`` with the lines of text at its top left on a dark band, readable on any
-    image; where they would cover more than half of it (a very wide or tall image: a 4000 x
-    300 strip's text had covered it whole, and been cut off), on a panel below it instead,
-    at least :data:`_PANEL_CHARS` characters wide."""
+               thickness: int, drawn: np.ndarray) -> np.ndarray:
+    """``canvas`` with the lines of text in a corner on a dark band, readable on any image:
+    the first of top left, top right, bottom left and bottom right that covers none of the
+    ``drawn`` points ``(M, 2)`` (canvas pixels; a cup in the top left had been dimmed under
+    the text), else the one covering fewest. Where they would cover more than half of it (a
+    very wide or tall image: a 4000 x 300 strip's text had covered it whole, and been cut
+    off), on a panel below it instead, at least :data:`_PANEL_CHARS` characters wide."""
     (_, height), baseline = cv2.getTextSize("Ag", _FONT, font_scale, thickness)
     step = height + baseline + 2
     wrapped = _wrapped(lines, canvas.shape[1], font_scale, thickness)
     if step * len(wrapped) + 4 <= canvas.shape[0] // 2:
-        _draw_text_block(canvas, wrapped, font_scale, thickness, height, step)
+        band_h, band_w = _band_size(wrapped, font_scale, thickness, step)
+        rows, cols = canvas.shape[0] - band_h, canvas.shape[1] - band_w
+        corners = [(0, 0), (0, cols), (rows, 0), (rows, cols)]
+        covered = [int(((drawn[:, 0] >= x - 2) & (drawn[:, 0] <= x + band_w + 2)
+                        & (drawn[:, 1] >= y - 2) & (drawn[:, 1] <= y + band_h + 2)).sum())
+                   for y, x in corners]
+        corner = corners[int(np.argmin(covered))]  # the first of the least covered
+        _draw_text_block(canvas, wrapped, font_scale, thickness, height, step, corner)
         return canvas
     width = max(canvas.shape[1], 12 + cv2.getTextSize("x" * _PANEL_CHARS, _FONT, font_scale,
                                                       thickness)[0][0])
@@ -188,18 +213,28 @@ def _wrapped(lines: list[str], width: int, font_scale: float, thickness: int) ->
     return [part for line in lines for part in _wrap(line, width - 12, font_scale, thickness)]
 
 
+def _band_size(lines: list[str], font_scale: float, thickness: int, step: int
+               ) -> tuple[int, int]:
+    """Height and width in pixels of the dark band under wrapped ``lines``."""
+    if not lines:
+        return 0, 0
+    width = max(cv2.getTextSize(line, _FONT, font_scale, thickness)[0][0] for line in lines)
+    return step * len(lines) + 4, width + 8
+
+
 def _draw_text_block(canvas: np.ndarray, lines: list[str], font_scale: float, thickness: int,
-                     height: int, step: int) -> None:
-    """Wrapped ``lines`` at the top left of ``canvas`` (in place) on a dark band, a line
-    every ``step`` pixels (``height``: the font's)."""
+                     height: int, step: int, corner: tuple[int, int] = (0, 0)) -> None:
+    """Wrapped ``lines`` on a dark band of ``canvas`` (in place) whose top left is at
+    ``corner`` (row, column), a line every ``step`` pixels (``height``: the font's)."""
     if not lines:
         return
-    width = max(cv2.getTextSize(line, _FONT, font_scale, thickness)[0][0] for line in lines)
-    band = canvas[: step * len(lines) + 4, : width + 8]
+    band_h, band_w = _band_size(lines, font_scale, thickness, step)
+    top, left = corner
+    band = canvas[top:top + band_h, left:left + band_w]
     band[:] = (band * 0.35).astype(np.uint8)
     for i, line in enumerate(lines):
-        cv2.putText(canvas, line, (4, 2 + height + i * step), _FONT, font_scale, TEXT_COLOUR,
-                    thickness, cv2.LINE_AA)
+        cv2.putText(canvas, line, (left + 4, top + 2 + height + i * step), _FONT, font_scale,
+                    TEXT_COLOUR, thickness, cv2.LINE_AA)
 
 
 def write_png(path: Path, image: np.ndarray) -> None:

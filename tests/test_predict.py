@@ -658,6 +658,27 @@ def test_overlay_draws_the_dome_outline_where_given() -> None:
     assert not green[300, 300:500].any()
 
 
+def test_overlay_text_goes_to_a_corner_that_covers_no_cup() -> None:
+    """A cup in the top left keeps its colour: the text had been drawn over it there, on a
+    band that dims what it covers to 35 %. It goes to the top right instead, and stays in
+    the top left where the cup is elsewhere."""
+    from cupnet.overlay import STATUS_COLOURS, CupDrawing, draw_overlay
+
+    image = np.tile(np.linspace(0.8, 0.2, 600)[:, None], (1, 800))  # bright at the top
+    lines = ["cup 0: ok", "a second line", "a third line"]
+
+    def drawn(cx: float, cy: float) -> np.ndarray:
+        cup = CupDrawing(np.array([cx, cy, 50.0, 30.0, 0.0]), None, None, lines)
+        return draw_overlay(image, [cup], "x.png: 1 cup(s)").astype(int)
+
+    top_left = drawn(70.0, 60.0)
+    assert top_left[60, 120].tolist() == list(STATUS_COLOURS["ok"])  # the ellipse's right end
+    plain = drawn(400.0, 400.0)
+    # Row 1 lies in the band, above its text: dimmed where the band is, not elsewhere.
+    assert (top_left[1, 798] < 0.5 * plain[1, 798]).all()
+    assert (plain[1, 1] < 0.5 * top_left[1, 1]).all()
+
+
 def test_overlay_labels_a_cup_with_its_results_number() -> None:
     """A cup drawn with ``number`` 1 carries the label a second cup of the list gets, not the
     first's "0": under --landmarks a file's cups 1 and 2 had been labelled 0 and 1 on the
