@@ -121,6 +121,11 @@ def rim_points(pose: Tensor, radius: Tensor | float, t: Tensor) -> Tensor:
     return pose[..., None, 2:5] + matmul(local, rot.transpose(-1, -2))
 
 
+def _floating(x: Tensor) -> Tensor:
+    """``x`` itself when floating, else as float64 (integer pixel indices, say)."""
+    return x if x.is_floating_point() else x.to(torch.float64)
+
+
 def project(points: Tensor, geometry: Geometry) -> Tensor:
     """Perspective projection of detector-frame points to pixels.
 
@@ -130,6 +135,7 @@ def project(points: Tensor, geometry: Geometry) -> Tensor:
     Returns:
         ``(..., N, 2)`` pixel positions ``(u, v)``.
     """
+    points = _floating(points)
     sdd, spacing, u0, v0 = (g[..., None] for g in geometry.tensors(points.dtype, points.device))
     scale = sdd / (sdd - points[..., 2]) / spacing
     return torch.stack([u0 + points[..., 0] * scale, v0 + points[..., 1] * scale], -1)
@@ -137,12 +143,14 @@ def project(points: Tensor, geometry: Geometry) -> Tensor:
 
 def pixels_to_mm(uv: Tensor, geometry: Geometry) -> Tensor:
     """Pixels ``(..., N, 2)`` -> detector-plane mm ``(..., N, 2)`` (x, y)."""
+    uv = _floating(uv)
     _, spacing, u0, v0 = (g[..., None] for g in geometry.tensors(uv.dtype, uv.device))
     return torch.stack([(uv[..., 0] - u0) * spacing, (uv[..., 1] - v0) * spacing], -1)
 
 
 def mm_to_pixels(xy: Tensor, geometry: Geometry) -> Tensor:
     """Detector-plane mm ``(..., N, 2)`` -> pixels ``(..., N, 2)``."""
+    xy = _floating(xy)
     _, spacing, u0, v0 = (g[..., None] for g in geometry.tensors(xy.dtype, xy.device))
     return torch.stack([u0 + xy[..., 0] / spacing, v0 + xy[..., 1] / spacing], -1)
 
@@ -186,6 +194,9 @@ def rim_conic(pose: Tensor, radius: Tensor | float, geometry: Geometry) -> Tenso
     Returns:
         ``(B, 3, 3)`` symmetric conic in homogeneous pixels ``(u, v, 1)``.
     """
+    # A pixel conic is ill-conditioned (its quadratic part ~1/a^2 beside a constant
+    # ~(c/a)^2): built in float32 it is often no ellipse at all, so build it in float64.
+    out_dtype, pose = pose.dtype, pose.to(torch.float64)
     radius = torch.as_tensor(radius, dtype=pose.dtype, device=pose.device)
     rot = rotation(pose[..., 0], pose[..., 1])
     cam = camera_matrix(geometry, pose.dtype, pose.device)
@@ -202,7 +213,7 @@ def rim_conic(pose: Tensor, radius: Tensor | float, geometry: Geometry) -> Tenso
     quad = adjugate[..., :2, :]
     conic = (matmul(quad.transpose(-1, -2), quad)
              - r2 * matmul(adjugate[..., 2:, :].transpose(-1, -2), adjugate[..., 2:, :]))
-    return conic / torch.linalg.matrix_norm(conic)[..., None, None]
+    return (conic / torch.linalg.matrix_norm(conic)[..., None, None]).to(out_dtype)
 
 
 def normalize_conic(conic: Tensor) -> Tensor:
