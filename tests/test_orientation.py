@@ -92,3 +92,16 @@ def test_gradients_match_finite_differences() -> None:
     pose = poses([(25.0, 40.0), (10.0, -70.0)]).requires_grad_()
     assert torch.autograd.gradcheck(operative_angles, (pose,))
     assert torch.autograd.gradcheck(anatomic_angles, (pose,))
+
+
+def test_anatomic_angles_have_a_finite_gradient_on_the_longitudinal_axis() -> None:
+    """At theta = phi = 0 (where a zero-initialised head starts) the gradient had been NaN
+    for the whole batch; it is 0 there (a subgradient of the inclination's cone), and the
+    other poses' gradients are those they have alone."""
+    pose = torch.tensor([[0.0, 0.0, 0.0, 0.0, 300.0], [20.0, 30.0, 0.0, 0.0, 300.0]],
+                        dtype=torch.float64, requires_grad=True)
+    (anatomic_angles(pose)[:, 1] - 40).pow(2).sum().backward()
+    assert torch.isfinite(pose.grad).all() and pose.grad[0].abs().sum() == 0
+    alone = pose.detach()[1:].clone().requires_grad_()
+    (anatomic_angles(alone)[:, 1] - 40).pow(2).sum().backward()
+    torch.testing.assert_close(pose.grad[1:], alone.grad)
