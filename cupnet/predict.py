@@ -790,6 +790,49 @@ def _model_settings(args: argparse.Namespace) -> dict[str, object]:
     return {name: value for name, value in given.items() if value is not None}
 
 
+# The options that shape results.csv's rows (as argparse names them), with how to name each
+# to the user: a resume with any of them changed would mix two runs' rows under the later
+# run's settings alone. (Batch size, threads, device and runtime change no row.)
+RESULT_OPTIONS = {"preset": "--fast / --fastest", "rotate": "--rotate", "metal": "--metal",
+                  "check_doubt": "--check-doubt", "min_score": "--min-score",
+                  "denoise_above": "--denoise-above", "enlarge_below": "--enlarge-below",
+                  "keep_outside_field": "--keep-outside-field", "meta": "--meta",
+                  "sdd": "--sdd", "pixel_spacing": "--pixel-spacing",
+                  "cup_diameter": "--cup-diameter", "principal_point": "--principal-point",
+                  "assume_defaults": "--assume-defaults"}
+
+
+def _changed_since(json_path: Path, header: dict) -> list[str]:
+    """:func:`changed_settings` of the run whose results.json is ``json_path``; none where
+    it is missing or unreadable (results.csv alone is resumed as it is)."""
+    try:
+        earlier = json.loads(json_path.read_text())
+    except (OSError, ValueError):
+        return []
+    return changed_settings(earlier, header) if isinstance(earlier, dict) else []
+
+
+def changed_settings(earlier: dict, header: dict) -> list[str]:
+    """What differs between an earlier run's results.json ``earlier`` and this run's
+    ``header`` among :data:`RESULT_OPTIONS` and the model (or landmark file) by content,
+    each as ``option: before -> now``."""
+    before, now = earlier.get("arguments", {}), standard_json(header["arguments"])
+
+    def same(key: str) -> bool:
+        if key == "meta" and before.get(key) and now.get(key):  # spelt otherwise, one file
+            return Path(before[key]).resolve() == Path(now[key]).resolve()
+        return before.get(key) == now.get(key)
+
+    def shown(value: object) -> object:
+        return "not given" if value is None or value is False else value
+
+    changed = [f"{option}: {shown(before.get(key))} -> {shown(now.get(key))}"
+               for key, option in RESULT_OPTIONS.items() if not same(key)]
+    if earlier.get("model", {}).get("sha256") != header["model"].get("sha256"):
+        changed.append("the model's weights or the landmark file: other contents")
+    return changed
+
+
 def _run(args: argparse.Namespace) -> int:
     problem = _check_args(args)
     if problem is None:
@@ -815,6 +858,12 @@ def _run(args: argparse.Namespace) -> int:
     header = {"software": _software(), "model": detector.info, "arguments": arguments}
     outputs = Outputs(args.out, header)
     if args.resume:
+        changed = _changed_since(outputs.json_path, header)
+        if changed:
+            print(f"cupnet predict: --resume with other settings than the run in {args.out} "
+                  f"({'; '.join(changed)}): its rows would mix the two runs'; give the same "
+                  "options, or --overwrite, or another --out", file=sys.stderr)
+            return 2
         outputs.load_previous()
     elif args.overwrite:
         outputs.remove_previous_images()

@@ -7,6 +7,7 @@ import json
 import math
 import os
 import signal
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -205,23 +206,30 @@ def five_images_in_batches_of_two(tmp_path: Path, checkpoint: Path) -> tuple[Pat
                  "--batch-size", "2", "--no-overlays"]
 
 
-def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
-                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    out, args = five_images_in_batches_of_two(tmp_path, blind_checkpoint)
+def interrupt_the_second_batch(monkeypatch: pytest.MonkeyPatch) -> Callable[[], None]:
+    """Ctrl-C while the network runs on a run's second batch, from now until the returned
+    function is called."""
     real = predict.NetworkDetector.__call__
     calls = []
 
     def interrupted_on_second_batch(self, *args):
         calls.append(args)
         if len(calls) == 2:
-            raise KeyboardInterrupt  # Ctrl-C while the network runs
+            raise KeyboardInterrupt
         return real(self, *args)
 
     monkeypatch.setattr(predict.NetworkDetector, "__call__", interrupted_on_second_batch)
+    return lambda: monkeypatch.setattr(predict.NetworkDetector, "__call__", real)
+
+
+def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
+                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    out, args = five_images_in_batches_of_two(tmp_path, blind_checkpoint)
+    restore = interrupt_the_second_batch(monkeypatch)
     assert main(args) == 130
     first = rows_by_image(read_csv(out / "results.csv"))
     assert set(first) == {"im0.png", "im1.png"}
-    monkeypatch.setattr(predict.NetworkDetector, "__call__", real)
+    restore()
     assert main(args) == 2  # existing results: neither resumed nor overwritten silently
     assert main([*args, "--resume"]) == 0
     final = rows_by_image(read_csv(out / "results.csv"))
@@ -229,6 +237,28 @@ def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
     assert final["im0.png"] == first["im0.png"]  # kept, not recomputed
     document = json.loads((out / "results.json").read_text())
     assert [r["image"] for r in document["images"]] == [f"im{i}.png" for i in range(5)]
+
+
+def test_resume_refuses_other_settings_than_the_run_it_resumes(
+        tmp_path: Path, blind_checkpoint: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture) -> None:
+    """A resume with --fastest of a default run had mixed the two runs' rows under the later
+    settings alone; settings that change no row (batch size, threads) may change, and a
+    meta file spelt otherwise is the same file."""
+    out, args = five_images_in_batches_of_two(tmp_path, blind_checkpoint)
+    restore = interrupt_the_second_batch(monkeypatch)
+    (tmp_path / "meta.csv").write_text("image,sdd_mm\nim0.png,1000\n")
+    assert main([*args, "--meta", str(tmp_path / "meta.csv")]) == 130
+    restore()
+    capsys.readouterr()
+    assert main([*args, "--meta", str(tmp_path / "meta.csv"), "--resume", "--fastest",
+                 "--rotate", "90"]) == 2
+    err = capsys.readouterr().err
+    assert "--fast / --fastest: not given -> fastest; --rotate: 0 -> 90" in err
+    assert len(rows_by_image(read_csv(out / "results.csv"))) == 2  # left as it was
+    monkeypatch.chdir(tmp_path)
+    assert main([*args, "--meta", "./meta.csv", "--resume", "--batch-size", "3"]) == 0
+    assert len(rows_by_image(read_csv(out / "results.csv"))) == 5
 
 
 def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path: Path, blind_checkpoint: Path,
