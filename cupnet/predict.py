@@ -260,10 +260,10 @@ class NetworkDetector:
                      "speed_preset": preset, "device": device, "runtime": runtime,
                      "config": dict(vars(self.model.config))}
 
-    def file_values(self, name: str) -> dict[str, float]:
+    def file_values(self, frame: Frame) -> dict[str, float]:
         return {}
 
-    def cup_numbers(self, name: str, count: int) -> list[int]:
+    def cup_numbers(self, frame: Frame, count: int) -> list[int]:
         """results.csv's ``cup`` of each of an image's ``count`` cups: left to right."""
         return list(range(count))
 
@@ -299,27 +299,27 @@ class LandmarkDetector:
         self.sets = read_landmarks(path)
         self.info = {"landmarks": str(path), "sha256": _sha256(path)}
 
-    def cups_of(self, name: str) -> list:
+    def cups_of(self, frame: Frame) -> list:
         """The image's :class:`cupnet.io.landmarks.LandmarkSet` s
-        (:func:`cupnet.io.meta.row_for_image`)."""
-        return row_for_image(self.sets, name) or []
+        (:func:`cupnet.io.meta.row_for_image`, its file's path helping)."""
+        return row_for_image(self.sets, frame.name, file_path(frame)) or []
 
     def input_error(self, frame: Frame) -> str | None:
         """The landmark file's error for an image all of whose rows are unreadable."""
-        cups = self.cups_of(frame.name)
+        cups = self.cups_of(frame)
         if cups and all(c.error is not None for c in cups):
             return f"error: {cups[0].error}"
         return None
 
-    def file_values(self, name: str) -> dict[str, float]:
-        cups = [c for c in self.cups_of(name) if c.error is None]
+    def file_values(self, frame: Frame) -> dict[str, float]:
+        cups = [c for c in self.cups_of(frame) if c.error is None]
         return cups[0].geometry_values() if cups else {}
 
-    def cup_numbers(self, name: str, count: int) -> list[int]:
+    def cup_numbers(self, frame: Frame, count: int) -> list[int]:
         """results.csv's ``cup`` of each of an image's cups: the file's own labels, as
         ``cupnet solve`` writes them (numbered by position, a file labelling its cups 1 and
         2 had its cup 2's pose under predict's cup 1)."""
-        return [landmarks.cup for landmarks in self.cups_of(name)][:count]
+        return [landmarks.cup for landmarks in self.cups_of(frame)][:count]
 
     def __call__(self, frames: list[Frame], geometries: list[ResolvedGeometry]) -> list[list]:
         from cupnet.detection import CupDetection
@@ -328,7 +328,7 @@ class LandmarkDetector:
         out: list[list] = []
         for frame, resolved in zip(frames, geometries, strict=True):
             cups = []
-            for landmarks in self.cups_of(frame.name):
+            for landmarks in self.cups_of(frame):
                 if landmarks.error is not None:
                     nan = np.full(5, math.nan)
                     cups.append(CupDetection(nan, None, False, nan, landmarks.points,
@@ -453,6 +453,12 @@ def summarise(records: Iterable[dict]) -> dict:
             "patient_spacing": patient_spacing,
             "errors": sum(errors.values()), "error_reasons": errors,
             "seconds_per_image": seconds / images if images else None}
+
+
+def file_path(frame: Frame) -> str:
+    """The absolute path of a frame's file (links not followed), by which a side file's row
+    given by folder finds it (:func:`cupnet.io.meta.key_for_image`)."""
+    return os.path.abspath(frame.source.path)
 
 
 def output_name(name: str, suffix: str) -> str:
@@ -591,7 +597,7 @@ class Predictor:
             geometry = self.geometry_inputs.resolve(
                 frame.name, frame.image.shape,  # type: ignore[union-attr]
                 {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm},
-                frame.tag_sources, self.detector.file_values(frame.name))
+                frame.tag_sources, self.detector.file_values(frame), file_path(frame))
             if not geometry.complete:
                 batch.records[i] = {"image": frame.name, "geometry": geometry.to_json(),
                                     "rows": [status_row(frame.name,
@@ -653,7 +659,7 @@ class Predictor:
                 compute_seconds: float) -> dict:
         start = time.perf_counter()
         record = {"image": frame.name, "geometry": geometry.to_json()}
-        numbers = self.detector.cup_numbers(frame.name, len(cups))  # results.csv's cup
+        numbers = self.detector.cup_numbers(frame, len(cups))  # results.csv's cup
         if not self.args.no_overlays:
             drawings = [CupDrawing(c.ellipse, c.landmarks, c.weights,
                                    pose_lines(j, c.status, c.pose, c.residual_px, c.alt_pose,
@@ -712,14 +718,16 @@ def signals_interrupt(received: list[int]) -> Iterator[None]:
             signal.signal(number, handler)
 
 
-def _note_unmatched(outputs: Outputs, meta: dict, detector: object, names: list[str]) -> None:
+def _note_unmatched(outputs: Outputs, meta: dict, detector: object, names: list[str],
+                    paths: dict[str, str]) -> None:
     """Warn of ``--meta`` rows and ``--landmarks`` sets that no image of the run found (frames
-    find their file's): each was left unused without a word."""
+    find their file's; ``paths``: the files' absolute paths by name): each was left unused
+    without a word."""
     tables = [("meta.csv", meta)]
     if isinstance(detector, LandmarkDetector):
         tables.append(("landmark", detector.sets))
     for what, table in tables:
-        unused = unmatched_keys(table, names)
+        unused = unmatched_keys(table, names, paths)
         if unused:
             outputs.warnings[f"unmatched_{what}"] = (
                 f"{len(unused)} {what} row(s) matched no image of the run (first: "
@@ -893,7 +901,8 @@ def _run(args: argparse.Namespace) -> int:
         while in_flight:
             complete()
         # Only a run that went through every image can tell which rows no image found.
-        _note_unmatched(outputs, geometry_inputs.meta, detector, list(outputs.records))
+        _note_unmatched(outputs, geometry_inputs.meta, detector, list(outputs.records),
+                        {source.name: os.path.abspath(source.path) for source in sources})
 
     stopped_by: list[int] = []  # the signal that ended the run as Ctrl-C does, if one did
     try:

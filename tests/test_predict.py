@@ -868,6 +868,36 @@ def test_overlays_of_inputs_named_by_their_paths_stay_under_out(tmp_path: Path,
         {"value": 1000.0 + i, "source": "meta.csv"} for i in (1, 2, 3)]
 
 
+def test_meta_rows_given_by_folder_reach_a_run_on_one_folder(tmp_path: Path,
+                                                             blind_checkpoint: Path) -> None:
+    """A run on in/d1 alone names its image a.png; the meta rows d1/a.png and d2/a.png had
+    both matched that name alike, so neither was taken (an error row for want of the
+    geometry). The file's path finds d1's row, and no row is reported unused but d2's."""
+    for folder in ("d1", "d2"):
+        (tmp_path / "in" / folder).mkdir(parents=True)
+        noise_png(tmp_path / "in" / folder / "a.png", size=256)
+    (tmp_path / "meta.csv").write_text("image,sdd_mm,pixel_spacing_mm,cup_diameter_mm\n"
+                                       "d1/a.png,1001,0.31,50\nd2/a.png,1002,0.32,54\n")
+    out = tmp_path / "out"
+    assert main(["predict", str(tmp_path / "in" / "d1"), "--out", str(out), "--checkpoint",
+                 str(blind_checkpoint), "--meta", str(tmp_path / "meta.csv"), "--quiet",
+                 "--no-overlays"]) == 0
+    document = json.loads((out / "results.json").read_text())
+    (record,) = document["images"]
+    assert record["image"] == "a.png"
+    assert record["geometry"]["sdd_mm"] == {"value": 1001.0, "source": "meta.csv"}
+    assert "first: d2/a.png" in document["warnings"]["unmatched_meta.csv"]
+    # Landmarks given by folder: the image had come out no_cup, its landmarks unfound.
+    t = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    (tmp_path / "lm.csv").write_text("image,u,v\n" + "".join(
+        f"d1/a.png,{128 + 115 * np.cos(a):.4f},{128 + 70 * np.sin(a):.4f}\n" for a in t))
+    assert main(["predict", str(tmp_path / "in" / "d1"), "--out", str(tmp_path / "lm"),
+                 "--landmarks", str(tmp_path / "lm.csv"), "--meta", str(tmp_path / "meta.csv"),
+                 "--quiet", "--no-overlays"]) == 0
+    (row,) = read_csv(tmp_path / "lm" / "results.csv")
+    assert row["image"] == "a.png" and row["status"] in ("ok", "ambiguous")
+
+
 def test_an_overlay_that_cannot_be_written_loses_no_row(tmp_path: Path, blind_checkpoint: Path,
                                                          capsys: pytest.CaptureFixture) -> None:
     """A name one byte short of the file system's limit takes the overlay's '.png' past it:

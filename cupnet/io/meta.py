@@ -11,7 +11,7 @@ import argparse
 import csv
 import math
 import re
-from collections.abc import Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
@@ -205,9 +205,11 @@ class GeometryInputs:
     def resolve(self, name: str, size: tuple[int, int] | None,
                 tags: dict[str, float | None] | None = None,
                 tag_sources: dict[str, str] | None = None,
-                file_values: dict[str, float] | None = None) -> ResolvedGeometry:
-        """:func:`resolve_geometry` of image ``name`` (its :func:`meta_row`) and ``size``."""
-        return resolve_geometry(size, meta_row(self.meta, name), self.flags,
+                file_values: dict[str, float] | None = None,
+                path: str | None = None) -> ResolvedGeometry:
+        """:func:`resolve_geometry` of image ``name`` (its :func:`meta_row`, its file's
+        absolute ``path`` helping) and ``size``."""
+        return resolve_geometry(size, meta_row(self.meta, name, path), self.flags,
                                 self.assume_defaults, tags, tag_sources, file_values)
 
 
@@ -276,48 +278,64 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
     return rows
 
 
-def key_for_image(table: Collection[str], name: str) -> str | None:
+def key_for_image(table: Collection[str], name: str, path: str | None = None) -> str | None:
     """An image's key among ``table``'s image names (those of meta.csv rows or landmark sets,
     or a set of names): its name, else its file's name (frames ``name#2``), else the longest
-    key that ends that file's path (``d1/a.png`` for an image ``../in/d1/a.png``, ``a.png``
-    for ``sub/a.png``); keys given with other folders match too where their file name is
-    theirs alone (``images/a.png`` for an image ``a.png`` of a run on ``images/``); and then
-    each rule again with names of other case (``A.PNG``: names typed on Windows). Where two
-    keys match alike, neither is taken."""
+    key that ends that file's name (``a.png`` for ``sub/a.png``), else the longest that ends
+    its file's absolute ``path`` where given (``d1/a.png`` for an image ``a.png`` of a run on
+    ``in/d1``, or ``../in/d1/a.png`` named by its path); keys given with other folders match
+    too where their file name is theirs alone (``images/a.png`` for an image ``a.png`` of a
+    run on ``images/``); and then each rule again with names of other case (``A.PNG``: names
+    typed on Windows). Where two keys match alike, neither is taken."""
     file_name = re.sub(r"#\d+$", "", name)  # a frame's file (a '#' elsewhere is the name's)
     for key in (name, file_name):
         if key in table:
             return key
-    wanted = _parts(file_name)
-    if not wanted:
+    wanted = [_parts(file_name), *([_parts(path)] if path else [])]
+    if not wanted[0]:
         return None
     for fold in (str, str.casefold):
-        path = [fold(part) for part in wanted]
-        # Two inputs of one name are named by their paths (cupnet.predict.gather_images):
-        # rows given by folder find theirs by the path's end.
-        tails = {key: len(parts) for key in table
-                 if (parts := [fold(part) for part in _parts(key)])
-                 and parts == path[len(path) - len(parts):]}
-        if tails:
-            most = max(tails.values())
-            longest = [key for key, length in tails.items() if length == most]
-            return longest[0] if len(longest) == 1 else None
-        keys = [key for key in table if fold(_base_name(key)) == path[-1]]
+        for parts_wanted in wanted:
+            found = _longest_tail(table, [fold(part) for part in parts_wanted], fold)
+            if found is not _NONE:
+                return found
+        keys = [key for key in table if fold(_base_name(key)) == fold(wanted[0][-1])]
         if keys:
             return keys[0] if len(keys) == 1 else None
     return None
 
 
-def row_for_image(table: Mapping[str, T], name: str) -> T | None:
+_NONE = object()  # no key ends the path (None: two end it alike)
+
+
+def _longest_tail(table: Collection[str], path: list[str], fold: Callable[[str], str]
+                  ) -> str | None | object:
+    """The longest key of ``table`` whose parts end ``path`` (both folded by ``fold``), None
+    where two end it alike, else :data:`_NONE`."""
+    tails = {key: len(parts) for key in table
+             if (parts := [fold(part) for part in _parts(key)])
+             and parts == path[len(path) - len(parts):]}
+    if not tails:
+        return _NONE
+    most = max(tails.values())
+    longest = [key for key, length in tails.items() if length == most]
+    return longest[0] if len(longest) == 1 else None
+
+
+def row_for_image(table: Mapping[str, T], name: str, path: str | None = None) -> T | None:
     """An image's entry in ``table`` (:func:`key_for_image`), else None."""
-    key = key_for_image(table, name)
+    key = key_for_image(table, name, path)
     return None if key is None else table[key]
 
 
-def unmatched_keys(table: Collection[str], names: Iterable[str]) -> list[str]:
-    """The keys of ``table`` that none of the images ``names`` finds (:func:`key_for_image`):
-    rows of a side file a run silently went without (a typo, another folder's images)."""
-    found = {key_for_image(table, name) for name in names}
+def unmatched_keys(table: Collection[str], names: Iterable[str],
+                   paths: Mapping[str, str] | None = None) -> list[str]:
+    """The keys of ``table`` that none of the images ``names`` finds (:func:`key_for_image`,
+    each with its file's path in ``paths`` by name, frames by their file's): rows of a side
+    file a run silently went without (a typo, another folder's images)."""
+    paths = paths or {}
+    found = {key_for_image(table, name, paths.get(re.sub(r"#\d+$", "", name)))
+             for name in names}
     return [key for key in table if key not in found]
 
 
@@ -331,6 +349,7 @@ def _parts(name: str) -> list[str]:
     return [part for part in name.replace("\\", "/").split("/") if part not in ("", ".")]
 
 
-def meta_row(meta: dict[str, dict[str, float]], name: str) -> dict[str, float]:
+def meta_row(meta: dict[str, dict[str, float]], name: str, path: str | None = None
+             ) -> dict[str, float]:
     """The meta.csv row of an image (:func:`row_for_image`), else no values."""
-    return row_for_image(meta, name) or {}
+    return row_for_image(meta, name, path) or {}
