@@ -555,6 +555,7 @@ class Batch:
     """A batch between :meth:`Predictor.prepare` and :meth:`Predictor.finish`."""
 
     size: int
+    paths: list[str]  # each frame's file (file_path), kept in its record for --resume
     records: dict[int, dict] = field(default_factory=dict)
     ready: list[tuple[int, Frame, ResolvedGeometry]] = field(default_factory=list)
 
@@ -586,7 +587,7 @@ class Predictor:
     def prepare(self, frames: list[Frame]) -> Batch:
         """Read errors and geometry of a batch: records of the images that fail, and the
         images ready for detection."""
-        batch = Batch(len(frames))
+        batch = Batch(len(frames), [file_path(frame) for frame in frames])
         for i, frame in enumerate(frames):
             error = (f"error: {frame.error}" if frame.error is not None
                      else self.detector.input_error(frame))
@@ -625,6 +626,8 @@ class Predictor:
                     status_row(frame.name, cups, frame.seconds + share)]}
             else:
                 batch.records[i] = self._record(frame, geo, cups, share)
+        for i, path in enumerate(batch.paths):
+            batch.records[i]["path"] = path
         return [batch.records[i] for i in range(batch.size)]
 
     def _detect(self, ready: list[tuple[int, Frame, ResolvedGeometry]]) -> list[list | str]:
@@ -734,6 +737,27 @@ def _note_unmatched(outputs: Outputs, meta: dict, detector: object, names: list[
                 f"{unused[0]}); check their names against the images'")
         else:  # a resumed run's images may have found the rows an earlier part left unused
             outputs.warnings.pop(f"unmatched_{what}", None)
+
+
+def renamed_moved(records: dict[str, dict], sources: list[ImageSource]) -> None:
+    """An earlier run's record (in ``records``, by name, in place) of a file this run names
+    otherwise (a second input folder with a file of its name, its folder spelt otherwise)
+    takes the new name, found by its file's path: the file had been run again and counted
+    twice under both names."""
+    by_path: dict[str, list[str]] = {}
+    for name, record in records.items():
+        if isinstance(record.get("path"), str):
+            by_path.setdefault(record["path"], []).append(name)
+    for source in sources:
+        for old in by_path.get(os.path.abspath(source.path), []):
+            frame = re.search(r"#\d+$", old)
+            new = source.name + (frame.group() if frame else "")
+            if new != old and new not in records:
+                record = records.pop(old)
+                record["image"] = new
+                for row in record["rows"]:
+                    row["image"] = new
+                records[new] = record
 
 
 def _software() -> dict:
@@ -873,6 +897,7 @@ def _run(args: argparse.Namespace) -> int:
                   "options, or --overwrite, or another --out", file=sys.stderr)
             return 2
         outputs.load_previous()
+        renamed_moved(outputs.records, sources)
     elif args.overwrite:
         outputs.remove_previous_images()
     done = set(outputs.records)

@@ -261,6 +261,28 @@ def test_resume_refuses_other_settings_than_the_run_it_resumes(
     assert len(rows_by_image(read_csv(out / "results.csv"))) == 5
 
 
+def test_resume_takes_a_renamed_file_as_done(tmp_path: Path, blind_checkpoint: Path) -> None:
+    """A second folder with a file of the first's name, added on --resume: both are then
+    named by their paths, and the first's earlier record takes its new name (found by its
+    file's path), where the file had been run again and counted twice, under both names."""
+    for folder in ("d1", "d2"):
+        (tmp_path / folder).mkdir()
+        noise_png(tmp_path / folder / "a.png", size=256)
+    noise_png(tmp_path / "d1" / "b.png", size=256)
+    out = tmp_path / "out"
+    args = ["predict", str(tmp_path / "d1"), "--out", str(out), "--checkpoint",
+            str(blind_checkpoint), "--assume-defaults", "--quiet", "--no-overlays"]
+    assert main(args) == 0
+    before = rows_by_image(read_csv(out / "results.csv"))
+    assert main([*args[:2], str(tmp_path / "d2"), *args[2:], "--resume"]) == 0
+    after = rows_by_image(read_csv(out / "results.csv"))
+    first, second = (f"{tmp_path.as_posix()}/{d}/a.png" for d in ("d1", "d2"))
+    assert sorted(after) == sorted([first, second, "b.png"])
+    assert [{**row, "image": "a.png"} for row in after[first]] == before["a.png"]  # not rerun
+    document = json.loads((out / "results.json").read_text())
+    assert document["summary"]["images"] == 3
+
+
 def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path: Path, blind_checkpoint: Path,
                                            monkeypatch: pytest.MonkeyPatch,
                                            capsys: pytest.CaptureFixture) -> None:
