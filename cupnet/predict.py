@@ -26,6 +26,7 @@ import platform
 import re
 import signal
 import sys
+import tempfile
 import threading
 import time
 from collections import Counter, deque
@@ -455,6 +456,18 @@ def summarise(records: Iterable[dict]) -> dict:
             "seconds_per_image": seconds / images if images else None}
 
 
+def writable_folder(out: Path) -> None:
+    """Make ``out`` and write (and remove) a file in it, so that one where nothing can be
+    written is an OSError naming it before the model loads: it had ended the run in a
+    traceback after the first batch, with exit 1 (every row an error, by the README)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as error:
+        raise OSError(f"cannot write to --out {out}: {error.strerror or error}") from error
+
+
 def file_path(frame: Frame) -> str:
     """The absolute path of a frame's file (links not followed), by which a side file's row
     given by folder finds it (:func:`cupnet.io.meta.key_for_image`)."""
@@ -871,6 +884,7 @@ def _run(args: argparse.Namespace) -> int:
         try:
             sources = gather_images(args.images, args.recursive, args.out)
             geometry_inputs = GeometryInputs.from_args(args)
+            writable_folder(args.out)
         except (OSError, ValueError) as exc:  # as cupnet solve: an unreadable --meta too
             problem = str(exc)
     if problem is not None:
@@ -885,7 +899,6 @@ def _run(args: argparse.Namespace) -> int:
               f"{error_reason(exc)}",
               file=sys.stderr)
         return 2
-    args.out.mkdir(parents=True, exist_ok=True)
     arguments = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
     header = {"software": _software(), "model": detector.info, "arguments": arguments}
     outputs = Outputs(args.out, header)

@@ -954,6 +954,11 @@ def test_an_out_that_is_a_file_or_holds_the_input_is_named(tmp_path: Path,
     assert f"--out {images} holds the input folder {images}" in capsys.readouterr().err
     assert main(["predict", str(images), "--out", str(tmp_path / "afile"), *common]) == 2
     assert "is a file; give a folder for the results" in capsys.readouterr().err
+    # A folder that cannot be made (a file on its path) is named before the model loads; it
+    # had ended in a NotADirectoryError traceback after the first batch, with exit 1.
+    assert main(["predict", str(images), "--out", str(tmp_path / "afile" / "sub"), *common]) == 2
+    assert f"cannot write to --out {tmp_path / 'afile' / 'sub'}: Not a directory" in (
+        capsys.readouterr().err)
     assert main(["predict", str(images), "--out", str(images / "cupnet"), *common]) == 0
     assert list(rows_by_image(read_csv(images / "cupnet" / "results.csv"))) == ["a.png"]
 
