@@ -38,7 +38,7 @@ bench: $(STAMP)
 # on the shipped weights, items 6-35). Each stage's whole output is printed when it ends (-O).
 # HOUR_ARGS goes to every stage, e.g. HOUR_ARGS="--seed_everything 1 --data.train_seed 100".
 TRAIN := $(BIN)/python -m train fit -c configs/cpu.yaml
-HOUR_ARGS :=
+HOUR_ARGS ?=
 train-hour: $(STAMP)
 	@echo "train-hour: chain A (U-Nets, then locator) beside chain B (fine rim, then coarse" \
 		"rim), about 44 min, each stage's output printed when it ends; then the locator alone"
