@@ -952,6 +952,9 @@ def test_an_out_that_is_a_file_or_holds_the_input_is_named(tmp_path: Path,
     # ended in a FileExistsError traceback.
     assert main(["predict", str(images), "--out", str(images), *common]) == 2
     assert f"--out {images} holds the input folder {images}" in capsys.readouterr().err
+    # A quoted glob whose every match lies under --out had said "no images found".
+    assert main(["predict", f"{images}/*.png", "--out", str(images), *common]) == 2
+    assert "everything" in (err := capsys.readouterr().err) and "lies in the output folder" in err
     assert main(["predict", str(images), "--out", str(tmp_path / "afile"), *common]) == 2
     assert "is a file; give a folder for the results" in capsys.readouterr().err
     # A folder that cannot be made (a file on its path) is named before the model loads; it

@@ -183,12 +183,16 @@ def find_images(spec: str | Path, recursive: bool = False,
     else:
         raise FileNotFoundError(f"no such file, folder or glob match: {spec}")
     excluded = exclude.resolve() if exclude is not None else None
-    found = []
+    found, skipped = [], 0
     for p in candidates:
         if excluded is not None and p.resolve().is_relative_to(excluded):
+            skipped += 1
             continue
         if _wanted(p):
             found.append(ImageSource(p, display_name(p.relative_to(root).as_posix())))
+    if not found and skipped:  # it had said "no images found", with the images right there
+        raise FileNotFoundError(f"everything {spec} names lies in the output folder {exclude}, "
+                                "whose contents are skipped as input: give --out elsewhere")
     if not found:
         where = "matching" if glob.has_magic(spec) and not path.is_dir() else "in"
         hint = "" if recursive or not path.is_dir() else " (use --recursive for subfolders)"
