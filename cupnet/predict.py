@@ -752,6 +752,24 @@ def _note_unmatched(outputs: Outputs, meta: dict, detector: object, names: list[
             outputs.warnings.pop(f"unmatched_{what}", None)
 
 
+def in_input_order(records: dict[str, dict], names: list[str]) -> dict[str, dict]:
+    """``records`` (by image name) in the order of the run's input ``names`` (a file's
+    frames in theirs), then those of no input of the run as they were: a resumed run had put
+    its new images after the earlier part's, where a whole run sorts them in."""
+    place = {name: i for i, name in enumerate(names)}
+
+    def key(item: tuple[int, str]) -> tuple[int, int, int]:
+        index, name = item
+        frame = re.search(r"#(\d+)$", name)
+        file = name[:frame.start()] if frame and name[:frame.start()] in place else name
+        if file not in place:
+            return (1, index, 0)
+        return (0, place[file], int(frame.group(1)) if file != name else 0)
+
+    order = sorted(enumerate(records), key=key)
+    return {name: records[name] for _, name in order}
+
+
 def renamed_moved(records: dict[str, dict], sources: list[ImageSource]) -> None:
     """An earlier run's record (in ``records``, by name, in place) of a file this run names
     otherwise (a second input folder with a file of its name, its folder spelt otherwise)
@@ -953,6 +971,7 @@ def _run(args: argparse.Namespace) -> int:
         pool.shutdown(wait=False, cancel_futures=True)
         frames.close()
         bar.close()
+        outputs.records = in_input_order(outputs.records, [source.name for source in sources])
         summary = summarise(outputs.records.values())
         outputs.flush(summary, force=True)
     _print_summary(summary, args.out, not args.no_overlays, time.perf_counter() - start,
