@@ -155,7 +155,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replace existing results (and remove the overlays and masks "
                              "the previous run's results.json lists)")
     parser.add_argument("--resume", action="store_true",
-                        help="keep existing results and process only the images not in them")
+                        help="keep existing results and process only the images not in "
+                             "them (with the same settings: other row-shaping options are "
+                             "refused, naming each)")
     parser.add_argument("--save-masks", action="store_true", help="write cup masks as PNG")
     parser.add_argument("--no-overlays", action="store_true", help="skip the overlay PNGs")
     parser.add_argument("--device", default="cpu",
