@@ -59,6 +59,7 @@ from cupnet.io.meta import (
     ResolvedGeometry,
     add_geometry_arguments,
     assumptions_once,
+    frame_file,
     implausible_once,
     row_for_image,
     unmatched_keys,
@@ -305,7 +306,7 @@ class LandmarkDetector:
     def cups_of(self, frame: Frame) -> list:
         """The image's :class:`cupnet.io.landmarks.LandmarkSet` s
         (:func:`cupnet.io.meta.row_for_image`, its file's path helping)."""
-        return row_for_image(self.sets, frame.name, file_path(frame)) or []
+        return row_for_image(self.sets, frame.name, absolute_path(frame.source)) or []
 
     def input_error(self, frame: Frame) -> str | None:
         """The landmark file's error for an image all of whose rows are unreadable."""
@@ -470,10 +471,10 @@ def writable_folder(out: Path) -> None:
         raise OSError(f"cannot write to --out {out}: {error.strerror or error}") from error
 
 
-def file_path(frame: Frame) -> str:
-    """The absolute path of a frame's file (links not followed), by which a side file's row
-    given by folder finds it (:func:`cupnet.io.meta.key_for_image`)."""
-    return os.path.abspath(frame.source.path)
+def absolute_path(source: ImageSource) -> str:
+    """An input file's absolute path, links not followed: how inputs are told apart, and
+    by which a side file's row given by folder finds it (:func:`cupnet.io.meta.key_for_image`)."""
+    return os.path.abspath(source.path)
 
 
 def output_name(name: str, suffix: str) -> str:
@@ -502,7 +503,7 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a folder for the results")
     found: list[ImageSource] = []
-    seen: set[Path] = set()
+    seen: set[str] = set()
     for spec in specs:
         if Path(spec).is_dir() and Path(spec).resolve().is_relative_to(out.resolve()):
             # Everything under --out is skipped as input (the overlays of earlier runs).
@@ -512,7 +513,7 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
             # Absolute, links not followed: a file given twice (a folder and a glob in it)
             # runs once, but a link keeps its own row beside its target's (resolving it lost
             # whichever of the two names sorted second, and its side-file row with it).
-            path = Path(os.path.abspath(source.path))
+            path = absolute_path(source)
             if path in seen:
                 continue
             seen.add(path)
@@ -570,7 +571,7 @@ class Batch:
     """A batch between :meth:`Predictor.prepare` and :meth:`Predictor.finish`."""
 
     size: int
-    paths: list[str]  # each frame's file (file_path), kept in its record for --resume
+    paths: list[str]  # each frame's file (absolute_path), kept in its record for --resume
     records: dict[int, dict] = field(default_factory=dict)
     ready: list[tuple[int, Frame, ResolvedGeometry]] = field(default_factory=list)
 
@@ -602,7 +603,7 @@ class Predictor:
     def prepare(self, frames: list[Frame]) -> Batch:
         """Read errors and geometry of a batch: records of the images that fail, and the
         images ready for detection."""
-        batch = Batch(len(frames), [file_path(frame) for frame in frames])
+        batch = Batch(len(frames), [absolute_path(frame.source) for frame in frames])
         for i, frame in enumerate(frames):
             error = (f"error: {frame.error}" if frame.error is not None
                      else self.detector.input_error(frame))
@@ -613,7 +614,7 @@ class Predictor:
             geometry = self.geometry_inputs.resolve(
                 frame.name, frame.image.shape,  # type: ignore[union-attr]
                 {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm},
-                frame.tag_sources, self.detector.file_values(frame), file_path(frame))
+                frame.tag_sources, self.detector.file_values(frame), absolute_path(frame.source))
             if not geometry.complete:
                 batch.records[i] = {"image": frame.name, "geometry": geometry.to_json(),
                                     "rows": [status_row(frame.name,
@@ -762,11 +763,10 @@ def in_input_order(records: dict[str, dict], names: list[str]) -> dict[str, dict
 
     def key(item: tuple[int, str]) -> tuple[int, int, int]:
         index, name = item
-        frame = re.search(r"#(\d+)$", name)
-        file = name[:frame.start()] if frame and name[:frame.start()] in place else name
-        if file not in place:
-            return (1, index, 0)
-        return (0, place[file], int(frame.group(1)) if file != name else 0)
+        file, frame = frame_file(name)
+        if frame is not None and file in place:
+            return (0, place[file], frame)
+        return (0, place[name], 0) if name in place else (1, index, 0)
 
     order = sorted(enumerate(records), key=key)
     return {name: records[name] for _, name in order}
@@ -782,9 +782,9 @@ def renamed_moved(records: dict[str, dict], sources: list[ImageSource]) -> None:
         if isinstance(record.get("path"), str):
             by_path.setdefault(record["path"], []).append(name)
     for source in sources:
-        for old in by_path.get(os.path.abspath(source.path), []):
-            frame = re.search(r"#\d+$", old)
-            new = source.name + (frame.group() if frame else "")
+        for old in by_path.get(absolute_path(source), []):
+            frame = frame_file(old)[1]
+            new = source.name + ("" if frame is None else f"#{frame}")
             if new != old and new not in records:
                 record = records.pop(old)
                 record["image"] = new
@@ -960,7 +960,7 @@ def _run(args: argparse.Namespace) -> int:
             complete()
         # Only a run that went through every image can tell which rows no image found.
         _note_unmatched(outputs, geometry_inputs.meta, detector, list(outputs.records),
-                        {source.name: os.path.abspath(source.path) for source in sources})
+                        {source.name: absolute_path(source) for source in sources})
 
     stopped_by: list[int] = []  # the signal that ended the run as Ctrl-C does, if one did
     try:

@@ -278,6 +278,13 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
     return rows
 
 
+def frame_file(name: str) -> tuple[str, int | None]:
+    """An image name's file and frame: ``run.dcm#2`` -> ``("run.dcm", 2)``; a name with no
+    trailing ``#N`` is its file's, frame None (a ``#`` elsewhere is the file's own)."""
+    frame = re.search(r"#(\d+)$", name)
+    return (name, None) if frame is None else (name[:frame.start()], int(frame.group(1)))
+
+
 def key_for_image(table: Collection[str], name: str, path: str | None = None) -> str | None:
     """An image's key among ``table``'s image names (those of meta.csv rows or landmark sets,
     or a set of names): its name, else its file's name (frames ``name#2``), else the longest
@@ -287,7 +294,7 @@ def key_for_image(table: Collection[str], name: str, path: str | None = None) ->
     too where their file name is theirs alone (``images/a.png`` for an image ``a.png`` of a
     run on ``images/``); and then each rule again with names of other case (``A.PNG``: names
     typed on Windows). Where two keys match alike, neither is taken."""
-    file_name = re.sub(r"#\d+$", "", name)  # a frame's file (a '#' elsewhere is the name's)
+    file_name = frame_file(name)[0]
     for key in (name, file_name):
         if key in table:
             return key
@@ -334,8 +341,7 @@ def unmatched_keys(table: Collection[str], names: Iterable[str],
     each with its file's path in ``paths`` by name, frames by their file's): rows of a side
     file a run silently went without (a typo, another folder's images)."""
     paths = paths or {}
-    found = {key_for_image(table, name, paths.get(re.sub(r"#\d+$", "", name)))
-             for name in names}
+    found = {key_for_image(table, name, paths.get(frame_file(name)[0])) for name in names}
     return [key for key in table if key not in found]
 
 
