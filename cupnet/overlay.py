@@ -16,8 +16,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import torch
 
 from cupnet.crops import rescaled_pixels
+from cupnet.ellipse import ellipse_points
 from cupnet.io.results import atomic_write
 
 # BGR colours by status.
@@ -154,12 +156,8 @@ def _drawn_points(cup: CupDrawing) -> list[np.ndarray]:
     deg), landmarks and outline, which the text must not cover."""
     parts = [p for p in (cup.landmarks, cup.outline) if p is not None]
     if cup.ellipse is not None and np.isfinite(cup.ellipse).all():
-        cx, cy, a, b, alpha = cup.ellipse
-        t = np.deg2rad(np.arange(0, 360, 5))
-        turn = np.deg2rad(alpha)
-        u, v = a * np.cos(t), b * np.sin(t)
-        parts.append(np.stack([cx + u * np.cos(turn) - v * np.sin(turn),
-                               cy + u * np.sin(turn) + v * np.cos(turn)], -1))
+        t = torch.deg2rad(torch.arange(0, 360, 5, dtype=torch.float64))
+        parts.append(ellipse_points(torch.as_tensor(cup.ellipse, dtype=torch.float64), t))
     return [np.asarray(p, np.float64).reshape(-1, 2) for p in parts]
 
 
