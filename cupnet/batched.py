@@ -47,7 +47,7 @@ from cupnet.model import (
     takes_pick,
 )
 from cupnet.polarity import metals_show_bright
-from cupnet.pose import PoseSolution, ellipse_of_pose
+from cupnet.pose import PoseSolution, check_geometry_batch, ellipse_of_pose
 
 
 class BatchedCups(NamedTuple):
@@ -93,7 +93,7 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
                          f"{tuple(images.shape) if isinstance(images, Tensor) else type(images)}")
     checked_pixels(images)
     cup_diameter = cup_diameters(cup_diameter, len(images))
-    geometry_rows(geometry, len(images))  # checked here, before any network runs
+    check_geometry_batch(geometry, len(images))  # here, before any network runs
     # In train mode the BatchNorms would take the batch's statistics, and keep them.
     with evaluating(model):
         return _batched_cups(model, images.to(model.dtype), geometry, cup_diameter, outline)

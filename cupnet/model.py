@@ -308,9 +308,8 @@ def rim_second_poses(pose: Tensor, image: Tensor, geometry: Geometry,
 
 
 def geometry_rows(geometry: Geometry, batch: int) -> Tensor:
-    """``(B, 4)`` float64 rows (sdd, spacing, u0, v0) of a batch geometry; a field of other
-    than one value or one per image is a ValueError naming it (it had failed in a reshape)."""
-    check_geometry_batch(geometry, batch)
+    """``(B, 4)`` float64 rows (sdd, spacing, u0, v0) of a batch geometry (checked where
+    it comes in: :meth:`CupNet.detect`, :func:`cupnet.batched.batched_cups`)."""
     return torch.stack([t.expand(batch) if t.ndim == 0 else t.reshape(batch)
                         for t in geometry.tensors(torch.float64)], -1)
 
@@ -706,6 +705,8 @@ class CupNet(nn.Module):
             # Checked and converted once: every look takes these, or a subset of them.
             image_list = _as_image_list(images, self.dtype)
             diameter = cup_diameters(cup_diameter, len(image_list))
+            # A field of other than one value or one per image had failed deep, in a reshape.
+            check_geometry_batch(geometry, len(image_list))
             noises = self.image_noises(image_list)
             image_list = [image if not cleaned else denoised(image, noise)
                           for image, (noise, cleaned) in zip(image_list, noises, strict=True)]
