@@ -645,6 +645,7 @@ class CupNet(nn.Module):
             image_list = images.to(self.dtype)
         else:
             image_list = _as_image_list(images, self.dtype)
+        check_geometry_batch(geometry, len(image_list))
         locator_logits, letterbox = self.locate(list(image_list))
         if crop_frames is None:
             rough = self.ellipses_from_locator(locator_logits, letterbox)[0]

@@ -83,8 +83,10 @@ def test_batched_cups_of_an_image_without_a_cup_and_of_bad_input() -> None:
     three = Geometry.from_rows(torch.tensor([[1000.0, 0.3, 128.0, 128.0]] * 3))
     with pytest.raises(ValueError, match=r"geometry sdd must be a scalar or one per item \(2\)"):
         batched_cups(model, two, three, 50.0)
-    with pytest.raises(ValueError, match=r"geometry sdd must be a scalar or one per item \(2\)"):
-        model.detect(two, three, 50.0)
+    for call in (model.detect, lambda *a: model(a[0], a[1], torch.full((2,), a[2]))):
+        with pytest.raises(ValueError,
+                           match=r"geometry sdd must be a scalar or one per item \(2\)"):
+            call(two, three, 50.0)
 
 
 def test_batched_cups_run_a_model_in_train_mode_as_in_eval_mode(drrs: list[dict]) -> None:
