@@ -7,6 +7,8 @@ import json
 import math
 import os
 import signal
+import subprocess
+import sys
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -305,6 +307,25 @@ def test_sigterm_ends_a_run_as_ctrl_c_does(tmp_path: Path, blind_checkpoint: Pat
     assert "interrupted" in printed.out and "--resume" in printed.out + printed.err
     assert {"im0.png", "im1.png"} <= set(rows_by_image(read_csv(out / "results.csv")))
     assert signal.getsignal(signal.SIGTERM) is signal.SIG_DFL  # restored after the run
+
+
+@pytest.mark.parametrize("status", [0, 128 + signal.SIGTERM])
+def test_the_command_exits_at_once_when_stopped(status: int) -> None:
+    """A stopped run's detection threads, still on the batches in flight, had held the
+    installed command's exit for seconds (past `docker stop`'s grace): a thread that never
+    ends stands in for them. A run that finished waits for its threads as before."""
+    script = (
+        "import threading, cupnet.cli as cli\n"
+        "stop = threading.Event()\n"
+        "threading.Thread(target=stop.wait, daemon=False).start()\n"
+        f"def main():\n    print('written before the stop')\n"
+        f"    if {status} == 0: stop.set()\n    return {status}\n"
+        "cli.main = main\n"
+        "cli.console()\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == status, done.stderr
+    assert done.stdout == "written before the stop\n"  # flushed before the exit
 
 
 @pytest.mark.parametrize(("error", "status"), [
