@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 import torch
 
+import cupnet.ellipse
 from cupnet.ellipse import (
     EllipseFitError,
     _distinct_counts,
     conic_to_params,
     ellipse_points,
     fit_ellipse,
+    is_ellipse,
     params_to_conic,
 )
 
@@ -122,6 +124,11 @@ def test_gradcheck_points_and_weights(generator):
     (torch.zeros(4, 2, dtype=torch.float64) + torch.arange(4.0)[:, None], "too few points"),
     (torch.stack([torch.arange(8.0), 2 * torch.arange(8.0)], -1).double(), "collinear"),
     (torch.full((8, 2), 3.0, dtype=torch.float64), "collinear"),
+    # A line with jitter far below any landmark's precision (1e-5 px) is still a line.
+    (torch.stack([torch.arange(8.0, dtype=torch.float64), 2 * torch.arange(
+        8.0, dtype=torch.float64) + 1e-5 * torch.tensor([1.0, -1.0, 0.5, 2.0, -0.3, 0.7, -1.5,
+                                                         0.2], dtype=torch.float64)], -1),
+     "collinear"),
     (torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0], [math.nan, 2.0],
                    [2.0, 3.0]], dtype=torch.float64), "non-finite"),
 ])
@@ -150,8 +157,12 @@ def test_hyperbola_points_are_not_an_ellipse():
     x = torch.linspace(1, 3, 10, dtype=torch.float64)
     points = torch.cat([torch.stack([x, 1 / x], -1), torch.stack([-x, -1 / x], -1)])
     fit = fit_ellipse(points, on_error="flag")
-    # The ellipse-specific fit always returns an ellipse, even for hyperbola points.
-    assert fit.valid.all() and fit.params[0, 2] >= fit.params[0, 3] > 0
+    # The ellipse-specific fit always returns an ellipse, even for hyperbola points: the
+    # same one as OpenCV's direct (Fitzgibbon) fit.
+    assert fit.valid.all()
+    ref = opencv_params(points.float().double().numpy())
+    np.testing.assert_allclose(fit.params[0, :4].numpy(), ref[:4], rtol=1e-4, atol=1e-4)
+    assert angle_diff(float(fit.params[0, 4]), ref[4]) < 1e-3
 
 
 def test_float32_and_integer_points_are_fitted_in_float64():
@@ -238,3 +249,36 @@ def test_distinct_points_counted_exactly(generator):
     counts = _distinct_counts(points, active)
     expected = [len(torch.unique(points[i][active[i]], dim=0)) for i in range(30)]
     assert counts.tolist() == expected and len(set(expected)) > 3
+
+
+def test_a_negative_weight_is_named():
+    points = ellipse_points(torch.tensor([50.0, 40.0, 20.0, 10.0, 30.0], dtype=torch.float64),
+                            torch.linspace(0, 6, 12, dtype=torch.float64))
+    weights = torch.ones(12, dtype=torch.float64)
+    weights[3] = -1.0
+    with pytest.raises(EllipseFitError, match="negative"):
+        fit_ellipse(points, weights)
+
+
+def test_degenerate_conics_are_no_ellipse():
+    """A parabola-like conic (singular quadratic part), a point ellipse and an imaginary one
+    are none: only a positive-definite quadratic part with det(C) of the trace's opposite
+    sign is a real ellipse."""
+    conics = torch.tensor([[[1.0, 0, 0], [0, 1, 0], [0, 0, -1]],  # the unit circle
+                           [[1.0, 0, 0], [0, 0, 0], [0, 0, -1]],  # two lines x = +-1
+                           [[1.0, 0, 0], [0, 1, 0], [0, 0, 0]],  # a single point
+                           [[1.0, 0, 0], [0, 1, 0], [0, 0, 1]]],  # no real point
+                          dtype=torch.float64)
+    assert is_ellipse(conics).tolist() == [True, False, False, False]
+
+
+def test_a_fit_that_is_no_ellipse_raises_naming_it(monkeypatch: pytest.MonkeyPatch):
+    """The ellipse-specific fit returns an ellipse whenever the scatter matrix allows one;
+    round-off may still leave a degenerate conic, which must be an error, not a result."""
+    monkeypatch.setattr(cupnet.ellipse, "is_ellipse",
+                        lambda conic: torch.zeros(conic.shape[:-2], dtype=torch.bool))
+    points = ellipse_points(torch.tensor([50.0, 40.0, 20.0, 10.0, 30.0], dtype=torch.float64),
+                            torch.linspace(0, 6, 12, dtype=torch.float64))
+    with pytest.raises(EllipseFitError, match="not an ellipse"):
+        fit_ellipse(points)
+    assert not fit_ellipse(points, on_error="flag").valid.any()

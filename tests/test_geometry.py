@@ -94,8 +94,10 @@ def test_default_principal_point_is_image_centre():
 
 
 @pytest.mark.parametrize("field, value, word", [("sdd", -1.0, "source-to-detector"),
+                                                ("sdd", 0.0, "source-to-detector"),
                                                 ("pixel_spacing", 0.0, "pixel spacing"),
-                                                ("principal_u", math.nan, "principal point")])
+                                                ("principal_u", math.nan, "principal point"),
+                                                ("principal_v", math.nan, "principal point")])
 def test_geometry_validation_names_the_bad_value(field, value, word):
     kwargs = dict(sdd=1000.0, pixel_spacing=0.2, principal_u=0.0, principal_v=0.0)
     kwargs[field] = value

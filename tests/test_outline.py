@@ -43,18 +43,19 @@ def _ray_distance(points: torch.Tensor, centre: torch.Tensor, geometry: Geometry
 @pytest.mark.parametrize("dome_only", [False, True])
 def test_outline_rays_touch_the_sphere_and_normals_point_out(generator, dome_only):
     pose = pose_to_radians(paper_poses(50, generator))
-    radius = torch.full((50,), RADIUS, dtype=torch.float64)
+    # Cups of their own sizes: each side is in its own cup's radii.
+    radius = RADIUS * (0.8 + 0.4 * torch.rand(50, generator=generator, dtype=torch.float64))
     points, normals, side = sphere_outline(pose, radius, GEOMETRY, 96, dome_only)
     centre = pose[:, 2:5]
     assert torch.allclose(_ray_distance(points, centre, GEOMETRY), radius[:, None], atol=1e-9)
-    assert (_ray_distance(points + 0.5 * normals, centre, GEOMETRY) > RADIUS).all()
-    assert (_ray_distance(points - 0.5 * normals, centre, GEOMETRY) < RADIUS).all()
+    assert (_ray_distance(points + 0.5 * normals, centre, GEOMETRY) > radius[:, None]).all()
+    assert (_ray_distance(points - 0.5 * normals, centre, GEOMETRY) < radius[:, None]).all()
     # side: the tangent point (the foot of the ray nearest the centre) above the rim plane,
     # towards the dome (-axis), in radii.
     source, direction = _rays(points, GEOMETRY)
     along = ((centre[:, None] - source) * direction).sum(-1, keepdim=True)
     touch = source + along * direction
-    expected = -((touch - centre[:, None]) * cup_axis(pose)[:, None]).sum(-1) / RADIUS
+    expected = -((touch - centre[:, None]) * cup_axis(pose)[:, None]).sum(-1) / radius[:, None]
     assert torch.allclose(side, expected, atol=1e-9)
     if dome_only:  # the dome's half of the whole outline: its highest half-turn
         whole = sphere_outline(pose, radius, GEOMETRY, 960)[2]

@@ -8,9 +8,13 @@ import pytest
 import torch
 from cup_cases import paper_poses, rim_landmarks
 
-from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians, rim_conic
+from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians, project_rim, rim_conic
 from cupnet.pose import (
     PoseError,
+    _curvature_offsets,
+    _noise_variance,
+    _normal_jacobian,
+    _rim,
     canonical_pose,
     cramer_rao_bound,
     orthographic_pose,
@@ -280,7 +284,9 @@ def test_pose_gradient_reaches_landmarks_through_solve_pose(generator):
 @pytest.mark.parametrize("kwargs, message", [
     (dict(geometry=Geometry(1040.0, -1.0, 0.0, 0.0)), "pixel spacing"),
     (dict(geometry=Geometry(0.0, 1.0, 0.0, 0.0)), "source-to-detector"),
+    (dict(geometry=Geometry(1040.0, 1.0, 0.0, math.nan)), "principal point"),
     (dict(cup_diameter=-50.0), "radius"),
+    (dict(cup_diameter=0.0), "radius"),
     (dict(cup_diameter=400.0), "outside"),  # no cup that big fits between source and detector
 ])
 def test_bad_geometry_raises_naming_the_value(kwargs, message):
@@ -304,12 +310,30 @@ def test_tiny_ellipse_and_bad_items_are_flagged_while_the_batch_goes_on():
         solve_pose(points, GEOMETRY, 50.0)
 
 
+def test_an_item_in_error_reports_no_second_pose():
+    """An almost edge-on cup has two poses in range; given a cup too big to fit between
+    source and detector, its row is an error with neither."""
+    truth = torch.tensor([[0.3, 20.0, 0.0, 0.0, 300.0]] * 2, dtype=torch.float64)
+    sol = solve_pose(rim_landmarks(truth, GEOMETRY), GEOMETRY,
+                     torch.tensor([50.0, 400.0], dtype=torch.float64), on_error="flag")
+    assert sol.status[0] == "ambiguous" and sol.status[1].startswith("error")
+    assert sol.ambiguous.tolist() == [True, False]
+    assert torch.isfinite(sol.alt_pose[0]).all() and torch.isnan(sol.alt_pose[1]).all()
+
+
 def test_orthographic_baseline_is_exact_for_a_distant_source():
     truth = torch.tensor([[35.0, -40.0, 0.0, 0.0, 100.0]], dtype=torch.float64)
     far = Geometry(1e9, 1.0, 0.0, 0.0)
     sol = solve_pose(rim_landmarks(truth, far), far, 50.0)
     ortho = orthographic_pose(sol.ellipse)
     torch.testing.assert_close(ortho[0], truth[0, :2], atol=1e-4, rtol=0)
+
+
+def test_orthographic_inclination_wraps_the_major_axis_angle_into_its_half_open_range():
+    ellipses = torch.tensor([[0.0, 0.0, 30.0, 15.0, alpha] for alpha in (0.0, 90.0, 90.5, 179.0)])
+    torch.testing.assert_close(orthographic_pose(ellipses)[:, 1],
+                               torch.tensor([0.0, 90.0, -89.5, -1.0]))  # phi in (-90, 90]
+    torch.testing.assert_close(orthographic_pose(ellipses)[0, 0], torch.tensor(30.0))  # asin(1/2)
 
 
 def test_orthographic_baseline_is_biased_off_centre_and_perspective_is_not():
@@ -393,3 +417,77 @@ def test_an_empty_batch_gives_empty_results(refine):
     sol = solve_pose(torch.zeros(0, 16, 2, dtype=torch.float64), GEOMETRY, 50.0, refine=refine)
     assert sol.pose.shape == sol.alt_pose.shape == sol.ellipse.shape == (0, 5)
     assert sol.valid.shape == sol.residual_px.shape == (0,) and sol.status == []
+
+
+def test_each_item_of_a_mixed_batch_is_solved_as_if_alone(generator):
+    """Items of their own geometry and cup size in one batch: the first, noise-free, leaves
+    the solver's working set first, so a later item read by position would take its rows."""
+    truth = torch.tensor([[30.0, 15.0, 10.0, -5.0, 300.0], [12.0, -40.0, -30.0, 20.0, 250.0],
+                          [45.0, 70.0, 5.0, 5.0, 400.0]], dtype=torch.float64)
+    sdd, spacing = [1040.0, 1000.0, 990.0], [1.0, 0.4, 0.2]
+    u0, v0 = [0.0, 5.0, -8.0], [0.0, -3.0, 6.0]
+    diameters = torch.tensor([50.0, 56.0, 44.0], dtype=torch.float64)
+    geometry = Geometry(*(torch.tensor(f, dtype=torch.float64) for f in (sdd, spacing, u0, v0)))
+    t = torch.arange(40, dtype=torch.float64) * (2 * math.pi / 40)
+    points = project_rim(pose_to_radians(truth), diameters / 2, geometry, t)
+    points[1:] += 0.5 * torch.randn(2, 40, 2, generator=generator, dtype=torch.float64)
+    batch = solve_pose(points, geometry, diameters)
+    errors = pose_standard_errors(batch.pose, points, geometry, diameters)
+    bound = cramer_rao_bound(pose_to_radians(truth), diameters / 2, geometry, t, 1.0)
+    for i in range(3):
+        one = Geometry(sdd[i], spacing[i], u0[i], v0[i])
+        alone = solve_pose(points[i:i + 1], one, float(diameters[i]))
+        torch.testing.assert_close(batch.pose[i], alone.pose[0], atol=1e-7, rtol=0)
+        torch.testing.assert_close(errors[i], pose_standard_errors(
+            alone.pose, points[i:i + 1], one, float(diameters[i]))[0], atol=1e-9, rtol=1e-7)
+        torch.testing.assert_close(bound[i], cramer_rao_bound(
+            pose_to_radians(truth[i:i + 1]), float(diameters[i]) / 2, one, t, 1.0)[0])
+
+
+def test_rim_derivatives_along_the_rim_match_finite_differences():
+    """The solver's inner loop differentiates the projected rim by hand: d(u, v)/dt and
+    d^2(u, v)/dt^2 against central differences, off centre and seen obliquely."""
+    pose = pose_to_radians(torch.tensor([[35.0, -20.0, 60.0, -40.0, 200.0],
+                                         [8.0, 70.0, -80.0, 30.0, 450.0]], dtype=torch.float64))
+    geom = torch.tensor([[1040.0, 0.3, 4.0, -6.0], [1000.0, 1.0, 0.0, 0.0]], dtype=torch.float64)
+    radius = torch.tensor([25.0, 28.0], dtype=torch.float64)
+    t = torch.linspace(0.0, 6.0, 13, dtype=torch.float64).expand(2, -1)
+    step = 1e-5
+    rim, ahead, behind = (_rim(pose, t + d, radius, geom) for d in (0.0, step, -step))
+    torch.testing.assert_close(rim.du, (ahead.u - behind.u) / (2 * step), atol=1e-6, rtol=1e-7)
+    torch.testing.assert_close(rim.dv, (ahead.v - behind.v) / (2 * step), atol=1e-6, rtol=1e-7)
+    torch.testing.assert_close(rim.ddu, (ahead.du - behind.du) / (2 * step), atol=1e-6,
+                               rtol=1e-7)
+    torch.testing.assert_close(rim.ddv, (ahead.dv - behind.dv) / (2 * step), atol=1e-6,
+                               rtol=1e-7)
+
+
+def test_curvature_offsets_are_half_the_variance_times_the_curvature_clipped_at_sigma():
+    """The corrected score's offsets (Kanatani's hyperaccurate correction): -sigma^2 kappa / 2
+    with sigma^2 from the distances over N - 5 degrees of freedom (landmarks of weight 0
+    uncounted), clipped at one sigma where the rim bends sharply (a thin ellipse's tips)."""
+    pose = pose_to_radians(torch.tensor([[4.0, 30.0, 20.0, -10.0, 300.0]], dtype=torch.float64))
+    geom = torch.tensor([[1040.0, 1.0, 0.0, 0.0]], dtype=torch.float64)
+    radius = torch.tensor([25.0], dtype=torch.float64)
+    t = torch.linspace(0.0, 2 * math.pi, 41, dtype=torch.float64)[None, :-1]
+    weights = torch.ones(1, 40, dtype=torch.float64)
+    weights[0, :4] = 0.0
+    dist = torch.full((1, 40), 2.5, dtype=torch.float64)
+    variance = 2.5**2 * 36 / 31
+    torch.testing.assert_close(_noise_variance(dist, weights), torch.tensor([[variance]],
+                                                                             dtype=torch.float64))
+    rim = _rim(pose, t, radius, geom)
+    n_u, n_v, _ = _normal_jacobian(pose, rim)
+    offsets = _curvature_offsets(dist, weights, rim, n_u, n_v)[0]
+    # Signed curvature of the projected rim by central differences, towards the left normal
+    # (-dv, du), the solver's.
+    step = 1e-4
+    x = [project_rim(pose, 25.0, Geometry(1040.0, 1.0, 0.0, 0.0), t + d)[0]
+         for d in (-step, 0.0, step)]
+    first, second = (x[2] - x[0]) / (2 * step), (x[2] - 2 * x[1] + x[0]) / step**2
+    speed = first.norm(dim=-1)
+    kappa = (first[:, 0] * second[:, 1] - first[:, 1] * second[:, 0]) / speed**3
+    expected = (-0.5 * variance * kappa).clamp(-math.sqrt(variance), math.sqrt(variance))
+    torch.testing.assert_close(offsets, expected, atol=1e-5, rtol=1e-5)
+    assert (expected.abs() == math.sqrt(variance)).any()  # the tips are clipped ...
+    assert (expected.abs() < 0.5 * math.sqrt(variance)).any()  # ... the flanks are not
