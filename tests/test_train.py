@@ -21,7 +21,15 @@ from cupnet.model import load_model, save_model
 from data_synth.dataset import stream_share
 from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule, RoundRobinBatches
-from train.losses import distill_loss, ellipse_loss, pose_errors, pose_loss, ramp, wrap_angle
+from train.losses import (
+    distill_loss,
+    ellipse_loss,
+    pose_errors,
+    pose_loss,
+    ramp,
+    segmentation_loss,
+    wrap_angle,
+)
 from train.merge import main as merge_main
 from train.merge import merged
 from train.module import (
@@ -99,6 +107,41 @@ def test_a_cup_without_truth_is_left_out_of_the_pose_and_ellipse_losses():
     assert torch.equal(ellipse_loss(circle, rim, scale, valid),
                        ellipse_loss(circle[:1], rim[:1], scale[:1], valid[:1]))
     assert torch.isfinite(ellipse_loss(circle, rim, scale, valid))
+
+
+def test_pose_loss_divides_each_error_by_its_target_mae():
+    """Huber (quadratic within 1) of errors in target MAEs (1 deg, 1 deg, 1 mm, 1 mm, 8 mm),
+    averaged over the five components: an 8 mm error in h weighs as 1 mm in k."""
+    truth = torch.tensor([[20.0, 10.0, 1.0, 2.0, 300.0]], dtype=torch.float64)
+    valid = torch.tensor([True])
+    for error, expected in (([0.5, 0, 0, 0, 0], 0.5 * 0.5**2 / 5),  # theta, quadratic
+                            ([0, 0, 0, 0, 4.0], 0.5 * 0.5**2 / 5),  # h: 4 mm is half a target
+                            ([0, 0, 2.0, 0, 0], (2.0 - 0.5) / 5),  # k: linear beyond 1
+                            ([0, 0, 0, 0, 16.0], (2.0 - 0.5) / 5)):
+        pred = truth + torch.tensor([error], dtype=torch.float64)
+        assert float(pose_loss(pred, truth, valid)) == pytest.approx(expected, rel=1e-12)
+
+
+def test_ellipse_loss_is_the_huber_of_sampson_distances_in_crop_pixels():
+    """A circle of radius 10 px and true rim points at 10.5 px: Sampson distance
+    (r^2 - 100) / (2 r) = 0.488 image px, 0.244 crop px at 2 image px a crop px."""
+    circle = torch.diag(torch.tensor([1.0, 1.0, -100.0], dtype=torch.float64))[None]
+    t = torch.linspace(0, 6.0, 16, dtype=torch.float64)
+    rim = torch.stack([10.5 * torch.cos(t), 10.5 * torch.sin(t)], -1)[None]
+    distance = (10.5**2 - 100) / (2 * 10.5) / 2.0
+    loss = ellipse_loss(circle, rim, torch.tensor([2.0], dtype=torch.float64),
+                        torch.tensor([True]))
+    assert float(loss) == pytest.approx(0.5 * distance**2, rel=1e-12)
+
+
+def test_segmentation_loss_vanishes_on_sure_right_logits_and_not_on_wrong_ones():
+    target = torch.zeros(2, 1, 16, 16)
+    target[:, :, 4:12, 5:10] = 1.0
+    sure = 30.0 * (2 * target - 1)
+    assert float(segmentation_loss(sure, target)) < 1e-6  # BCE and Dice both at their floor
+    # All wrong: BCE ~30, Dice 1 - 1 / (40 + 216 + 1) of its smoothing term.
+    wrong = float(segmentation_loss(-sure, target))
+    assert wrong == pytest.approx(30.0 + 1 - 1 / (40 + 216 + 1), rel=1e-3)
 
 
 def test_schedule_ramps_in():
@@ -282,6 +325,8 @@ def test_a_list_of_synthesis_configs_is_mixed_batch_by_batch():
     batches = [b for _, b in zip(range(4), mixed.train_dataset(), strict=False)]
     # Streams in order (configs, sizes within each): thin 96, thin 128, open 96, open 128.
     assert [b["image"].shape[-1] for b in batches] == [96, 128, 96, 128]
+    # Each stream has a seed of its own: a config's sizes do not repeat each other's cups.
+    assert not torch.equal(batches[0]["pose"], batches[1]["pose"])
     for b, low in zip(batches, (0, 0, 49, 49), strict=True):
         theta = b["pose"][..., 0][b["cup_valid"].bool()]
         assert ((theta >= low) & (theta <= low + 1)).all()
@@ -477,6 +522,24 @@ def test_full_training_of_a_rim_model_adds_the_rim_loss():
     terms["rim"].backward()
     grads = [p.grad for p in module.model.rim.parameters() if p.grad is not None]
     assert grads and all(torch.isfinite(g).all() for g in grads)
+
+
+def test_before_their_start_the_ellipse_and_pose_losses_weigh_nothing():
+    """The schedule starts on segmentation (and the rim's landmarks) and brings in the
+    ellipse and pose losses: before their start the total leaves them out, though the pose
+    loss is still computed for the logs."""
+    batch = _smoke_batch()
+    module = CupNetModule(model=RIM_MODEL, ellipse_start=5, pose_start=5, ramp_steps=1)
+    hp = module.hparams
+    terms = module.losses(batch, 0)
+    assert float(terms["pose"]) > 0
+    expected = (hp.locator_weight * terms["seg_locator"] + terms["seg_crop"]
+                + hp.rim_weight * terms["rim"])
+    torch.testing.assert_close(terms["loss"], expected.float())
+    on = module.losses(batch, 5)
+    with_pose = (hp.locator_weight * on["seg_locator"] + on["seg_crop"] + hp.rim_weight * on["rim"]
+                 + hp.ellipse_weight * on["ellipse"] + hp.pose_weight * on["pose"])
+    torch.testing.assert_close(on["loss"], with_pose.float())
 
 
 def test_distill_loss_is_zero_on_the_teacher_and_its_gradient_is_the_softmax_gap():
