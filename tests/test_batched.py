@@ -89,6 +89,16 @@ def test_batched_cups_of_an_image_without_a_cup_and_of_bad_input() -> None:
             call(two, three, 50.0)
 
 
+def test_a_found_cup_whose_rims_give_no_pose_has_none(drrs: list[dict]) -> None:
+    """Four times the cup's diameter puts every cup behind the detector: each is found and
+    none solved, so each reports no pose (NaN), not zeros, and no second pose."""
+    model = fold_batchnorm(load_model())
+    images, geometry, diameter = stacked(drrs[:3], torch.device("cpu"))
+    found = batched_cups(model, images, geometry, 4 * diameter)
+    assert len(found.cup_index) >= 2 and not found.valid.any()
+    assert found.pose.isnan().all() and found.alt_pose.isnan().all()
+
+
 def test_batched_cups_run_a_model_in_train_mode_as_in_eval_mode(drrs: list[dict]) -> None:
     """As detect: evaluated in eval mode, the mode restored; in train mode its BatchNorms had
     used the batch's statistics (h 160.9 -> 143.6 mm) and kept them for later calls."""

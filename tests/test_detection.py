@@ -8,7 +8,7 @@ import pytest
 import torch
 from cup_cases import detection
 
-from cupnet.detection import CupDetection, distinct_cups, later_look_cups, shrunk
+from cupnet.detection import CupDetection, distinct_cups, later_look_cups, same_place, shrunk
 from cupnet.ellipse import ellipse_points
 from cupnet.landmarks import ellipse_coverage
 
@@ -95,6 +95,17 @@ def test_a_later_look_adds_believed_cups_elsewhere_up_to_the_cap():
     failed = detection([665.0, 200.0, 20.0, 5.0, 0.0], status="error: h < 0", doubt=None)
     assert later_look_cups([first[0], failed], second, up_to=2) == [first[0], other]
     assert later_look_cups([failed], second) == [other]  # no up_to: replaced all the same
+
+
+def test_a_small_cup_within_a_large_ones_reach_is_another_place():
+    """One place is where each ellipse reaches the other's centre: a small cup 150 px from a
+    large blob (semi-axes 200 and 20 px) is reached by it but does not reach it, so a later
+    look adds it beside the blob rather than taking it for the blob again."""
+    large = detection([300.0, 300.0, 200.0, 150.0, 0.0], doubt=0.3)
+    small = detection([450.0, 300.0, 20.0, 12.0, 0.0], doubt=0.4)
+    assert not same_place(large.ellipse, small.ellipse)
+    assert same_place(large.ellipse, detection([340.0, 300.0, 60.0, 30.0, 0.0]).ellipse)
+    assert later_look_cups([large], [small], up_to=2) == [large, small]
 
 
 def test_a_later_looks_cup_replaces_a_flagged_piece_of_it_once():

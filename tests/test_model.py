@@ -317,6 +317,10 @@ def test_soft_landmarks_recover_known_ellipse(params):
     assert err[:4].abs().max() < 0.1
     # A rotation by d moves the boundary by at most about (a - b) |d|: within 0.1 px.
     assert abs(math.radians(float(err[4]))) * float(truth[2] - truth[3]) < 0.1
+    assert weights.min() > 0.99  # each ray starts inside and leaves the region
+    # Rays that stop short of the boundary never leave the region: their landmarks are no
+    # boundary, and weigh nothing.
+    assert ray_landmarks(coverage, 64, 128, extent=0.6)[1].max() < 1e-3
 
 
 @pytest.mark.parametrize("truth", [[412.3, 287.9, 81.0, 40.5, 151.0],
@@ -411,6 +415,10 @@ def test_detect_finds_two_cups_in_original_pixels():
         assert abs(det.pose[0] - pose[0]) < 2.0 and abs(det.pose[1] - pose[1]) < 1.0
         assert abs(det.pose[4] - pose[4]) < 25.0
         assert det.mask is not None and det.mask.shape == (700, 1024)
+        # The mask in the image's pixels: centred on the cup as the landmarks are.
+        v, u = np.mgrid[:700, :1024]
+        centroid = np.array([(det.mask * u).sum(), (det.mask * v).sum()]) / det.mask.sum()
+        assert np.abs(centroid - ell[:2]).max() < 0.25 * crop_step, centroid - ell[:2]
         assert det.landmarks.shape == (TINY.n_rays, 2)
 
 

@@ -10,7 +10,9 @@ import torch
 from torch.utils.data import DataLoader
 
 from cupnet.ellipse import params_to_conic, sampson_distance
+from cupnet.geometry import Geometry
 from data_synth import MAX_CUPS, SynthConfig, SynthDataset, synthesize
+from data_synth.dataset import rim_truth
 from data_synth.scene import reflect_into, sample_geometry, sample_poses
 
 SMALL = {"image_size": (64, 48)}
@@ -70,6 +72,24 @@ def test_ddp_processes_make_disjoint_shares(monkeypatch: pytest.MonkeyPatch):
         shares.append([int(s["index"]) for s in dataset])
     assert shares == [[0, 2, 4, 6], [1, 3, 5]]
     assert torch.equal(next(iter(dataset))["image"], dataset[1]["image"])  # rank 1's first
+
+
+def test_truth_of_a_cup_facing_the_detector_is_its_magnified_circle():
+    """theta = 90 deg puts the rim parallel to the detector: its image is a circle of the
+    radius magnified by SDD / (SDD - h), in pixels of the spacing, centred on (k, l) so
+    magnified from the principal point (hand-derived, CONVENTIONS' frames)."""
+    sdd, spacing, u0, v0 = 1040.0, 0.5, 100.0, 80.0
+    pose = torch.tensor([[90.0, 0.0, 12.0, -7.0, 300.0]], dtype=torch.float64)
+    _, ellipse, rim = rim_truth(pose, torch.tensor([50.0], dtype=torch.float64),
+                                Geometry(sdd, spacing, u0, v0))
+    magnified = sdd / (sdd - 300.0) / spacing  # px per mm in the rim's plane
+    cx, cy, a, b, _ = ellipse[0].tolist()
+    assert (cx, cy) == pytest.approx((u0 + 12.0 * magnified, v0 - 7.0 * magnified), abs=1e-9)
+    assert (a, b) == pytest.approx((25.0 * magnified, 25.0 * magnified), abs=1e-9)
+    centre = torch.tensor([cx, cy], dtype=torch.float64)
+    torch.testing.assert_close((rim[0] - centre).norm(dim=-1),
+                               torch.full((rim.shape[1],), 25.0 * magnified,
+                                          dtype=torch.float64))
 
 
 @pytest.mark.parametrize("seed", range(8))
