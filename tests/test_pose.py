@@ -11,6 +11,7 @@ from cup_cases import paper_poses, rim_landmarks
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians, project_rim, rim_conic
 from cupnet.pose import (
     PoseError,
+    _closest_rim_parameters,
     _curvature_offsets,
     _noise_variance,
     _normal_jacobian,
@@ -179,6 +180,9 @@ def test_standard_errors_are_nan_without_a_pose_or_with_too_few_landmarks():
     no_pose = torch.full((1, 5), math.nan, dtype=torch.float64)
     assert pose_standard_errors(no_pose, points, GEOMETRY, 50.0).isnan().all()
     assert pose_standard_errors(truth, points[:5], GEOMETRY, 50.0).isnan().all()
+    # Eight landmarks on two points leave the pose unconstrained: no errors, not huge ones.
+    two_points = torch.cat([points[:1].repeat(4, 1), points[50:51].repeat(4, 1)]) + 0.3
+    assert pose_standard_errors(truth, two_points, GEOMETRY, 50.0).isnan().all()
     # Six landmarks: one degree of freedom for the noise, still an estimate.
     six = points[::17][:6] + 0.3
     assert torch.isfinite(pose_standard_errors(truth, six, GEOMETRY, 50.0)).all()
@@ -491,3 +495,27 @@ def test_curvature_offsets_are_half_the_variance_times_the_curvature_clipped_at_
     torch.testing.assert_close(offsets, expected, atol=1e-5, rtol=1e-5)
     assert (expected.abs() == math.sqrt(variance)).any()  # the tips are clipped ...
     assert (expected.abs() < 0.5 * math.sqrt(variance)).any()  # ... the flanks are not
+
+
+@pytest.mark.parametrize("offset", [0.5, 1.0, 2.0])
+def test_newton_steps_find_the_closest_rim_point_off_a_thin_rims_tip(offset):
+    """The tip of a rim seen at theta = 3 deg bends on a radius below a pixel: from 0.05-0.3
+    rad along the rim, six safeguarded Newton steps reach the closest rim point of a
+    landmark ``offset`` px beyond the tip (a dense search's), where Gauss-Newton's steps
+    overshoot and settle nowhere."""
+    pose = pose_to_radians(torch.tensor([[3.0, 30.0, 20.0, -10.0, 300.0]], dtype=torch.float64))
+    geom = torch.tensor([[1040.0, 1.0, 0.0, 0.0]], dtype=torch.float64)
+    radius = torch.tensor([25.0], dtype=torch.float64)
+    dense = torch.linspace(0, 2 * math.pi, 200_001, dtype=torch.float64)[None]
+    rim = _rim(pose, dense, radius, geom)
+    tip = dense[:, rim.speed2.argmin()]
+    at_tip = _rim(pose, tip[None], radius, geom)
+    outwards = torch.stack([-at_tip.dv, at_tip.du], -1) / at_tip.speed2.sqrt()[..., None]
+    landmark = torch.stack([at_tip.u, at_tip.v], -1) + offset * outwards  # (1, 1, 2)
+    u, v = landmark.unbind(-1)
+    closest = ((rim.u - u) ** 2 + (rim.v - v) ** 2).sqrt().min()
+    for start in (0.05, 0.1, 0.2, 0.3):
+        t = _closest_rim_parameters(pose, tip[None] + start, (u, v), radius, geom, steps=6)
+        found = _rim(pose, t, radius, geom)
+        assert float(((found.u - u) ** 2 + (found.v - v) ** 2).sqrt()) == pytest.approx(
+            float(closest), abs=1e-6)
