@@ -226,14 +226,18 @@ def test_dicom_rescale_and_window_are_applied(tmp_path: Path) -> None:
 
 
 def test_multiframe_dicom_gives_one_frame_each(tmp_path: Path) -> None:
-    frames = np.stack([np.full((32, 40), 100 * (i + 1), np.uint16) for i in range(3)])
-    frames[:, 0, 0] = 0  # each frame has some contrast
+    """Each frame its own pixels: frames alike after their min-max stretch (a constant and
+    a 0 each) had passed with the first frame read for all."""
+    ramp = np.round(gradient(32, 40) * 4000).astype(np.uint16)
+    frames = np.stack([ramp, ramp[::-1], ramp[:, ::-1]])
     path = write_dicom(tmp_path / "run.dcm", frames, DistanceSourceToDetector=1000.0)
     read = read_frames(path)
     assert [f.name for f in read] == ["run.dcm#1", "run.dcm#2", "run.dcm#3"]
     assert [f.last_of_source for f in read] == [False, False, True]
-    assert all(f.error is None and f.image.shape == (32, 40) and f.sdd_mm == 1000.0
-               for f in read)
+    assert all(f.error is None and f.sdd_mm == 1000.0 for f in read)
+    for frame, stored in zip(read, frames, strict=True):
+        np.testing.assert_allclose(frame.image, (stored - stored.min()) / np.ptp(stored),
+                                   atol=1e-6)
 
 
 @pytest.mark.parametrize(

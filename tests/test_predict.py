@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import math
@@ -23,9 +24,9 @@ import cupnet.predict as predict
 from cupnet.cli import main
 from cupnet.config import CupNetConfig
 from cupnet.geometry import Geometry, pose_to_radians, project_rim
-from cupnet.io.images import PATIENT_SPACING_SOURCE
+from cupnet.io.images import PATIENT_SPACING_SOURCE, Frame, ImageSource
 from cupnet.io.meta import ASSUMED_DETECTOR_WIDTH_MM, resolve_geometry
-from cupnet.io.results import POSE_COLUMNS, RESULT_COLUMNS, SD_COLUMNS
+from cupnet.io.results import POSE_COLUMNS, RESULT_COLUMNS, SD_COLUMNS, status_row
 from cupnet.model import CupNet, save_model
 
 
@@ -95,9 +96,12 @@ def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
     (b8,) = by_image["b8.png"]
     assert b8["status"].startswith("error: missing pixel spacing (--pixel-spacing")
     assert "source-to-detector" not in b8["status"]
+    # Read, and their geometry whole: the network's rows alone (an untrained network's cup
+    # may have no pose), not a reading, geometry or detection error (no cup number).
     for name in ("a16.png", "c.dcm"):
-        assert all(r["status"] in ("ok", "ambiguous", "no_cup") or r["status"].startswith(
-            "error: ") for r in by_image[name])
+        assert all(r["status"] in ("ok", "ambiguous", "no_cup") or (
+            r["status"].startswith("error: no pose from the rim found: ") and r["cup"] != "")
+            for r in by_image[name])
         assert float(by_image[name][0]["seconds"]) > 0
     document = json.loads((out / "results.json").read_text())
     records = {r["image"]: r for r in document["images"]}
@@ -109,12 +113,30 @@ def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
     assert records["a16.png"]["geometry"]["sdd_mm"]["source"] == "meta.csv"
     assert document["model"]["checkpoint"] == str(checkpoint)
     assert document["software"]["cupnet"]
-    assert document["summary"]["images"] == 7 and document["summary"]["errors"] >= 5
+    assert document["summary"]["images"] == 7
+    assert document["summary"]["errors"] == sum(
+        row["status"].startswith("error: ") for rows in by_image.values() for row in rows)
     for name in ("a16.png", "c.dcm"):
         overlay = out / records[name]["overlay"]
         assert cv2.imread(str(overlay)).shape == (768, 768, 3)  # enlarged to stay readable
         for mask in records[name].get("masks", []):
             assert cv2.imread(str(out / mask), cv2.IMREAD_UNCHANGED).shape == (256, 256)
+
+
+def test_the_summary_counts_rows_and_the_flags_read_back_on_resume() -> None:
+    """Error rows are counted as rows, not as reasons (two files failing alike are two); a
+    cup flagged in a row read back from results.csv (--resume where results.json is gone:
+    every cell a string) stays flagged, as one just run (an int)."""
+    empty = "error: empty file (0 bytes)"
+    records = [{"image": f"e{i}.png", "rows": [{"status": empty}]} for i in range(2)]
+    records += [{"image": "read_back.png", "rows": [
+                    {"status": "ok", "check": "1", "seconds": "0.5"},
+                    {"status": "ambiguous", "check": "0", "seconds": "0.5"}]},
+                {"image": "run.png", "rows": [{"status": "ok", "check": 1, "seconds": 1.5}]}]
+    summary = predict.summarise(records)
+    assert summary["errors"] == 2 and summary["error_reasons"] == {empty: 2}
+    assert (summary["cups"], summary["ok"], summary["ambiguous"], summary["check"]) == (3, 2, 1, 2)
+    assert summary["images"] == 4 and summary["seconds_per_image"] == pytest.approx(0.5)
 
 
 def test_geometry_precedence_and_assumptions() -> None:
@@ -169,13 +191,16 @@ def test_no_overwrite_without_flag(tmp_path: Path, blind_checkpoint: Path,
     common = [str(image), "--out", str(out), "--checkpoint", str(blind_checkpoint), "--sdd", "1000",
               "--pixel-spacing", "0.3", "--cup-diameter", "52", "--quiet", "--no-overlays"]
     assert main(["predict", *common]) == 0
-    before = (out / "results.csv").read_bytes()
-    (out / "results.csv").write_bytes(before + b"")
+    # A user's note in it, which no run writes: a refused run leaves it, --overwrite not.
+    edited = (out / "results.csv").read_bytes() + b"a user's note\n"
+    (out / "results.csv").write_bytes(edited)
     assert main(["predict", *common, "--sdd", "900"]) == 2
     assert "already holds results.csv" in capsys.readouterr().err
-    assert (out / "results.csv").read_bytes() == before
+    assert (out / "results.csv").read_bytes() == edited
     assert main(["predict", *common, "--resume", "--overwrite"]) == 2
+    assert (out / "results.csv").read_bytes() == edited
     assert main(["predict", *common, "--overwrite"]) == 0
+    assert b"a user's note" not in (out / "results.csv").read_bytes()
     assert not (out / "overlays").exists()
 
 
@@ -241,9 +266,20 @@ def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
     assert [r["image"] for r in document["images"]] == [f"im{i}.png" for i in range(5)]
 
 
+@pytest.mark.parametrize(("changes", "named"), [
+    (["--fastest", "--rotate", "90"],
+     "--fast / --fastest: not given -> fastest; --rotate: 0 -> 90"),
+    # Each geometry flag alone: a resume with another had mixed two geometries' poses.
+    (["--pixel-spacing", "0.25"], "--pixel-spacing: 0.3 -> 0.25"),
+    (["--sdd", "900"], "--sdd: 1000.0 -> 900.0"),
+    (["--cup-diameter", "50"], "--cup-diameter: 52.0 -> 50.0"),
+    (["--principal-point", "100", "120"], "--principal-point: not given -> [100.0, 120.0]"),
+    (["--assume-defaults"], "--assume-defaults: not given -> True"),
+    (["--check-doubt", "0.5"], "--check-doubt: not given -> 0.5"),
+])
 def test_resume_refuses_other_settings_than_the_run_it_resumes(
         tmp_path: Path, blind_checkpoint: Path, monkeypatch: pytest.MonkeyPatch,
-        capsys: pytest.CaptureFixture) -> None:
+        capsys: pytest.CaptureFixture, changes: list[str], named: str) -> None:
     """A resume with --fastest of a default run had mixed the two runs' rows under the later
     settings alone; settings that change no row (batch size, threads) may change, and a
     meta file spelt otherwise is the same file."""
@@ -253,10 +289,9 @@ def test_resume_refuses_other_settings_than_the_run_it_resumes(
     assert main([*args, "--meta", str(tmp_path / "meta.csv")]) == 130
     restore()
     capsys.readouterr()
-    assert main([*args, "--meta", str(tmp_path / "meta.csv"), "--resume", "--fastest",
-                 "--rotate", "90"]) == 2
+    assert main([*args, "--meta", str(tmp_path / "meta.csv"), "--resume", *changes]) == 2
     err = capsys.readouterr().err
-    assert "--fast / --fastest: not given -> fastest; --rotate: 0 -> 90" in err
+    assert f"--resume with other settings than the run in {out} ({named}): " in err
     assert len(rows_by_image(read_csv(out / "results.csv"))) == 2  # left as it was
     monkeypatch.chdir(tmp_path)
     assert main([*args, "--meta", "./meta.csv", "--resume", "--batch-size", "3"]) == 0
@@ -360,6 +395,23 @@ def test_a_detection_that_fails_on_one_image_is_its_row_alone(
         assert not by_image[name][0]["status"].startswith("error"), by_image[name]
 
 
+def test_a_batch_shares_its_network_time_among_the_images_it_ran() -> None:
+    """Each image's seconds add its share of its batch's detection time: the batch's over
+    the images the network ran on, not over those that failed before it (a read error's row
+    keeps its reading time alone)."""
+    geometry = resolve_geometry((256, 256), {}, {"sdd_mm": 1000.0, "pixel_spacing_mm": 0.3,
+                                                 "cup_diameter_mm": 52.0})
+    frames = [Frame(f"im{i}.png", ImageSource(Path(f"im{i}.png"), f"im{i}.png"),
+                    seconds=0.25) for i in range(3)]
+    batch = predict.Batch(3, ["/im0.png", "/im1.png", "/im2.png"], records={0: {
+        "image": "im0.png", "rows": [status_row("im0.png", "error: empty file (0 bytes)", 0.25)]}},
+        ready=[(1, frames[1], geometry), (2, frames[2], geometry)])
+    predictor = predict.Predictor(argparse.Namespace(), None, None, None)
+    failed = "error: detection failed (the rim is empty)"
+    records = predictor.finish(batch, [failed, failed], 6.0)
+    assert [record["rows"][0]["seconds"] for record in records] == [0.25, 3.25, 3.25]
+
+
 def test_rotate_turns_a_stored_turned_image_back_with_its_principal_point(
         tmp_path: Path) -> None:
     """An oblong DRR stored turned a quarter counterclockwise, with its principal point in
@@ -402,15 +454,38 @@ def test_rotate_turns_a_stored_turned_image_back_with_its_principal_point(
         "turned 90 deg clockwise with the image")
 
 
-def test_multiframe_dicom_gives_a_row_per_frame(tmp_path: Path, blind_checkpoint: Path) -> None:
+def test_multiframe_dicom_gives_a_row_per_frame(tmp_path: Path, blind_checkpoint: Path,
+                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each frame its own row, from its own pixels; a run stopped after the first frame
+    resumes with the others alone: the file is not done, but its first frame is (it had
+    been read and run again, its row replaced)."""
     frames = (np.random.default_rng(2).random((3, 256, 256)) * 4000).astype(np.uint16)
     path = write_dicom(tmp_path / "run.dcm", frames, DistanceSourceToDetector=1000.0,
                        ImagerPixelSpacing=[0.3, 0.3])
     out = tmp_path / "out"
-    assert main(["predict", str(path), "--out", str(out), "--checkpoint", str(blind_checkpoint),
-                 "--cup-diameter", "52", "--quiet"]) == 0
+    args = ["predict", str(path), "--out", str(out), "--checkpoint", str(blind_checkpoint),
+            "--cup-diameter", "52", "--quiet", "--batch-size", "1"]
+    restore = interrupt_the_second_batch(monkeypatch)
+    assert main(args) == 130
+    first = rows_by_image(read_csv(out / "results.csv"))
+    assert list(first) == ["run.dcm#1"]
+    restore()
+    seen: dict[str, np.ndarray] = {}
+    real = predict.NetworkDetector.__call__
+
+    def seeing(self, frames, geometries):
+        seen.update((frame.name, frame.image) for frame in frames)
+        return real(self, frames, geometries)
+
+    monkeypatch.setattr(predict.NetworkDetector, "__call__", seeing)
+    assert main([*args, "--resume"]) == 0
+    assert sorted(seen) == ["run.dcm#2", "run.dcm#3"]
+    for name, stored in zip(("run.dcm#2", "run.dcm#3"), frames[1:], strict=True):
+        np.testing.assert_allclose(seen[name], (stored - stored.min()) / np.ptp(stored),
+                                   atol=1e-6)
     by_image = rows_by_image(read_csv(out / "results.csv"))
-    assert set(by_image) == {"run.dcm#1", "run.dcm#2", "run.dcm#3"}
+    assert list(by_image) == ["run.dcm#1", "run.dcm#2", "run.dcm#3"]
+    assert by_image["run.dcm#1"] == first["run.dcm#1"]  # kept, not recomputed
     assert (out / "overlays" / "run.dcm_frame2.png").exists()
 
 
@@ -662,14 +737,22 @@ def test_spacing_from_patient_plane_pixel_spacing_is_recorded_and_reported(
                 DistanceSourceToDetector=1000.0)
     write_dicom(tmp_path / "imager.dcm", stored, ImagerPixelSpacing=[0.2, 0.2],
                 DistanceSourceToDetector=1000.0)
+    write_dicom(tmp_path / "skewed.dcm", stored, ImagerPixelSpacing=[0.1, 0.2],
+                DistanceSourceToDetector=1000.0)
     out = tmp_path / "out"
     assert main(["predict", str(tmp_path), "--out", str(out), "--checkpoint",
                  str(blind_checkpoint), "--cup-diameter", "52", "--quiet"]) == 0
     document = json.loads((out / "results.json").read_text())
     sources = {r["image"]: r["geometry"]["pixel_spacing_mm"]["source"]
-               for r in document["images"]}
+               for r in document["images"] if "pixel_spacing_mm" in r["geometry"]}
     assert sources == {"plain.dcm": PATIENT_SPACING_SOURCE,
                        "imager.dcm": "DICOM ImagerPixelSpacing"}
+    # A tag present but unusable: the row says which and why, not only that one is missing.
+    (skewed,) = rows_by_image(read_csv(out / "results.csv"))["skewed.dcm"]
+    assert skewed["status"] == (
+        "error: missing pixel spacing (--pixel-spacing or meta.csv pixel_spacing_mm; DICOM "
+        "ImagerPixelSpacing is not square (0.1 x 0.2 mm); give --pixel-spacing); or use "
+        "--assume-defaults")
     assert document["summary"]["patient_spacing"] == 1
     assert "1 image(s) with the detector's pixel spacing taken from DICOM PixelSpacing" in (
         capsys.readouterr().out)
@@ -797,6 +880,9 @@ def test_overlay_text_gives_the_standard_errors_where_there_are_any() -> None:
         "  anteversion 20.0 +-0.4 deg, inclination 30.0 +-0.6 deg",
         "  k 1.0 +-0.1, l 2.0 +-0.1, h 300.0 +-3.4 mm; residual 0.40 px"]
     assert pose_lines(0, "ok", pose, 0.4, pose_sd=np.full(5, np.nan)) == plain
+    # The second pose: its own angles and h, each in its place.
+    assert pose_lines(0, "ambiguous", pose, 0.4, [21.0, 31.0, 3.0, 4.0, 305.0])[3:] == [
+        "  or: anteversion 21.0 deg, inclination 31.0 deg, h 305.0 mm"]
 
 
 @pytest.mark.parametrize(("flags", "preset", "changed"),
@@ -1033,10 +1119,12 @@ def test_a_run_where_every_image_failed_exits_1(tmp_path: Path, blind_checkpoint
     images = tmp_path / "images"
     images.mkdir()
     noise_png(images / "small.png", size=64)  # under 256 px: an error row
-    (images / "empty.png").write_bytes(b"")
+    for name in ("empty.png", "empty2.png"):  # two rows of one reason: counted as two
+        (images / name).write_bytes(b"")
     common = ["--checkpoint", str(blind_checkpoint), "--assume-defaults", "--quiet"]
     assert main(["predict", str(images), "--out", str(tmp_path / "a"), *common]) == 1
-    assert "0 without a cup, 2 error rows" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "0 without a cup, 3 error rows\n  2 x error: empty file (0 bytes)\n  1 x " in printed
     noise_png(images / "fine.png", size=256)
     assert main(["predict", str(images), "--out", str(tmp_path / "b"), *common]) == 0
 
