@@ -35,6 +35,11 @@ def write_csv(path: Path, rows: list[dict]) -> Path:
     return path
 
 
+def posed(values: list[float]) -> dict[str, float]:
+    """A row's pose and ellipse columns from ``values`` in :data:`POSE` + :data:`ELLIPSE` order."""
+    return dict(zip(POSE + ELLIPSE, values, strict=True))
+
+
 def truth_rows() -> list[dict]:
     """Truth in cupnet synth's columns (theta_deg, phi_deg); d.png has no row (no cup)."""
     names = ("theta_deg", "phi_deg", *POSE[2:], *ELLIPSE)
@@ -104,16 +109,65 @@ def test_a_far_false_cup_does_not_outbid_a_found_one(tmp_path: Path) -> None:
     assert metrics["perspective"]["anteversion_deg"]["mae"] == pytest.approx(1.0)
 
 
-def test_inclination_error_wraps_and_gross_failures(tmp_path: Path) -> None:
-    truth = write_csv(tmp_path / "truth.csv", truth_rows()[2:3])  # b.png, phi = 89
+def test_a_cup_found_within_the_true_semi_major_axis_is_matched(tmp_path: Path) -> None:
+    """Pairs match within the true ellipse's semi-major axis: a cup found 30 px along the
+    axis of a 60 x 20 px rim is found, not missed beside a false positive."""
+    truth = write_csv(tmp_path / "truth.csv", [
+        {"image": "x.png", "cup": 0, **posed([20.0, 30.0, 0, 0, 300, 300, 300, 60, 20, 0])}])
+    pred = write_csv(tmp_path / "pred.csv", [
+        {"image": "x.png", "cup": 0, "status": "ok", "seconds": 1.0,
+         **posed([20.0, 30.0, 0, 0, 300, 330, 300, 60, 20, 0])}])
+    metrics = evaluate_results(pred, truth)
+    assert metrics["matched_cups"] == 1 and metrics["detection_rate"] == 1.0
+    assert metrics["false_positives"] == 0
+
+
+def test_statistics_and_rates_over_unequal_cups_and_images(tmp_path: Path) -> None:
+    """The fixture gives every cup one error and every image one time, and predicts as many
+    cups as are true, so a median taken as a mean, a 90th percentile for the 95th, a rate
+    over predicted cups or a mean time over rows would pass it. Here: k errors -1, 2 and
+    10 mm; a.png (two cups) 1 s, the other images 0.5 s; no false cup (3 predicted of 4
+    true); f.png failed with an error row for each of its two cups (one image)."""
+    rows = [row for row in predicted_rows() if row.get("ellipse_cx_px") != 50]  # the false cup
+    found = [row for row in rows if row["status"] == "ok"]  # a.png's two cups, then b.png's
+    for row, error in zip(found, (-1.0, 2.0, 10.0), strict=True):
+        row["k_mm"] += error - OFFSET[2]
+    for row in rows:
+        row["seconds"] = 1.0 if row["image"] == "a.png" else 0.5
+    rows += [{"image": "f.png", "cup": cup, "status": "error: cannot read file", "seconds": 0.5}
+             for cup in (0, 1)]
+    metrics = evaluate_results(write_csv(tmp_path / "pred.csv", rows),
+                               write_csv(tmp_path / "truth.csv", truth_rows()))
+    # numpy's (linear) percentile of 1, 2, 10: 2 + 0.9 * (10 - 2).
+    assert metrics["perspective"]["k_mm"] == pytest.approx(
+        {"mae": 13 / 3, "median": 2.0, "p95": 9.2})
+    assert (metrics["true_cups"], metrics["predicted_cups"], metrics["matched_cups"]) == (4, 3, 3)
+    assert metrics["detection_rate"] == pytest.approx(0.75) and metrics["false_positives"] == 0
+    assert metrics["images"] == 5 and metrics["error_images"] == 1
+    assert metrics["seconds_per_image"] == pytest.approx((1.0 + 4 * 0.5) / 5)
+
+
+@pytest.mark.parametrize(("anteversion", "inclination", "inclination_error", "gross"), [
+    (10.0, -88.0, 3.0, 0),  # 89 to -88 is 3 degrees, not 177
+    (16.5, -88.0, 3.0, 1),  # anteversion 6.5 off
+    (15.0, -88.0, 3.0, 0),  # anteversion exactly 5 off: not gross (gross is more than 5)
+    (10.0, -85.0, 6.0, 1),  # inclination alone 6 off
+    (10.0, -86.0, 5.0, 0),  # inclination exactly 5 off
+])
+def test_inclination_error_wraps_and_gross_failures(tmp_path: Path, anteversion: float,
+                                                    inclination: float, inclination_error: float,
+                                                    gross: int) -> None:
+    """A gross failure is either angle off by more than 5 degrees, inclination errors wrapped
+    (phi is defined modulo 180; the values are exact in binary, so 5 is 5). The predicted
+    ellipse's major axis at 91 degrees gives the orthographic inclination -89: 2 degrees off
+    the true 89 once wrapped too."""
+    truth = write_csv(tmp_path / "truth.csv", truth_rows()[2:3])  # b.png, theta 10, phi 89
     row = {"image": "b.png", "status": "ok", "seconds": 1.0,
-           **dict(zip(POSE + ELLIPSE, [10.0, -88.0, 0, 0, 400, 512, 512, 70, 12, 179],
-                      strict=True))}
+           **posed([anteversion, inclination, 0, 0, 400, 512, 512, 70, 12, 91])}
     metrics = evaluate_results(write_csv(tmp_path / "p.csv", [row]), truth)
-    assert metrics["perspective"]["inclination_deg"]["mae"] == pytest.approx(3.0)
-    row["anteversion_deg"] = 16.5
-    metrics = evaluate_results(write_csv(tmp_path / "p.csv", [row]), truth)
-    assert metrics["gross_failures"] == 1 and metrics["gross_failure_rate"] == 1.0
+    assert metrics["perspective"]["inclination_deg"]["mae"] == pytest.approx(inclination_error)
+    assert metrics["gross_failures"] == gross and metrics["gross_failure_rate"] == gross
+    assert metrics["orthographic"]["inclination_deg"]["mae"] == pytest.approx(2.0)
 
 
 def test_cups_flagged_to_check_are_counted_and_set_apart(tmp_path: Path) -> None:
@@ -251,6 +305,13 @@ def test_what_the_files_hold_that_cannot_be_scored_is_said(tmp_path: Path,
     assert metrics["truth_rows_incomplete"] == 1 and metrics["true_cups"] == 3
     # Its cup, found, is no false positive (it had counted as one): the far one alone is.
     assert metrics["false_positives"] == 1
+    # Left-out rows discount no more than the image's unpaired cups: a.png's two rows left
+    # out, one of its cups found; the far cup in b.png is still the one false positive.
+    blank = [{**row, "h_mm": ""} if row["image"] == "a.png" else row for row in rows]
+    lone = [row for row in predicted_rows() if row.get("k_mm") != 60.0 + OFFSET[2]]
+    metrics = evaluate_results(write_csv(tmp_path / "lone.csv", lone),
+                               write_csv(tmp_path / "blank_a.csv", blank))
+    assert metrics["truth_rows_incomplete"] == 2 and metrics["false_positives"] == 1
     # A status no results.csv holds ('OK' from a spreadsheet) had read as a missed cup.
     shouted = [{**row, "status": "OK"} if row["image"] == "a.png" else row
                for row in predicted_rows()]

@@ -42,7 +42,10 @@ def test_rows_are_grouped_in_order_of_need_and_each_shown_once() -> None:
         record("pair.png", {"cup": 0, "status": "ambiguous", "check": 0, **POSE, **ALT}),
     ]
     page = review_page(records, summarise(records))
-    assert re.findall(r"<h2 id='(\w+)'>", page) == [key for key, _ in GROUPS]
+    # Each heading, in the order of GROUPS, counts its group's rows.
+    counts = {"check": 1, "error": 1, "ambiguous": 1, "ok": 2, "no_cup": 1}
+    assert re.findall(r"<h2 id='(\w+)'>.*?\((\d+)\)</h2>", page) == [
+        (key, str(counts[key])) for key, _ in GROUPS]
     tables = sections(page)
     assert "two.png" in tables["check"] and "2.50" in tables["check"]  # the doubt
     assert "broken.dcm" in tables["error"] and "truncated" in tables["error"]
@@ -72,6 +75,8 @@ def test_rows_read_back_from_the_csv_group_the_same() -> None:
     assert row_group(as_read) == row_group({"cup": 0, "status": "ok", "check": 1}) == "check"
     assert row_group({"status": "ok", "check": "0"}) == "ok"
     assert row_group({"status": "no_cup", "check": None}) == "no_cup"
+    # A status no run writes (a hand-edited file) is shown among the failures, not hidden.
+    assert row_group({"status": "weird", "check": "0"}) == row_group({"status": None}) == "error"
 
 
 def test_names_are_escaped_and_overlay_links_quoted() -> None:
