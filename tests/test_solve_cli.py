@@ -93,17 +93,20 @@ def test_meta_wins_over_flags_and_missing_values_are_named(tmp_path):
         "a.png,1040,0.5,50,255.5,255.5\n")
     out = tmp_path / "r.csv"
     # Wrong flags for a.png are overridden by meta.csv; b.png has no principal point.
-    main(["solve", str(tmp_path / "lm.csv"), "--meta", str(tmp_path / "meta.csv"), "--sdd",
-          "900", "--pixel-spacing", "0.5", "--cup-diameter", "50", "--out", str(out)])
+    assert main(["solve", str(tmp_path / "lm.csv"), "--meta", str(tmp_path / "meta.csv"),
+                 "--sdd", "900", "--pixel-spacing", "0.5", "--cup-diameter", "50",
+                 "--out", str(out)]) == 0  # a cup solved: not the exit of a run with none
     rows = results(out)
     assert_poses(rows[:1])
     assert rows[1]["status"].startswith("error: missing principal point")
     assert rows[1]["cup"] == "0"  # the file's cup, as a solved row gives it
 
 
-def test_a_bilateral_images_error_rows_keep_their_cups_and_evaluate_takes_them(tmp_path):
+def test_a_bilateral_images_error_rows_keep_their_cups_and_evaluate_takes_them(tmp_path,
+                                                                               capsys):
     """Two cups of an image without geometry: two error rows, cups 0 and 1 (they had both
-    been blank, and cupnet evaluate refused the file as two appended ones)."""
+    been blank, and cupnet evaluate refused the file as two appended ones), counted as two
+    errors in the summary, as its rows are."""
     rows = ["image,cup,u,v"]
     for cup, (cx, cy) in enumerate(((100.0, 120.0), (300.0, 140.0))):
         rows += [f"x.png,{cup},{cx + 40 * np.cos(t):.4f},{cy + 25 * np.sin(t):.4f}"
@@ -113,6 +116,7 @@ def test_a_bilateral_images_error_rows_keep_their_cups_and_evaluate_takes_them(t
     assert main(["solve", str(tmp_path / "lm.csv"), "--out", str(out)]) == 1
     assert [(r["cup"], r["status"][:6]) for r in results(out)] == [("0", "error:"),
                                                                    ("1", "error:")]
+    assert f"1 images, 0 cups solved, 2 errors -> {out}" in capsys.readouterr().out
     (tmp_path / "truth.csv").write_text(
         "image,cup,theta_deg,phi_deg,k_mm,l_mm,h_mm,ellipse_cx_px,ellipse_cy_px,ellipse_a_px,"
         "ellipse_b_px,ellipse_angle_deg\n"
@@ -212,17 +216,22 @@ def test_assume_defaults_fill_what_the_file_lacks_as_predict_does(tmp_path, caps
 
 
 def solved_sets(tmp_path: Path, sets: dict[str, torch.Tensor]) -> dict[str, dict[str, str]]:
-    """``cupnet solve`` of landmark sets ``{image: (N, 2) px}`` and a two-point set
-    ``few.png``, in the geometry of :func:`rim_landmarks`'s cups below (SDD 1,000 mm,
-    0.4 mm a pixel, a 50 mm cup); the rows by image."""
-    lines = ["image,u,v"] + [f"{name},{u},{v}" for name, points in sets.items()
-                             for u, v in points.tolist()] + ["few.png,1,2", "few.png,3,4"]
+    """``cupnet solve`` of landmark sets ``{image: (N, 2) px}`` (or ``(C, N, 2)``: the
+    image's cups 0 to C - 1) and a two-point set ``few.png``, in the geometry of
+    :func:`rim_landmarks`'s cups below (SDD 1,000 mm, 0.4 mm a pixel, a 50 mm cup); the
+    rows by image, an image's cups past its first by ``image:cup``."""
+    lines = ["image,cup,u,v"]
+    for name, points in sets.items():
+        for cup, cup_points in enumerate(points.reshape(-1, points.shape[-2], 2)):
+            lines += [f"{name},{cup},{u},{v}" for u, v in cup_points.tolist()]
+    lines += ["few.png,0,1,2", "few.png,0,3,4"]
     (tmp_path / "lm.csv").write_text("\n".join(lines) + "\n")
     out = tmp_path / "r.csv"
     assert main(["solve", str(tmp_path / "lm.csv"), "--sdd", "1000", "--pixel-spacing", "0.4",
                  "--cup-diameter", "50", "--principal-point", "300", "250", "--out",
                  str(out)]) == 0
-    return {row["image"]: row for row in results(out)}
+    return {row["image"] if row["cup"] == "0" else f"{row['image']}:{row['cup']}": row
+            for row in results(out)}
 
 
 def test_landmarks_that_are_no_rim_are_flagged_check(tmp_path, capsys):
@@ -247,6 +256,38 @@ def test_landmarks_that_are_no_rim_are_flagged_check(tmp_path, capsys):
     assert rows["few.png"]["status"].startswith("error") and rows["few.png"]["check"] == ""
     assert "2 cup(s) flagged check=1: their landmarks lie off the solved rim" in \
         capsys.readouterr().out
+
+
+def off_rim(points: torch.Tensor, fraction: float) -> torch.Tensor:
+    """Landmarks ``(N, 2)`` on a rim (``N`` even) moved out and in by turns along its normal
+    by ``fraction`` of its semi-major axis: no ellipse passes nearer them than the rim, so
+    their RMS distance to the solved rim is about that fraction of its axis."""
+    tangent = points.roll(-1, 0) - points.roll(1, 0)
+    normal = torch.stack([tangent[:, 1], -tangent[:, 0]], 1)
+    normal = normal / normal.norm(dim=1, keepdim=True)
+    semi_major = (points - points.mean(0)).norm(dim=1).max()
+    sign = torch.tensor([1.0, -1.0], dtype=torch.float64).repeat(len(points) // 2)
+    return points + (fraction * semi_major * sign)[:, None] * normal
+
+
+def test_the_off_rim_limit_is_a_tenth_of_the_semi_major_axis(tmp_path, capsys):
+    """Landmarks about 0.05 of the axis off their rim pass; about 0.15 off (between the
+    limit and twice it), both cups of a bilateral image are flagged, and counted both."""
+    geometry = Geometry(1000.0, 0.4, 300.0, 250.0)
+    rims = rim_landmarks(TRUTH, geometry, n=40)
+    rows = solved_sets(tmp_path, {"near.png": off_rim(rims[0], 0.05),
+                                  "off.png": torch.stack([off_rim(rim, 0.15) for rim in rims])})
+    near = rows["near.png"]
+    assert 0.03 < float(near["residual_px"]) / float(near["ellipse_a_px"]) < 0.07
+    assert near["status"] == "ok" and near["check"] == "0"
+    for row in (rows["off.png"], rows["off.png:1"]):
+        assert 0.1 < float(row["residual_px"]) / float(row["ellipse_a_px"]) < 0.2, row
+        assert row["status"] == "ok" and row["check"] == "1"
+        assert 25.0 < float(row["h_mm"]) < 750.0  # flagged off the rim, not by the pose
+    # Each of the image's rows carries the image's time (cupnet evaluate reads the first).
+    assert rows["off.png"]["seconds"] == rows["off.png:1"]["seconds"]
+    assert float(rows["off.png"]["seconds"]) > 0
+    assert "2 cup(s) flagged check=1" in capsys.readouterr().out
 
 
 def test_two_whole_rims_in_one_set_are_flagged_by_their_cup_near_the_source(tmp_path):
