@@ -183,6 +183,32 @@ def test_ellipse_coverage_counts_the_samples_inside_each_ellipse(generator) -> N
     assert ours[1].sum() == 0 and 0 < ours.mean() < 0.5
 
 
+def test_an_ellipse_crop_is_centred_on_its_frame_and_spans_its_sides():
+    """View pixel centres 0 .. S - 1: the middle one, (S - 1) / 2, is the frame's centre, and
+    the view's edges (-0.5, S - 0.5) lie half the frame's sides from it along its axes."""
+    frame = torch.tensor([300.2, 123.4, 211.0, 70.0, 121.0], dtype=torch.float64)
+    affine = ellipse_crop_affine(frame, 128)
+    angle = math.radians(121.0)
+    along = torch.tensor([math.cos(angle), math.sin(angle)], dtype=torch.float64)
+    across = torch.tensor([-math.sin(angle), math.cos(angle)], dtype=torch.float64)
+    views = torch.tensor([[63.5, 63.5], [127.5, 63.5], [63.5, -0.5]], dtype=torch.float64)
+    expected = torch.stack([frame[:2], frame[:2] + 105.5 * along, frame[:2] - 35.0 * across])
+    torch.testing.assert_close(to_image(views, affine), expected)
+
+
+def test_crop_frames_fill_the_major_axis_and_stretch_thin_rims_within_a_bound():
+    """A circle's frame is square, its diameter ``fill`` of it; a rim of axis ratio 0.1 is
+    stretched to ``min_ratio`` (0.5) in its crop, one of 0.01 by ``max_stretch`` (6x) alone."""
+    ellipses = torch.tensor([[10.0, 20.0, 30.0, 30.0, 0.0], [10.0, 20.0, 30.0, 3.0, 45.0],
+                             [10.0, 20.0, 30.0, 0.3, 45.0]], dtype=torch.float64)
+    frames = frame_ellipse(ellipses, 0.75, 0.5, 6.0)
+    major = 2 * 30.0 / 0.75
+    torch.testing.assert_close(frames[:, 2], torch.full((3,), major, dtype=torch.float64))
+    torch.testing.assert_close(frames[:, 3], torch.tensor([major, major * 0.2, major / 6],
+                                                          dtype=torch.float64))
+    torch.testing.assert_close(frames[:, [0, 1, 4]], ellipses[:, [0, 1, 4]])
+
+
 def test_to_view_inverts_to_image():
     affine = ellipse_crop_affine(torch.tensor([300.2, 123.4, 211.0, 70.0, 121.0],
                                               dtype=torch.float64), 128)

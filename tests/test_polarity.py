@@ -36,6 +36,22 @@ def test_a_dark_cup_is_metal_dark_and_a_bright_one_metal_bright():
     assert metal_shows_bright(disc_image(0.7, 0.5), ELLIPSE) is True
 
 
+@pytest.mark.parametrize("transposed", [False, True])
+def test_a_cup_near_the_long_side_of_an_oblong_image_is_judged(transposed):
+    """A dark cup 260 px along a 100 x 300 image (and the image transposed): its pixels lie
+    inside the image only when u is bounded by the width and v by the height."""
+    v, u = torch.meshgrid(torch.arange(100.0), torch.arange(300.0), indexing="ij")
+    image = torch.full((100, 300), 0.7)
+    image[(u - 260) ** 2 + (v - 50) ** 2 <= 20**2] = 0.1
+    image[:, :20] = torch.arange(100.0)[:, None] / 99  # a full 0-1 range, away from the cup
+    ellipse = torch.tensor([[260.0, 50.0, 20.0, 12.0, 30.0]], dtype=torch.float64)
+    if transposed:
+        image, ellipse = image.T, ellipse[:, [1, 0, 2, 3, 4]] * torch.tensor(
+            [1.0, 1.0, 1.0, 1.0, -1.0], dtype=torch.float64) + torch.tensor(
+            [0.0, 0.0, 0.0, 0.0, 90.0], dtype=torch.float64)
+    assert metal_shows_bright(image[None], ellipse) is False
+
+
 def test_no_cup_to_judge_by_gives_none():
     image = disc_image(0.9, 0.3)
     assert metal_shows_bright(image, torch.full((2, 5), math.nan)) is None
