@@ -7,10 +7,15 @@ import csv
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from cupnet.cli import main
 from data_synth import SynthConfig, synthesize
-from data_synth.cli import META_COLUMNS, TRUTH_COLUMNS
+from data_synth.cli import META_COLUMNS, TRUTH_COLUMNS, rims_overhanging
+
+POSE_COLUMNS = ["theta_deg", "phi_deg", "k_mm", "l_mm", "h_mm"]
+ELLIPSE_COLUMNS = ["ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_px",
+                   "ellipse_angle_deg"]
 
 
 def read_csv(path):
@@ -40,13 +45,16 @@ def test_png_output_matches_synthesize(tmp_path):
         cups = [r for r in truth if r["image"] == row["image"]]
         assert len(cups) == int(sample["cup_valid"].sum())
         for cup in cups:
+            # Every column, by name: the pose's five, the ellipse's five (a cx / cy swap
+            # had passed), the diameter.
             j = int(cup["cup"])
-            values = [float(cup[k]) for k in TRUTH_COLUMNS[2:7]]
-            np.testing.assert_allclose(values, sample["pose"][j].numpy(), atol=1e-5)
-            np.testing.assert_allclose(float(cup["ellipse_a_px"]), sample["ellipse"][j, 2],
-                                       atol=1e-5)
+            for columns, truth_values in ((POSE_COLUMNS, sample["pose"][j]),
+                                          (ELLIPSE_COLUMNS, sample["ellipse"][j]),
+                                          (["cup_diameter_mm"], sample["cup_diameter"][j:j + 1])):
+                np.testing.assert_allclose([float(cup[k]) for k in columns],
+                                           truth_values.numpy(), atol=1e-5, err_msg=str(columns))
         rows += len(cups)
-    assert rows == len(truth)
+    assert rows == len(truth) and rows > 0
 
 
 def test_dicom_output_carries_the_geometry(tmp_path):
@@ -125,3 +133,30 @@ def test_cups_the_field_cannot_hold_are_counted(tmp_path, capsys):
     assert "warning: 2 of 2 cups reach past the image's edge" in capsys.readouterr().err
     assert main(["synth", "--n", "2", "--out", str(tmp_path / "b"), "--size", "64", "64"]) == 0
     assert "reach past" not in capsys.readouterr().err
+
+
+def rim_sample(width: int, height: int, rims: list[tuple[float, float]]) -> dict:
+    """A synthesize-like sample of a ``width x height`` image whose cups each have one rim
+    point where ``rims`` says and the others at the image's centre, all valid."""
+    rim = torch.zeros(len(rims), 64, 2, dtype=torch.float64)
+    rim[..., 0], rim[..., 1] = (width - 1) / 2, (height - 1) / 2
+    rim[:, 0] = torch.tensor(rims, dtype=torch.float64)
+    return {"image": torch.zeros(1, height, width), "rim": rim,
+            "cup_valid": torch.ones(len(rims), dtype=torch.bool)}
+
+
+@pytest.mark.parametrize(
+    ("size", "rims", "expected"),
+    [
+        # Wide image: below its last row but left of its last column is past the edge.
+        ((80, 40), [(40.0, 45.0), (40.0, 39.0)], [True, False]),
+        ((80, 40), [(79.5, 20.0), (79.0, 0.0)], [True, False]),
+        # Tall image: right of its last column but above its last row is past the edge.
+        ((40, 80), [(45.0, 40.0), (39.0, 79.0)], [True, False]),
+        ((40, 80), [(20.0, 79.5), (-0.5, 40.0)], [True, True]),
+    ],
+)
+def test_overhang_is_judged_against_each_of_the_images_sides(size, rims, expected):
+    """A rim point is past the edge when u leaves [0, W - 1] or v leaves [0, H - 1]:
+    on a non-square image, v checked against the width had missed (or made up) overhangs."""
+    assert rims_overhanging(rim_sample(*size, rims)).tolist() == expected

@@ -31,6 +31,9 @@ def test_from_yaml_reads_lists_and_ints(tmp_path):
         ({"p_head": 1.5}, "p_head"),
         ({"sdd_mm": [1200, 1000]}, "sdd_mm"),
         ({"theta_deg": [0, 120]}, "theta_deg"),
+        # CONVENTIONS: phi in (-90, 90], radiographic inclination.
+        ({"phi_deg": [-120, 0]}, "phi_deg"),
+        ({"phi_deg": [0, 120]}, "phi_deg"),
         ({"mu_shell": "titanium"}, "mu_shell"),
         ({"image_size": [256]}, "image_size"),
         ({"supersample": 0}, "supersample"),

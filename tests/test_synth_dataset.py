@@ -12,10 +12,28 @@ from torch.utils.data import DataLoader
 from cupnet.ellipse import params_to_conic, sampson_distance
 from cupnet.geometry import Geometry
 from data_synth import MAX_CUPS, SynthConfig, SynthDataset, synthesize
-from data_synth.dataset import rim_truth
-from data_synth.scene import reflect_into, sample_geometry, sample_poses
+from data_synth.dataset import render_bones, rim_truth
+from data_synth.implant import Ellipsoid
+from data_synth.raycast import render_parts
+from data_synth.scene import reflect_into, sample_geometry, sample_poses, sample_scene
 
 SMALL = {"image_size": (64, 48)}
+# The implant alone (no anatomy, bones, stem or screw holes) on a flat, noise-free, unblurred
+# background without scatter, vignetting, round field or inversion: nothing but the cup moves
+# the image's centroid.
+PLAIN = {"p_no_cup": 0.0, "p_bilateral": 0.0, "p_stem": 0.0, "p_screw_holes": 0.0,
+         "p_anatomy": 0.0, "p_bones": 0.0, "smooth_background": (0.0, 0.0),
+         "photons": (1e12, 1e12), "electronic_noise": (0.0, 0.0), "blur_sigma_px": (0.0, 0.0),
+         "scatter_fraction": (0.0, 0.0), "vignetting": (0.0, 0.0), "p_invert": 0.0,
+         "p_circular_field": 0.0, "p_8bit": 0.0}
+
+
+def centroid(weights: torch.Tensor) -> torch.Tensor:
+    """``(u, v)`` px, float64, of non-negative ``weights (H, W)`` (pixel centres at integers)."""
+    weights = weights.double()
+    v, u = torch.meshgrid(torch.arange(weights.shape[0], dtype=torch.float64),
+                          torch.arange(weights.shape[1], dtype=torch.float64), indexing="ij")
+    return torch.stack([(weights * u).sum(), (weights * v).sum()]) / weights.sum()
 
 
 def test_sample_shapes_and_dtypes():
@@ -110,14 +128,95 @@ def test_truth_is_consistent_with_itself_and_the_image(seed):
     mask = sample["mask"][0].double()
     cx, cy, a, b, _ = ellipse.tolist()
     assert abs(mask.sum() - math.pi * a * b) < 0.02 * math.pi * a * b + 0.05 * (a + b) + 0.5
-    v, u = torch.meshgrid(torch.arange(80.0), torch.arange(96.0), indexing="ij")
-    centroid = torch.stack([(mask * u.double()).sum(), (mask * v.double()).sum()]) / mask.sum()
     # A rim seen edge-on is thinner than a pixel: its mask cannot place it within a pixel.
     atol = 0.1 if b >= 2 else 0.5
-    assert torch.allclose(centroid, torch.tensor([cx, cy], dtype=torch.float64), atol=atol)
+    assert torch.allclose(centroid(mask), torch.tensor([cx, cy], dtype=torch.float64), atol=atol)
     # Behind the opening lies the metal dome: darker than the field on average.
     image = sample["image"][0]
     assert image[mask > 0.5].mean() < image[mask == 0].mean()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_image_of_a_cup_facing_the_detector_is_centred_on_its_truth(seed):
+    """A cup facing the detector on the central ray (theta = 90, k = l = 0): shell, liner and
+    head are solids of revolution about the ray through the principal point, so their
+    shadow is symmetric about (u0, v0), where the truth ellipse is centred too. The
+    principal point lies up to ~7 px off the image centre, so image and truth must agree on
+    it: a metal render with its principal point one pixel off had passed every test."""
+    config = SynthConfig(image_size=(96, 80), principal_offset_frac=0.08,
+                         theta_deg=(90.0, 90.0), k_mm=(0.0, 0.0), l_mm=(0.0, 0.0),
+                         pixel_spacing_mm=(2.0, 2.5), h_mm=(100.0, 250.0), **PLAIN)
+    sample = synthesize(config, seed, 0)
+    image = sample["image"][0].double()
+    shadow = image.max() - image  # metal darkens a flat background (no inversion)
+    # The whole shadow lies inside the image: a clipped one has its centroid moved.
+    assert shadow[[0, -1]].max() < 1e-3 and shadow[:, [0, -1]].max() < 1e-3
+    principal = sample["geometry"][2:]
+    torch.testing.assert_close(sample["ellipse"][0, :2], principal, rtol=0, atol=1e-9)
+    torch.testing.assert_close(centroid(shadow), principal, rtol=0, atol=0.05)
+
+
+@pytest.mark.parametrize(("size", "principal"), [((127, 95), (60.3, 44.8)),
+                                                 ((127, 95), (66.75, 49.2)),
+                                                 ((128, 96), (62.0, 47.5))])
+def test_bones_cast_at_half_resolution_sit_where_the_metal_would(size, principal):
+    """render_bones casts at half resolution and upsamples; the metal's render_parts casts
+    every pixel. One ellipsoid rendered both ways has one centroid, so bones and implant
+    stay in register (a half-resolution principal point of u0 / 2, not (u0 - 1/2) / 2, had
+    put every bone half a pixel off the metal). Odd sizes and fractional principal points:
+    the half-resolution grid's end and phase. The half-resolution cast aliases the
+    ellipsoid's sharp silhouette by ~0.03 px at this size (46 x 62 px)."""
+    geometry = Geometry(1000.0, 0.5, *principal)
+    bone = Ellipsoid(np.array([1.0, -2.0, 300.0]), np.eye(3), np.array([8.0, 11.0, 9.0]),
+                     0.04).part()
+    full = render_parts([bone], geometry, *size)
+    assert full[[0, -1]].max() == 0 and full[:, [0, -1]].max() == 0  # not clipped
+    half = render_bones([bone], geometry, *size)
+    assert half.shape == full.shape
+    torch.testing.assert_close(centroid(half), centroid(full), rtol=0, atol=0.05)
+
+
+@pytest.mark.parametrize(("size", "spacing"), [((64, 48), 5.0), ((48, 64), 320.0 / 48)])
+def test_pixel_spacing_spans_the_detector_width(size, spacing):
+    """Without pixel_spacing_mm the spacing is detector_width_mm over the image's width
+    (columns), whatever its height (SynthConfig's docstring)."""
+    config = SynthConfig(image_size=size, detector_width_mm=(320.0, 320.0))
+    geometry = sample_geometry(config, np.random.default_rng(0))
+    assert geometry.pixel_spacing == pytest.approx(spacing, rel=1e-12)
+
+
+def test_rims_stay_inside_the_round_field_with_its_margin():
+    """With the image intensifier's round field on (its radius and centre, the image
+    centre, are the scene's), every rim point lies at least field_margin * min(W, H) inside
+    it. A margin added instead of subtracted had put rims up to 7 px past the field's edge
+    in a tenth of the scenes. Landmarks lie between the 32 points the placement checks:
+    0.5 px of slack for the chords' sag."""
+    config = SynthConfig(p_circular_field=1.0, p_no_cup=0.0)
+    width, height = config.image_size
+    margin = config.field_margin * min(width, height)
+    for seed in range(200):
+        scene = sample_scene(config, np.random.default_rng([seed, 0]))
+        _, _, rim = rim_truth(scene.poses, scene.diameters, scene.geometry)
+        radius = torch.hypot(rim[..., 0] - (width - 1) / 2, rim[..., 1] - (height - 1) / 2)
+        assert radius.max() <= scene.field_radius - margin + 0.5, seed
+
+
+@pytest.mark.parametrize(("phi_deg", "side"), [((5.0, 90.0), -1), ((-89.9, -5.0), 1)])
+def test_the_stem_lies_on_the_hips_lateral_side(phi_deg, side):
+    """CONVENTIONS' AP display puts the patient's right on the image's left (-u), and a
+    right hip has phi > 0: its lateral side, where the femoral neck and stem leave the cup,
+    is at -u; a left hip's (phi < 0) at +u. A lateral sign flipped had drawn the stem (and
+    femur) medially, into the pelvis."""
+    size = (96, 96)
+    config = SynthConfig(image_size=size, pixel_spacing_mm=(4.0, 4.0), p_head=1.0,
+                         p_stem=1.0, p_no_cup=0.0, p_bilateral=0.0, phi_deg=phi_deg)
+    for seed in range(6):
+        scene = sample_scene(config, np.random.default_rng([seed, 0]))
+        _, *stem = scene.metal  # the cup, then its stem
+        assert len(stem) == 2  # neck and shaft
+        _, ellipse, _ = rim_truth(scene.poses, scene.diameters, scene.geometry)
+        stem_u = centroid(render_parts(stem, scene.geometry, *size))[0]
+        assert side * (stem_u - ellipse[0, 0]) > 3.0, seed
 
 
 def test_no_cup_images():
