@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
+import argparse
+from types import SimpleNamespace
+
 import numpy as np
 import torch
 
-from benchmarks.model import DEGRADATIONS, as_8_bit, blurrier, halved, jpeg_exported, noisier
+from benchmarks import model as bench_model
+from benchmarks.model import (
+    DEGRADATIONS,
+    as_8_bit,
+    blurrier,
+    degraded_section,
+    halved,
+    jpeg_exported,
+    noisier,
+)
 from cupnet.ellipse import conic_to_params
 from cupnet.geometry import Geometry, pose_to_radians, project_rim, rim_conic
 from data_synth import SynthConfig, synthesize
@@ -73,3 +85,28 @@ def test_every_degradation_gives_an_image_detect_takes():
         image = degrade(sample, np.random.default_rng(0))["image"]
         assert image.dtype == torch.float32 and image.ndim == 3, label
         assert float(image.min()) >= 0 and float(image.max()) <= 1, label
+
+
+def test_each_degraded_row_puts_its_figures_under_their_headers(monkeypatch):
+    """Stub scores (the same for every degradation): each figure read back by its column's
+    name, so that no two columns can trade places unseen."""
+    res = {"mae_theta": 1.5, "mae_phi": 2.5, "mae_k": 3.5, "mae_l": 4.5, "mae_h": 5.5,
+           "detected": 0.75, "cups": 8, "false_positives": 3, "false_positives_flagged": 2,
+           "median_theta": 0.25, "median_phi": 0.5, "gross": 4, "gross_flagged": 1}
+    monkeypatch.setattr(bench_model, "samples", lambda *_: [])
+    monkeypatch.setattr(bench_model, "accuracy", lambda *_: res)
+    stub = SimpleNamespace(config=SimpleNamespace(enlarge_below=384, enlarge_to=512))
+    args = argparse.Namespace(eval_config="configs/synth_eval.yaml", seed=0,
+                              degraded_images=6, sizes=[512], runtimes=["onnx"],
+                              seed_presets=[])
+    lines = degraded_section({"onnx": stub}, args).splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("| images |"))
+    header, *rows = ([cell.strip() for cell in line.strip("|").split("|")]
+                     for line in [lines[start], *lines[start + 2:]])
+    assert [row[0] for row in rows] == list(DEGRADATIONS)
+    expected = {"settings": "onnx", "MAE theta": "1.5", "MAE phi": "2.5", "MAE k": "3.5",
+                "MAE l": "4.5", "MAE h": "5.5", "detected": "75.0 % of 8",
+                "false positives": "3 (2 flagged)", "median theta": "0.25",
+                "median phi": "0.50", "gross (flagged)": "4 (1)"}
+    for row in rows:
+        assert dict(zip(header[1:], row[1:], strict=True)) == expected, row[0]
