@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from cupnet.cli import main
+from cupnet.demo import commands
 from cupnet.model import CupNet, save_model
 
 
@@ -35,3 +36,19 @@ def test_demo_runs_all_three_steps(tmp_path: Path, capsys: pytest.CaptureFixture
     # A second demo into the same folder must not silently replace the first.
     assert main(args) == 2
     assert "--overwrite" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_demo_passes_overwrite_to_synth_and_predict(overwrite: bool) -> None:
+    """``cupnet demo --overwrite`` into an earlier demo's folder: synth and predict would
+    each refuse their existing outputs (exit 2) without it; evaluate has no such option."""
+    out = Path("demo")
+    again = ["--overwrite"] if overwrite else []
+    assert commands(out, 3, 5, None, overwrite, 320) == [
+        ["synth", "--n", "3", "--seed", "5", "--size", "320", "320", "--out", "demo/data",
+         *again],
+        ["predict", "demo/data/images", "--out", "demo/predict", "--meta", "demo/data/meta.csv",
+         *again],
+        ["evaluate", "--pred", "demo/predict/results.csv", "--truth", "demo/data/truth.csv",
+         "--out", "demo/evaluate"],
+    ]

@@ -49,6 +49,25 @@ def test_inputs_go_to_the_device_and_outputs_come_back() -> None:
         _ = wrapped.no_such_attribute
 
 
+class AnswersOnTheCpu(nn.Module):
+    """Gives a tensor and a tuple of tensors on the CPU wherever its input is: the stand-in
+    for an accelerator's outputs, for a caller on "meta" (the CPU's outputs can be copied
+    there; a meta tensor holds no values to copy to the CPU)."""
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+        return torch.zeros(x.shape), (torch.ones(x.shape[0]), torch.ones(x.shape[:2]))
+
+
+def test_every_output_comes_back_to_the_first_inputs_device() -> None:
+    """Each output, those in tuples too (the rim networks' logits and log sigma), arrives on
+    the caller's device, not the one the module answered on (:class:`DeviceRecorder`'s CPU
+    outputs, with the caller on the CPU, would arrive whether moved or not)."""
+    wrapped = OnDevice(AnswersOnTheCpu(), "meta")
+    zeros, (ones, more) = wrapped(torch.zeros(3, 4, device="meta"))
+    assert [t.device.type for t in (zeros, ones, more)] == ["meta"] * 3
+    assert zeros.shape == more.shape == (3, 4) and ones.shape == (3,)
+
+
 def test_a_moved_wrapper_sends_inputs_where_its_weights_are() -> None:
     recorder = DeviceRecorder()
     recorder.weight = nn.Parameter(torch.zeros(1))

@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 import csv
+import importlib.metadata
+import importlib.util
 import json
+import sys
+import warnings
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 import torch
+from torch import nn
 
 from cupnet.cli import main
 from cupnet.fold import fold_batchnorm
@@ -74,6 +79,107 @@ def test_graphs_are_cached_by_weights(onnx_cache: Path) -> None:
     assert len(exports) == 3 and exports[2] == exports[1]
     with torch.no_grad():
         torch.testing.assert_close(again(strips), other(strips), atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("library", ["torch", "onnxruntime", "onnxscript"])
+def test_graphs_are_cached_by_library_versions(library: str,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """After an upgrade of a library that builds or runs the graph the network is exported
+    anew: a graph of the old exporter, or for the old runtime, may not load or run alike."""
+    rim = rim_net(1)
+    before = export_key(rim)
+    installed = importlib.metadata.version
+
+    def upgraded(name: str) -> str:
+        return "999.0" if name == library else installed(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", upgraded)
+    assert export_key(rim) != before
+
+
+def test_graphs_are_cached_by_the_source_of_the_layers_classes(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An edit to the file defining a layer's class (its forward, a constant it reads)
+    exports the network anew, the weights unchanged; the same file gives the same key."""
+    source = tmp_path / "edited_layer.py"
+    source.write_text("from torch import nn\n\nSCALE = 1.0\n\n\n"
+                      "class Layer(nn.Module):\n"
+                      "    def __init__(self):\n"
+                      "        super().__init__()\n"
+                      "        self.conv = nn.Conv2d(1, 1, 3)\n\n"
+                      "    def forward(self, x):\n"
+                      "        return SCALE * self.conv(x)\n")
+    spec = importlib.util.spec_from_file_location("edited_layer", source)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, "edited_layer", module)  # where inspect finds it
+    spec.loader.exec_module(module)
+    torch.manual_seed(0)
+    layer = module.Layer()
+    before = export_key(layer)
+    assert export_key(layer) == before
+    source.write_text(source.read_text().replace("SCALE = 1.0", "SCALE = 2.0"))
+    assert export_key(layer) != before
+
+
+class TinyUNet(nn.Module):
+    """A network on square images that is not a RimNet: exported, as a U-Net, for one side
+    (in a second or two, where a real U-Net takes several)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.body = nn.Sequential(nn.Conv2d(1, 4, 3, padding=1), nn.ReLU(),
+                                  nn.Conv2d(4, 1, 3, padding=1))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.body(x)
+
+
+def tiny_unet(seed: int) -> TinyUNet:
+    torch.manual_seed(seed)
+    return TinyUNet().eval()
+
+
+def test_a_unet_graph_is_cached_for_its_side() -> None:
+    """The same weights for two sides (a changed locator_size) make two graphs: had the
+    128 px wrapper loaded the 96 px graph, ONNX Runtime would fail on its first call and
+    the network run in PyTorch for the rest of the run, with only a warning."""
+    net = tiny_unet(5)  # its own weights: no other test has exported it
+    exports: list[Path] = []
+    small = InOnnxRuntime(net, side=96, on_export=exports.append)
+    large = InOnnxRuntime(net, side=128, on_export=exports.append)
+    assert [path.name.split("-")[0] for path in exports] == ["unet96", "unet128"]
+    for wrapped, side in [(small, 96), (large, 128)]:
+        views = torch.rand(2, 1, side, side)
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("error")  # no fall-back to PyTorch
+            torch.testing.assert_close(wrapped(views), net(views), atol=1e-5, rtol=1e-4)
+        assert wrapped.failure is None
+
+
+def test_an_input_of_another_side_runs_in_pytorch_that_call_alone(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """A U-Net input of a side the graph was not made for is run in PyTorch with a warning
+    naming both sides, and ONNX Runtime is not given up for the calls of the graph's side
+    (had it been tried, it would fail and run every later call in PyTorch)."""
+    net = tiny_unet(6)
+    wrapped = InOnnxRuntime(net, side=128)
+    odd = torch.rand(1, 1, 96, 96)
+    with pytest.warns(UserWarning, match=r"^ONNX Runtime's graph takes 128 px inputs; "
+                                         r"PyTorch runs these \(96, 96\)$"), torch.no_grad():
+        torch.testing.assert_close(wrapped(odd), net(odd))
+    assert wrapped.failure is None
+    ran: list[tuple[int, ...]] = []
+    graph = wrapped.run
+
+    def recorded(inputs: torch.Tensor) -> torch.Tensor:
+        ran.append(tuple(inputs.shape))
+        return graph(inputs)
+
+    monkeypatch.setattr(wrapped, "run", recorded)
+    views = torch.rand(2, 1, 128, 128)
+    with torch.no_grad():
+        torch.testing.assert_close(wrapped(views), net(views), atol=1e-5, rtol=1e-4)
+    assert ran == [(2, 1, 128, 128)]  # in ONNX Runtime
 
 
 def test_a_cache_folder_that_cannot_be_made_is_warned_of(tmp_path: Path,

@@ -1,0 +1,58 @@
+"""cupnet.config: a checkpoint's JSON read strictly, and what each speed preset promises."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+
+import pytest
+
+from cupnet.config import CupNetConfig, apply_speed_preset
+from cupnet.model import DEFAULT_CHECKPOINT, config_path
+
+# What --fast and --fastest promise (cupnet predict --help, README's table of presets),
+# written out here rather than read from SPEED_PRESETS, so a setting dropped from a preset
+# fails: --fast skips the verification (and so the search) of doubtful cups; --fastest also
+# the dome-outline refinement, the thin-rim hypotheses and every later look.
+PROMISED = {
+    "fast": {"verify_gate": None},
+    "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
+                "second_look": False, "third_look_gamma": None, "high_gamma_look": None,
+                "fourth_look_turned": False},
+}
+
+
+def shipped_config() -> CupNetConfig:
+    """The shipped model's config (its JSON alone: the weights are not needed here)."""
+    return CupNetConfig.from_dict(json.loads(config_path(DEFAULT_CHECKPOINT).read_text()))
+
+
+@pytest.mark.parametrize("preset", sorted(PROMISED))
+def test_speed_presets_turn_off_what_they_promise_and_nothing_else(preset: str) -> None:
+    """Each setting a preset promises to turn off is on in the shipped model (else the
+    check would pass whatever the preset did) and off after it; every other setting is the
+    shipped one."""
+    shipped = asdict(shipped_config())
+    promised = PROMISED[preset]
+    assert all(shipped[key] != value for key, value in promised.items())
+    changed = asdict(apply_speed_preset(shipped_config(), preset))
+    assert {key: changed[key] for key in promised} == promised
+    assert ({key: value for key, value in changed.items() if key not in promised}
+            == {key: value for key, value in shipped.items() if key not in promised})
+
+
+@pytest.mark.parametrize("values", [{"rim_channels": True}, {"coarse_rim_channels": False},
+                                    {"crop_fill": True}, {"verify_gate": False},
+                                    {"search_anteversions": [3.0, True]}])
+def test_a_bool_is_no_number(values: dict) -> None:
+    """JSON's true is not 1 to an int or float field (Python's bool is an int): a
+    checkpoint's ``"rim_channels": true`` is a mistake, not a network of width 1."""
+    key = next(iter(values))
+    with pytest.raises(ValueError, match=f"CupNet config {key}: expected .*, got (True|False)"):
+        CupNetConfig.from_dict(values)
+
+
+def test_an_unknown_key_is_refused_by_name() -> None:
+    """A misspelt key in a checkpoint's JSON had silently left its field at the default."""
+    with pytest.raises(ValueError, match=r"^unknown CupNet config keys: \['verify_gat'\]$"):
+        CupNetConfig.from_dict({"verify_gat": 1.0, "rim_channels": 8})
