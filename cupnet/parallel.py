@@ -50,6 +50,9 @@ def _pool(workers: int, pid: int) -> ThreadPoolExecutor:
     started = threading.Barrier(workers + 1)
 
     def one_thread() -> None:
+        # A thread takes up the process's count at its first torch call, and a count set
+        # before it would be overwritten then: that call first, then one thread.
+        torch.get_num_threads()
         torch.set_num_threads(1)
         started.wait()
 

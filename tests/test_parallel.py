@@ -7,7 +7,7 @@ import threading
 import pytest
 import torch
 
-from cupnet.parallel import map_on_cores
+from cupnet.parallel import _pool, map_on_cores
 
 
 @pytest.fixture
@@ -32,8 +32,9 @@ def test_map_on_cores_matches_the_serial_map_in_order(two_threads):
 def test_map_on_cores_runs_on_worker_threads_and_leaves_the_callers_setting(two_threads):
     names = map_on_cores(lambda _: threading.current_thread().name, range(6))
     assert all(name.startswith("cupnet-cores") for name in names)
-    # (torch.get_num_threads reads a process-wide count: the workers' own single intra-op
-    # thread shows in their CPU time, not there; the caller's count must stay as it was.)
+    # Each worker runs one intra-op thread (they had taken up the caller's count at their
+    # first torch call, after it was restored), and the caller's count stays as it was.
+    assert map_on_cores(lambda _: torch.get_num_threads(), range(2)) == [1, 1]
     assert torch.get_num_threads() == 2
 
 
@@ -59,3 +60,23 @@ def test_map_on_cores_carries_the_callers_grad_and_inference_modes(two_threads):
     with torch.inference_mode():
         assert all(o.is_inference() for o in map_on_cores(lambda x: x * weight,
                                                           [torch.ones(3)] * 2))
+
+
+def num_threads_of_a_new_thread() -> int:
+    """``torch.get_num_threads()`` in a thread started now (its first torch call takes up
+    the process's count then)."""
+    seen: list[int] = []
+    thread = threading.Thread(target=lambda: seen.append(torch.get_num_threads()))
+    thread.start()
+    thread.join()
+    return seen[0]
+
+
+def test_threads_started_after_map_on_cores_get_the_callers_count(two_threads):
+    """Each worker's torch.set_num_threads(1) also sets the count of every thread started
+    later (a data loader's, a server's): the pool gives the caller's back once its workers
+    are set. A fresh pool, as the count is set while one is made."""
+    _pool.cache_clear()
+    assert num_threads_of_a_new_thread() == 2
+    map_on_cores(lambda _: None, range(4))
+    assert num_threads_of_a_new_thread() == 2
