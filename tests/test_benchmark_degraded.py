@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
+from markdown_tables import table_cells
 
 from benchmarks import model as bench_model
 from benchmarks.model import (
@@ -99,10 +100,7 @@ def test_each_degraded_row_puts_its_figures_under_their_headers(monkeypatch):
     args = argparse.Namespace(eval_config="configs/synth_eval.yaml", seed=0,
                               degraded_images=6, sizes=[512], runtimes=["onnx"],
                               seed_presets=[])
-    lines = degraded_section({"onnx": stub}, args).splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith("| images |"))
-    header, *rows = ([cell.strip() for cell in line.strip("|").split("|")]
-                     for line in [lines[start], *lines[start + 2:]])
+    header, *rows = table_cells(degraded_section({"onnx": stub}, args), "images")
     assert [row[0] for row in rows] == list(DEGRADATIONS)
     expected = {"settings": "onnx", "MAE theta": "1.5", "MAE phi": "2.5", "MAE k": "3.5",
                 "MAE l": "4.5", "MAE h": "5.5", "detected": "75.0 % of 8",

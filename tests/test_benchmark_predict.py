@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
+from markdown_tables import table_cells
 
 from benchmarks import predict as bench_predict
 from benchmarks.predict import make_folder, measure
@@ -89,10 +90,7 @@ def test_the_table_gives_rates_per_second_and_the_bound_with_free_cores(tmp_path
     monkeypatch.setattr(bench_predict, "write_section",
                         lambda name, body: written.update({name: body}))
     bench_predict.main()
-    lines = written["predict"].splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith("| runtime |"))
-    header, first = ([cell.strip() for cell in line.strip("|").split("|")]
-                     for line in (lines[start], lines[start + 2]))
+    header, first, *_ = table_cells(written["predict"], "runtime")
     assert dict(zip(header, first, strict=True)) == {
         "runtime": "torch", "speed preset": "default", "overlays": "off", "images": "10",
         "cups found": "12", "error rows": "1", "run (s)": "4", "images / s": "2.5",
