@@ -5,7 +5,7 @@ shipped model is stubbed out, so these run in a blink)."""
 from __future__ import annotations
 
 import argparse
-import time
+from collections.abc import Callable
 from types import SimpleNamespace
 
 import numpy as np
@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from benchmarks import model as bench_model
+from benchmarks import solver_speed
 from benchmarks.model import accuracy, interval, oblong_section, scored
-from benchmarks.solver_speed import best_rate
 from benchmarks.throughput import scores, table_row
 
 TRUTH = [20.0, 10.0, 0.0, 0.0, 300.0]
@@ -128,12 +128,12 @@ def test_a_throughput_row_gives_images_per_second_and_milliseconds_per_image(cap
     assert capsys.readouterr().out.startswith("| `detect` | fp32 | 8 | 5.0 | 200.00 |")
 
 
-def test_a_call_that_waits_is_slower_by_the_wall_clock_than_by_its_cpu_time():
-    """A call that sleeps 20 ms uses little CPU: its wall rate is at most 10 items / 20 ms,
-    its CPU-time rate above that."""
-    def wait() -> None:
-        time.sleep(0.02)
-        sum(range(1000))  # some CPU time, however short the clock's tick
+def test_best_rate_gives_the_wall_rate_then_the_cpu_rate_of_the_fastest_repeat(monkeypatch):
+    """Two repeats of 10 items, read off clocks that say the wall took 4 s then 2 s and the
+    CPU 3 s then 1 s: 5 items a second of wall clock, 10 a CPU second."""
+    def readings(*values: float) -> Callable[[], float]:
+        return iter(values).__next__
 
-    wall, cpu = best_rate(wait, 10, 2)
-    assert wall <= 10 / 0.02 < cpu
+    monkeypatch.setattr(solver_speed, "time", SimpleNamespace(
+        perf_counter=readings(0.0, 4.0, 10.0, 12.0), process_time=readings(0.0, 3.0, 3.0, 4.0)))
+    assert solver_speed.best_rate(lambda: None, 10, 2) == (5.0, 10.0)

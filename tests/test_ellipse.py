@@ -160,7 +160,7 @@ def test_hyperbola_points_are_not_an_ellipse():
     # The ellipse-specific fit always returns an ellipse, even for hyperbola points: the
     # same one as OpenCV's direct (Fitzgibbon) fit.
     assert fit.valid.all()
-    ref = opencv_params(points.float().double().numpy())
+    ref = opencv_params(points.numpy())
     np.testing.assert_allclose(fit.params[0, :4].numpy(), ref[:4], rtol=1e-4, atol=1e-4)
     assert angle_diff(float(fit.params[0, 4]), ref[4]) < 1e-3
 
@@ -262,14 +262,15 @@ def test_a_negative_weight_is_named():
 
 def test_degenerate_conics_are_no_ellipse():
     """A parabola-like conic (singular quadratic part), a point ellipse and an imaginary one
-    are none: only a positive-definite quadratic part with det(C) of the trace's opposite
-    sign is a real ellipse."""
+    are none: only a definite quadratic part with det(C) of the trace's opposite sign is a
+    real ellipse (of either sign: a conic's scale is free)."""
     conics = torch.tensor([[[1.0, 0, 0], [0, 1, 0], [0, 0, -1]],  # the unit circle
+                           [[-1.0, 0, 0], [0, -1, 0], [0, 0, 1]],  # ... negated
                            [[1.0, 0, 0], [0, 0, 0], [0, 0, -1]],  # two lines x = +-1
                            [[1.0, 0, 0], [0, 1, 0], [0, 0, 0]],  # a single point
                            [[1.0, 0, 0], [0, 1, 0], [0, 0, 1]]],  # no real point
                           dtype=torch.float64)
-    assert is_ellipse(conics).tolist() == [True, False, False, False]
+    assert is_ellipse(conics).tolist() == [True, True, False, False, False]
 
 
 def test_a_fit_that_is_no_ellipse_raises_naming_it(monkeypatch: pytest.MonkeyPatch):

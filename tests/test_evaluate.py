@@ -61,11 +61,10 @@ def predicted_rows() -> list[dict]:
             pose[1] = (pose[1] + 90) % 180 - 90  # 89 - 3 = 86 stays; wrap is tested below
             ellipse = np.array(cup[5:]) + [0, 0, 2.0, 0, 0]
             rows.append({"image": image, "status": "ok", "seconds": 0.5,
-                         **dict(zip(POSE + ELLIPSE, [*pose, *ellipse], strict=True))})
+                         **posed([*pose, *ellipse])})
     # A false positive far from every true cup.
     rows.append({"image": "b.png", "status": "ok", "seconds": 0.5,
-                 **dict(zip(POSE + ELLIPSE, [20, 20, 0, 0, 300, 50, 50, 30, 20, 0],
-                            strict=True))})
+                 **posed([20, 20, 0, 0, 300, 50, 50, 30, 20, 0])})
     return rows
 
 
@@ -95,14 +94,13 @@ def test_a_far_false_cup_does_not_outbid_a_found_one(tmp_path: Path) -> None:
     pairs, past the semi-major axis, were dropped: 0 of 2 found, 2 false positives."""
     pose = [20.0, 30.0, 0.0, 0.0, 300.0]
     truth = write_csv(tmp_path / "truth.csv", [
-        {"image": "x.png", "cup": j, **dict(zip(POSE + ELLIPSE, [*pose[:4], h, u, 300, 40, 25, 0],
-                                                strict=True))}
+        {"image": "x.png", "cup": j, **posed([*pose[:4], h, u, 300, 40, 25, 0])}
         for j, (u, h) in enumerate(((300, 300.0), (700, 310.0)))])
     found = [21.0, *pose[1:], 310, 300, 40, 25, 0]
     false = [*pose, 0, 300, 40, 25, 0]
     pred = write_csv(tmp_path / "pred.csv", [
         {"image": "x.png", "cup": j, "status": "ok", "seconds": 1.0,
-         **dict(zip(POSE + ELLIPSE, values, strict=True))}
+         **posed(values)}
         for j, values in enumerate((found, false))])
     metrics = evaluate_results(pred, truth)
     assert metrics["matched_cups"] == 1 and metrics["false_positives"] == 1
@@ -265,8 +263,7 @@ def test_an_ambiguous_cup_scores_its_first_pose_and_says_what_the_second_gives(
     truth = write_csv(tmp_path / "truth.csv", truth_rows()[2:3])  # b.png
     true_pose = truth_rows()[2]
     row = {"image": "b.png", "cup": 0, "status": "ambiguous", "seconds": 1.0,
-           **dict(zip(POSE + ELLIPSE, [25.0, 89.0, 0, 0, 400, 512, 512, 70, 12, 179],
-                      strict=True)),
+           **posed([25.0, 89.0, 0, 0, 400, 512, 512, 70, 12, 179]),
            **{f"alt_{c}": v for c, v in zip(POSE, [10.0, 89.0, 0.0, 0.0, 400.0],
                                               strict=True)}}
     assert true_pose["theta_deg"] == 10.0 and true_pose["phi_deg"] == 89.0

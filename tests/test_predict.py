@@ -233,26 +233,25 @@ def five_images_in_batches_of_two(tmp_path: Path, checkpoint: Path) -> tuple[Pat
                  "--batch-size", "2", "--no-overlays"]
 
 
-def interrupt_the_second_batch(monkeypatch: pytest.MonkeyPatch) -> Callable[[], None]:
-    """Ctrl-C while the network runs on a run's second batch, from now until the returned
-    function is called."""
+def interrupt_the_batch_of(name: str, monkeypatch: pytest.MonkeyPatch) -> Callable[[], None]:
+    """Ctrl-C while the network runs on the batch holding image ``name``, from now until the
+    returned function is called. (By name, not by call: two batches run at once, so the
+    second call may be either.)"""
     real = predict.NetworkDetector.__call__
-    calls = []
 
-    def interrupted_on_second_batch(self, *args):
-        calls.append(args)
-        if len(calls) == 2:
+    def interrupted(self, frames, *args):
+        if any(frame.name == name for frame in frames):
             raise KeyboardInterrupt
-        return real(self, *args)
+        return real(self, frames, *args)
 
-    monkeypatch.setattr(predict.NetworkDetector, "__call__", interrupted_on_second_batch)
+    monkeypatch.setattr(predict.NetworkDetector, "__call__", interrupted)
     return lambda: monkeypatch.setattr(predict.NetworkDetector, "__call__", real)
 
 
 def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
                                       monkeypatch: pytest.MonkeyPatch) -> None:
     out, args = five_images_in_batches_of_two(tmp_path, blind_checkpoint)
-    restore = interrupt_the_second_batch(monkeypatch)
+    restore = interrupt_the_batch_of("im2.png", monkeypatch)
     assert main(args) == 130
     first = rows_by_image(read_csv(out / "results.csv"))
     assert set(first) == {"im0.png", "im1.png"}
@@ -266,33 +265,37 @@ def test_resume_after_interrupted_run(tmp_path: Path, blind_checkpoint: Path,
     assert [r["image"] for r in document["images"]] == [f"im{i}.png" for i in range(5)]
 
 
-@pytest.mark.parametrize(("changes", "named"), [
+# Settings a resume refuses to change, and how it names each change. Each geometry flag
+# alone: a resume with another had mixed two geometries' poses.
+REFUSED_CHANGES = [
     (["--fastest", "--rotate", "90"],
      "--fast / --fastest: not given -> fastest; --rotate: 0 -> 90"),
-    # Each geometry flag alone: a resume with another had mixed two geometries' poses.
     (["--pixel-spacing", "0.25"], "--pixel-spacing: 0.3 -> 0.25"),
     (["--sdd", "900"], "--sdd: 1000.0 -> 900.0"),
     (["--cup-diameter", "50"], "--cup-diameter: 52.0 -> 50.0"),
     (["--principal-point", "100", "120"], "--principal-point: not given -> [100.0, 120.0]"),
     (["--assume-defaults"], "--assume-defaults: not given -> True"),
     (["--check-doubt", "0.5"], "--check-doubt: not given -> 0.5"),
-])
+]
+
+
 def test_resume_refuses_other_settings_than_the_run_it_resumes(
         tmp_path: Path, blind_checkpoint: Path, monkeypatch: pytest.MonkeyPatch,
-        capsys: pytest.CaptureFixture, changes: list[str], named: str) -> None:
+        capsys: pytest.CaptureFixture) -> None:
     """A resume with --fastest of a default run had mixed the two runs' rows under the later
     settings alone; settings that change no row (batch size, threads) may change, and a
     meta file spelt otherwise is the same file."""
     out, args = five_images_in_batches_of_two(tmp_path, blind_checkpoint)
-    restore = interrupt_the_second_batch(monkeypatch)
+    restore = interrupt_the_batch_of("im2.png", monkeypatch)
     (tmp_path / "meta.csv").write_text("image,sdd_mm\nim0.png,1000\n")
     assert main([*args, "--meta", str(tmp_path / "meta.csv")]) == 130
     restore()
-    capsys.readouterr()
-    assert main([*args, "--meta", str(tmp_path / "meta.csv"), "--resume", *changes]) == 2
-    err = capsys.readouterr().err
-    assert f"--resume with other settings than the run in {out} ({named}): " in err
-    assert len(rows_by_image(read_csv(out / "results.csv"))) == 2  # left as it was
+    for changes, named in REFUSED_CHANGES:
+        capsys.readouterr()
+        assert main([*args, "--meta", str(tmp_path / "meta.csv"), "--resume", *changes]) == 2
+        err = capsys.readouterr().err
+        assert f"--resume with other settings than the run in {out} ({named}): " in err
+        assert len(rows_by_image(read_csv(out / "results.csv"))) == 2  # left as it was
     monkeypatch.chdir(tmp_path)
     assert main([*args, "--meta", "./meta.csv", "--resume", "--batch-size", "3"]) == 0
     assert len(rows_by_image(read_csv(out / "results.csv"))) == 5
@@ -353,7 +356,7 @@ def test_the_command_exits_at_once_when_stopped(status: int) -> None:
         "import threading, cupnet.cli as cli\n"
         "stop = threading.Event()\n"
         "threading.Thread(target=stop.wait, daemon=False).start()\n"
-        f"def main():\n    print('written before the stop')\n"
+        "def main():\n    print('written before the stop')\n"
         f"    if {status} == 0: stop.set()\n    return {status}\n"
         "cli.main = main\n"
         "cli.console()\n")
@@ -465,7 +468,7 @@ def test_multiframe_dicom_gives_a_row_per_frame(tmp_path: Path, blind_checkpoint
     out = tmp_path / "out"
     args = ["predict", str(path), "--out", str(out), "--checkpoint", str(blind_checkpoint),
             "--cup-diameter", "52", "--quiet", "--batch-size", "1"]
-    restore = interrupt_the_second_batch(monkeypatch)
+    restore = interrupt_the_batch_of("run.dcm#2", monkeypatch)
     assert main(args) == 130
     first = rows_by_image(read_csv(out / "results.csv"))
     assert list(first) == ["run.dcm#1"]

@@ -113,7 +113,6 @@ def test_graphs_are_cached_by_the_source_of_the_layers_classes(
     module = importlib.util.module_from_spec(spec)
     monkeypatch.setitem(sys.modules, "edited_layer", module)  # where inspect finds it
     spec.loader.exec_module(module)
-    torch.manual_seed(0)
     layer = module.Layer()
     before = export_key(layer)
     assert export_key(layer) == before
@@ -139,11 +138,13 @@ def tiny_unet(seed: int) -> TinyUNet:
     return TinyUNet().eval()
 
 
-def test_a_unet_graph_is_cached_for_its_side() -> None:
+def test_a_unet_graph_is_cached_for_its_side(tmp_path: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
     """The same weights for two sides (a changed locator_size) make two graphs: had the
     128 px wrapper loaded the 96 px graph, ONNX Runtime would fail on its first call and
     the network run in PyTorch for the rest of the run, with only a warning."""
-    net = tiny_unet(5)  # its own weights: no other test has exported it
+    monkeypatch.setenv("CUPNET_CACHE_DIR", str(tmp_path))  # a cache of its own: both exported
+    net = tiny_unet(5)
     exports: list[Path] = []
     small = InOnnxRuntime(net, side=96, on_export=exports.append)
     large = InOnnxRuntime(net, side=128, on_export=exports.append)
