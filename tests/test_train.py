@@ -86,6 +86,8 @@ def test_phi_errors_wrap_at_180_degrees():
     assert torch.allclose(err[:, 0], torch.tensor([-2.0, 0.0], dtype=torch.float64))
     assert torch.allclose(err[:, 1], torch.tensor([-2.0, 60.0], dtype=torch.float64))
     assert float(wrap_angle(torch.tensor(181.0))) == pytest.approx(1.0)
+    # theta in [0, 90] has no period: a 95-deg error is 95, not -85.
+    assert pose_errors(torch.tensor([[95.0, 0, 0, 0, 0]]), torch.zeros(1, 5))[0, 0] == 95.0
 
 
 def test_a_cup_without_truth_is_left_out_of_the_pose_and_ellipse_losses():
