@@ -320,6 +320,19 @@ def test_same_seed_same_batches_and_losses():
     assert losses_a == losses_b and all(math.isfinite(v) for v in losses_a)
 
 
+def test_a_validation_draws_nothing_from_torchs_global_generator():
+    """Each validation's iterator takes its base seed from the loader's own generator: from
+    the global one it would shift every later training step's random draws (the jitter of
+    the crops), so a run that validates more often would train otherwise."""
+    loader = CupDataModule(synth={"image_size": [64, 64], "supersample": 1}, batch_size=1,
+                           val_length=1).val_dataloader()
+    torch.manual_seed(0)
+    next(iter(loader))
+    after_validation = torch.rand(3)
+    torch.manual_seed(0)
+    assert torch.equal(after_validation, torch.rand(3))
+
+
 def test_a_list_of_synthesis_configs_is_mixed_batch_by_batch():
     thin = {"image_size": [128, 128], "supersample": 1, "theta_deg": [0.0, 1.0]}
     open_ = {**thin, "theta_deg": [49.0, 50.0]}
