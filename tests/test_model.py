@@ -30,7 +30,7 @@ from cupnet.crops import (
 )
 from cupnet.ellipse import ellipse_points, fit_ellipse
 from cupnet.fold import fold_batchnorm
-from cupnet.geometry import Geometry
+from cupnet.geometry import Geometry, pose_to_radians, project_rim
 from cupnet.landmarks import component_moments, ellipse_coverage, ray_landmarks, soft_moments
 from cupnet.model import (
     CupNet,
@@ -207,6 +207,20 @@ def test_crop_frames_fill_the_major_axis_and_stretch_thin_rims_within_a_bound():
     torch.testing.assert_close(frames[:, 3], torch.tensor([major, major * 0.2, major / 6],
                                                           dtype=torch.float64))
     torch.testing.assert_close(frames[:, [0, 1, 4]], ellipses[:, [0, 1, 4]])
+
+
+def test_each_cup_is_solved_with_its_own_diameter():
+    """Diameters ``(B, C)`` (the training batches' per-cup truth): the second cup of an
+    image takes its own size, not the first's."""
+    geometry = Geometry(1000.0, 0.3, 256.0, 256.0)
+    truth = torch.tensor([[20.0, 30.0, -40.0, 10.0, 300.0], [25.0, -35.0, 45.0, 5.0, 280.0]],
+                         dtype=torch.float64)
+    t = torch.linspace(0, 2 * math.pi, 33, dtype=torch.float64)[:-1]
+    diameters = torch.tensor([[44.0, 60.0]], dtype=torch.float64)
+    points = project_rim(pose_to_radians(truth), diameters[0] / 2, geometry, t)
+    solution = CupNet(TINY).solve(points, torch.ones(2, 32, dtype=torch.float64), geometry,
+                                  diameters, torch.tensor([[0, 0], [0, 1]]), 1, refine=True)
+    torch.testing.assert_close(solution.pose, truth, atol=1e-6, rtol=0)
 
 
 def test_to_view_inverts_to_image():

@@ -813,9 +813,11 @@ def test_ambiguous_pair_reports_the_pose_doubted_less_first(shipped_on_drr, monk
                                 ["ambiguous" if ambiguous else "ok"])
         picks.append((torch.zeros(4, 2), torch.ones(4), solution, 0))
     poses, alt_poses = [first, first], [second, second]
-    model._order_ambiguous([sample["image"]], torch.tensor([0, 0]), picks, [0, 1], poses,
-                           alt_poses, rows, diameter)
+    firsts = model._order_ambiguous([sample["image"]], torch.tensor([0, 0]), picks, [0, 1],
+                                    poses, alt_poses, rows, diameter)
     assert torch.equal(poses[0], second if alt_doubted_less else first)
+    # The doubt reported (and flagged by) is the pose's put first: the lower one.
+    assert list(firsts) == [0] and firsts[0].tolist() == [1.0, 1.0]
     assert torch.equal(alt_poses[0], first if alt_doubted_less else second)
     assert torch.equal(poses[1], first) and torch.equal(alt_poses[1], second)
 
@@ -857,9 +859,20 @@ def test_verification_turns_the_rim_to_find_it(shipped_on_drr, monkeypatch, turn
     monkeypatch.setattr(model.config, "search_gate", None)
     monkeypatch.setattr(model.config, "verify_anteversions",
                         tuple(float(truth[0, 0]) + turn for turn in turns))
+    looked_at = []  # the turned poses whose rims the network looks across
+    real = model._pose_rim_found
+    monkeypatch.setattr(model, "_pose_rim_found", lambda images, image, poses, *rest: (
+        looked_at.append(poses.clone()), real(images, image, poses, *rest))[1])
     pose, _, _ = _verify(model, sample, wrong, [])
     found = bool((pose[:2] - truth[0, :2]).abs().max() < 1.0)
     assert found == bool(turns)
+    # Turned in anteversion alone: the first pose with each of verify_anteversions.
+    turned = [p for p in looked_at if p.shape[0] == len(turns) and len(turns)]
+    for sets in turned[:1]:
+        expected = wrong.expand(len(turns), 1, 5).clone()
+        expected[..., 0] = torch.tensor(turns, dtype=torch.float64)[:, None] + truth[0, 0]
+        torch.testing.assert_close(sets, expected, atol=1e-4, rtol=0)  # (a float32 list)
+    assert len(turned) == (1 if turns else 0)
 
 
 def _searched_turned_cup(model, sample, monkeypatch, turned: bool, **search):
