@@ -186,21 +186,22 @@ def _with_text(canvas: np.ndarray, lines: list[str], font_scale: float,
     (_, height), baseline = cv2.getTextSize("Ag", _FONT, font_scale, thickness)
     step = height + baseline + 2
     wrapped = _wrapped(lines, canvas.shape[1], font_scale, thickness)
-    if step * len(wrapped) + 4 <= canvas.shape[0] // 2:
-        band_h, band_w = _band_size(wrapped, font_scale, thickness, step)
+    band_h, band_w = _band_size(wrapped, font_scale, thickness, step)
+    if band_h <= canvas.shape[0] // 2:
         rows, cols = canvas.shape[0] - band_h, canvas.shape[1] - band_w
         corners = [(0, 0), (0, cols), (rows, 0), (rows, cols)]
         covered = [int(((drawn[:, 0] >= x - 2) & (drawn[:, 0] <= x + band_w + 2)
                         & (drawn[:, 1] >= y - 2) & (drawn[:, 1] <= y + band_h + 2)).sum())
                    for y, x in corners]
-        corner = corners[int(np.argmin(covered))]  # the first of the least covered
-        _draw_text_block(canvas, wrapped, font_scale, thickness, height, step, corner)
+        top, left = corners[int(np.argmin(covered))]  # the first of the least covered
+        _draw_text_block(canvas, wrapped, font_scale, thickness, height, step,
+                         (top, left, band_h, band_w))
         return canvas
     width = max(canvas.shape[1], 12 + cv2.getTextSize("x" * _PANEL_CHARS, _FONT, font_scale,
                                                       thickness)[0][0])
     wrapped = _wrapped(lines, width, font_scale, thickness)
     panel = np.zeros((step * len(wrapped) + 4, width, 3), np.uint8)
-    _draw_text_block(panel, wrapped, font_scale, thickness, height, step)
+    _draw_text_block(panel, wrapped, font_scale, thickness, height, step, (0, 0, *panel.shape[:2]))
     picture = np.zeros((canvas.shape[0], width, 3), np.uint8)
     picture[:, :canvas.shape[1]] = canvas
     return np.vstack([picture, panel])
@@ -221,15 +222,12 @@ def _band_size(lines: list[str], font_scale: float, thickness: int, step: int
 
 
 def _draw_text_block(canvas: np.ndarray, lines: list[str], font_scale: float, thickness: int,
-                     height: int, step: int, corner: tuple[int, int] = (0, 0)) -> None:
-    """Wrapped ``lines`` on a dark band of ``canvas`` (in place) whose top left is at
-    ``corner`` (row, column), a line every ``step`` pixels (``height``: the font's)."""
-    if not lines:
-        return
-    band_h, band_w = _band_size(lines, font_scale, thickness, step)
-    top, left = corner
-    band = canvas[top:top + band_h, left:left + band_w]
-    band[:] = (band * 0.35).astype(np.uint8)
+                     height: int, step: int, band: tuple[int, int, int, int]) -> None:
+    """Wrapped ``lines`` on ``canvas`` (in place), a line every ``step`` pixels (``height``:
+    the font's), on the dark ``band`` (top, left, height, width; :func:`_band_size`)."""
+    top, left, band_h, band_w = band
+    dark = canvas[top:top + band_h, left:left + band_w]
+    dark[:] = (dark * 0.35).astype(np.uint8)
     for i, line in enumerate(lines):
         cv2.putText(canvas, line, (left + 4, top + 2 + height + i * step), _FONT, font_scale,
                     TEXT_COLOUR, thickness, cv2.LINE_AA)
