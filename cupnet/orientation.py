@@ -50,11 +50,12 @@ def anatomic_angles(pose: Tensor) -> Tensor:
     anatomic anteversion is undefined and given as 0."""
     lateral, inferior, anterior, phi = _axis_parts(pose)
     # Along the longitudinal axis both parts are 0, where atan2's and hypot's gradients are
-    # 0 / 0: they are taken at a stand-in (1, 0) and dropped, so the gradient there is 0 (a
-    # subgradient of the inclination's cone), not NaN for the whole batch's step.
+    # 0 / 0: they are taken at a stand-in (1, 0), whose anteversion is 0 and whose radial
+    # part is dropped, so the gradient there is 0 (a subgradient of the inclination's cone),
+    # not NaN for the whole batch's step.
     axial = (lateral == 0) & (anterior == 0)
     lateral_, anterior_ = torch.where(axial, 1.0, lateral), torch.where(axial, 0.0, anterior)
-    anteversion = torch.where(axial, 0.0, atan2(anterior_, lateral_))
+    anteversion = atan2(anterior_, lateral_)
     radial = torch.where(axial, 0.0, hypot(lateral_, anterior_))
     inclination = atan2(radial, inferior)
     return torch.rad2deg(torch.stack([anteversion, torch.copysign(inclination, phi)], -1))
