@@ -614,7 +614,7 @@ class Predictor:
             geometry = self.geometry_inputs.resolve(
                 frame.name, frame.image.shape,  # type: ignore[union-attr]
                 {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm},
-                frame.tag_sources, self.detector.file_values(frame), absolute_path(frame.source))
+                frame.tag_sources, self.detector.file_values(frame), batch.paths[i])
             if not geometry.complete:
                 batch.records[i] = {"image": frame.name, "geometry": geometry.to_json(),
                                     "rows": [status_row(frame.name,
