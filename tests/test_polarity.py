@@ -44,12 +44,10 @@ def test_a_cup_near_the_long_side_of_an_oblong_image_is_judged(transposed):
     image = torch.full((100, 300), 0.7)
     image[(u - 260) ** 2 + (v - 50) ** 2 <= 20**2] = 0.1
     image[:, :20] = torch.arange(100.0)[:, None] / 99  # a full 0-1 range, away from the cup
-    ellipse = torch.tensor([[260.0, 50.0, 20.0, 12.0, 30.0]], dtype=torch.float64)
-    if transposed:
-        image, ellipse = image.T, ellipse[:, [1, 0, 2, 3, 4]] * torch.tensor(
-            [1.0, 1.0, 1.0, 1.0, -1.0], dtype=torch.float64) + torch.tensor(
-            [0.0, 0.0, 0.0, 0.0, 90.0], dtype=torch.float64)
-    assert metal_shows_bright(image[None], ellipse) is False
+    ellipse = [260.0, 50.0, 20.0, 12.0, 30.0]
+    if transposed:  # u and v swapped, the axis angle mirrored about the diagonal
+        image, ellipse = image.T, [50.0, 260.0, 20.0, 12.0, 60.0]
+    assert metal_shows_bright(image[None], torch.tensor([ellipse], dtype=torch.float64)) is False
 
 
 def test_no_cup_to_judge_by_gives_none():
