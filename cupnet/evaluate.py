@@ -29,7 +29,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from cupnet.geometry import Geometry
-from cupnet.io.meta import key_for_image, row_for_image
+from cupnet.io.meta import image_table, row_for_image
 from cupnet.io.results import ALT_COLUMNS
 from cupnet.pose import ellipse_of_pose, orthographic_pose
 
@@ -85,7 +85,8 @@ def true_ellipses(rows: list[dict[str, str]], meta: dict[str, dict[str, str]]) -
     """``(N, 5)`` true ellipses: the truth's columns, else projected from pose and geometry."""
     if rows and all(c in rows[0] for c in ELLIPSE):
         return _array(rows, ELLIPSE)
-    geometry_rows = [{**(row_for_image(meta, r["image"]) or {}),
+    meta_rows = image_table(meta)
+    geometry_rows = [{**(row_for_image(meta_rows, r["image"]) or {}),
                       **{k: v for k, v in r.items() if k in GEOMETRY}} for r in rows]
     missing = [c for c in GEOMETRY[:3] if any(c not in g for g in geometry_rows)]
     if missing:
@@ -155,10 +156,10 @@ def _truth_names(pred_rows: list[dict[str, str]], truth_names: set[str]
                  ) -> list[dict[str, str]]:
     """``pred_rows`` named as the truth names their images: a prediction of a run on the
     parent folder (``images/a.png``) or a truth keyed by paths finds its image by file name
-    where that name is one image's alone (:func:`cupnet.io.meta.key_for_image`)."""
-    named = {}
+    where that name is one image's alone (:meth:`cupnet.io.meta.ImageTable.key_for`)."""
+    named, truth = {}, image_table(truth_names)
     for image in {row["image"] for row in pred_rows}:
-        named[image] = key_for_image(truth_names, image) or image
+        named[image] = truth.key_for(image) or image
     # Two predicted images that find one truth image keep their own names.
     found = Counter(named.values())
     return [row if found[named[row["image"]]] > 1 else {**row, "image": named[row["image"]]}

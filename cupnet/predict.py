@@ -56,6 +56,7 @@ from cupnet.io.images import (
 from cupnet.io.meta import (
     PRINCIPAL_KEYS,
     GeometryInputs,
+    ImageTable,
     ResolvedGeometry,
     add_geometry_arguments,
     assumptions_once,
@@ -300,7 +301,7 @@ class LandmarkDetector:
     def __init__(self, path: Path) -> None:
         from cupnet.io.landmarks import read_landmarks
 
-        self.sets = read_landmarks(path)
+        self.sets = ImageTable(read_landmarks(path))
         self.info = {"landmarks": str(path), "sha256": _sha256(path)}
 
     def cups_of(self, frame: Frame) -> list:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import math
+import random
+import re
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +16,7 @@ from cup_cases import rim_landmarks
 from cupnet.cli import main
 from cupnet.geometry import Geometry, pose_to_radians
 from cupnet.io.landmarks import read_landmarks
-from cupnet.io.meta import read_meta, row_for_image
+from cupnet.io.meta import ImageTable, read_meta, row_for_image
 from cupnet.io.results import MURRAY_COLUMNS, SD_COLUMNS
 from cupnet.pose import cramer_rao_bound
 
@@ -373,6 +375,53 @@ def test_an_images_row_is_found_by_its_name_its_files_or_a_keys_file_name():
     assert row_for_image(by_folder, "x/d3/b.png") == 4  # another case
     assert row_for_image({"d1/a.png": 1, "e1/d1/a.png": 2}, "e1/d1/a.png") == 2
     assert row_for_image({"x/d1/a.png": 1, "y/d1/a.png": 2}, "d1/a.png") is None
+
+
+def _key_by_scanning(keys: set[str], name: str, path: str | None) -> str | None:
+    """ImageTable.key_for's rules read plainly: every key looked at for each rule."""
+    def parts(text: str) -> list[str]:
+        return [p for p in text.replace("\\", "/").split("/") if p not in ("", ".")]
+
+    file_name = re.sub(r"#\d+$", "", name)
+    if name in keys or file_name in keys:
+        return name if name in keys else file_name
+    wanted = [parts(file_name)] + ([parts(path)] if path else [])
+    for fold in (str, str.casefold):
+        for whole in wanted:
+            whole = [fold(p) for p in whole]
+            ends = {k: len(parts(k)) for k in keys if parts(k)
+                    and [fold(p) for p in parts(k)] == whole[len(whole) - len(parts(k)):]}
+            if ends:
+                longest = [k for k, n in ends.items() if n == max(ends.values())]
+                return longest[0] if len(longest) == 1 else None
+        same = [k for k in keys if fold(k.replace("\\", "/").rsplit("/", 1)[-1])
+                == fold(wanted[0][-1])]
+        if same:
+            return same[0] if len(same) == 1 else None
+    return None
+
+
+def test_the_tables_index_finds_the_rows_that_scanning_every_row_finds():
+    """ImageTable looks up an image among the keys of its file name alone (each lookup had
+    read every key: n^2 steps for a run of n images named otherwise than their rows)."""
+    rng = random.Random(0)
+
+    def name() -> str:
+        folder = rng.choice(["d1", "D1", "e", "x/d1", "", ".", "images", "IMAGES"])
+        return ((folder + rng.choice(["/", "\\"]) if folder else "")
+                + rng.choice(["a.png", "A.PNG", "b.png", "a.png#2", "c.dcm", "B.png"])
+                + rng.choice(["", "", "/", "#3"]))
+
+    found = 0
+    for _ in range(600):
+        keys = {name() for _ in range(rng.randint(1, 8))}
+        table = ImageTable(dict.fromkeys(keys))
+        for _ in range(10):
+            image, path = name(), rng.choice([None, "/data/" + name(), "../in/" + name()])
+            expected = _key_by_scanning(keys, image, path)
+            assert table.key_for(image, path) == expected, (keys, image, path)
+            found += expected is not None
+    assert 1000 < found < 5000  # both outcomes drawn often
 
 
 def test_a_bad_row_spoils_its_own_cup_alone_and_cups_may_be_written_as_floats(tmp_path):

@@ -11,7 +11,7 @@ import argparse
 import csv
 import math
 import re
-from collections.abc import Callable, Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TypeVar
@@ -187,7 +187,7 @@ class GeometryInputs:
     (:func:`read_meta`), the command line's values (:func:`geometry_flags`) and
     ``--assume-defaults``."""
 
-    meta: dict[str, dict[str, float]]
+    meta: ImageTable[dict[str, float]]
     flags: dict[str, float]
     assume_defaults: bool
 
@@ -199,7 +199,7 @@ class GeometryInputs:
             OSError, ValueError: ``--meta`` cannot be read (:func:`read_meta`), or a flag's
                 value is not positive (:func:`geometry_flags`).
         """
-        return cls(read_meta(args.meta) if args.meta is not None else {},
+        return cls(ImageTable(read_meta(args.meta) if args.meta is not None else {}),
                    geometry_flags(args), args.assume_defaults)
 
     def resolve(self, name: str, size: tuple[int, int] | None,
@@ -285,48 +285,87 @@ def frame_file(name: str) -> tuple[str, int | None]:
     return (name, None) if frame is None else (name[:frame.start()], int(frame.group(1)))
 
 
-def key_for_image(table: Collection[str], name: str, path: str | None = None) -> str | None:
-    """An image's key among ``table``'s image names (those of meta.csv rows or landmark sets,
-    or a set of names): its name, else its file's name (frames ``name#2``), else the longest
-    key that ends that file's name (``a.png`` for ``sub/a.png``), else the longest that ends
-    its file's absolute ``path`` where given (``d1/a.png`` for an image ``a.png`` of a run on
-    ``in/d1``, or ``../in/d1/a.png`` named by its path); keys given with other folders match
-    too where their file name is theirs alone (``images/a.png`` for an image ``a.png`` of a
-    run on ``images/``); and then each rule again with names of other case (``A.PNG``: names
-    typed on Windows). Where two keys match alike, neither is taken."""
-    file_name = frame_file(name)[0]
-    for key in (name, file_name):
-        if key in table:
-            return key
-    wanted = [_parts(file_name), *([_parts(path)] if path else [])]
-    if not wanted[0]:
+class ImageTable(Mapping[str, T]):
+    """A side file's rows by image name (meta.csv's, a landmark file's sets, truth.csv's
+    names), with the index by which an image finds its row (:meth:`key_for`): the rows by
+    their file name, so that a lookup reads the rows of the image's file name alone. Each
+    lookup had read every row, so a run on n images named otherwise than their rows (by
+    folder, or with none) took n^2 steps: 7 ms an image at 2,000 rows."""
+
+    def __init__(self, rows: Mapping[str, T]) -> None:
+        self._rows = dict(rows)
+        # Each key's parts, by its file name casefolded: a key ends a path only where its file
+        # name is the path's, in either case.
+        self._by_file: dict[str, list[tuple[str, list[str]]]] = {}
+        for key in self._rows:
+            if parts := _parts(key):
+                self._by_file.setdefault(parts[-1].casefold(), []).append((key, parts))
+
+    def __getitem__(self, key: str) -> T:
+        return self._rows[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._rows)
+
+    def __len__(self) -> int:
+        return len(self._rows)
+
+    def key_for(self, name: str, path: str | None = None) -> str | None:
+        """An image's key: its name, else its file's name (frames ``name#2``), else the
+        longest key that ends that file's name (``a.png`` for ``sub/a.png``), else the
+        longest that ends its file's absolute ``path`` where given (``d1/a.png`` for an image
+        ``a.png`` of a run on ``in/d1``, or ``../in/d1/a.png`` named by its path); keys given
+        with other folders match too where their file name is theirs alone (``images/a.png``
+        for an image ``a.png`` of a run on ``images/``); and then each rule again with names
+        of other case (``A.PNG``: names typed on Windows). Where two keys match alike,
+        neither is taken."""
+        file_name = frame_file(name)[0]
+        for key in (name, file_name):
+            if key in self._rows:
+                return key
+        wanted = [_parts(file_name), *([_parts(path)] if path else [])]
+        if not wanted[0]:
+            return None
+        for fold in (str, str.casefold):
+            for parts_wanted in wanted:
+                found = self._longest_tail(parts_wanted, fold)
+                if found is not _NONE:
+                    return found
+            file_key = fold(wanted[0][-1])
+            keys = [key for key, _ in self._by_file.get(wanted[0][-1].casefold(), [])
+                    if fold(_base_name(key)) == file_key]
+            if keys:
+                return keys[0] if len(keys) == 1 else None
         return None
-    for fold in (str, str.casefold):
-        for parts_wanted in wanted:
-            found = _longest_tail(table, [fold(part) for part in parts_wanted], fold)
-            if found is not _NONE:
-                return found
-        keys = [key for key in table if fold(_base_name(key)) == fold(wanted[0][-1])]
-        if keys:
-            return keys[0] if len(keys) == 1 else None
-    return None
+
+    def _longest_tail(self, path: list[str], fold: Callable[[str], str]) -> str | None | object:
+        """The longest key whose parts end ``path`` (both folded by ``fold``), None where two
+        end it alike, else :data:`_NONE`."""
+        path = [fold(part) for part in path]
+        tails = {key: len(parts) for key, parts in self._by_file.get(path[-1].casefold(), [])
+                 if [fold(part) for part in parts] == path[len(path) - len(parts):]}
+        if not tails:
+            return _NONE
+        most = max(tails.values())
+        longest = [key for key, length in tails.items() if length == most]
+        return longest[0] if len(longest) == 1 else None
 
 
 _NONE = object()  # no key ends the path (None: two end it alike)
 
 
-def _longest_tail(table: Collection[str], path: list[str], fold: Callable[[str], str]
-                  ) -> str | None | object:
-    """The longest key of ``table`` whose parts end ``path`` (both folded by ``fold``), None
-    where two end it alike, else :data:`_NONE`."""
-    tails = {key: len(parts) for key in table
-             if (parts := [fold(part) for part in _parts(key)])
-             and parts == path[len(path) - len(parts):]}
-    if not tails:
-        return _NONE
-    most = max(tails.values())
-    longest = [key for key, length in tails.items() if length == most]
-    return longest[0] if len(longest) == 1 else None
+def image_table(table: Collection[str]) -> ImageTable:
+    """``table`` as an :class:`ImageTable` (its keys alone where it is no mapping); indexed
+    once, for the lookups of a whole run."""
+    if isinstance(table, ImageTable):
+        return table
+    return ImageTable(table if isinstance(table, Mapping) else dict.fromkeys(table))
+
+
+def key_for_image(table: Collection[str], name: str, path: str | None = None) -> str | None:
+    """An image's key among ``table``'s image names (:meth:`ImageTable.key_for`; give an
+    :class:`ImageTable` where many images look up one table)."""
+    return image_table(table).key_for(name, path)
 
 
 def row_for_image(table: Mapping[str, T], name: str, path: str | None = None) -> T | None:
@@ -340,8 +379,8 @@ def unmatched_keys(table: Collection[str], names: Iterable[str],
     """The keys of ``table`` that none of the images ``names`` finds (:func:`key_for_image`,
     each with its file's path in ``paths`` by name, frames by their file's): rows of a side
     file a run silently went without (a typo, another folder's images)."""
-    paths = paths or {}
-    found = {key_for_image(table, name, paths.get(frame_file(name)[0])) for name in names}
+    paths, index = paths or {}, image_table(table)
+    found = {index.key_for(name, paths.get(frame_file(name)[0])) for name in names}
     return [key for key in table if key not in found]
 
 
@@ -355,7 +394,7 @@ def _parts(name: str) -> list[str]:
     return [part for part in name.replace("\\", "/").split("/") if part not in ("", ".")]
 
 
-def meta_row(meta: dict[str, dict[str, float]], name: str, path: str | None = None
+def meta_row(meta: Mapping[str, dict[str, float]], name: str, path: str | None = None
              ) -> dict[str, float]:
     """The meta.csv row of an image (:func:`row_for_image`), else no values."""
     return row_for_image(meta, name, path) or {}
