@@ -229,6 +229,34 @@ def test_refinement_beyond_the_anteversion_limit_keeps_the_rim_pose(shipped_on_d
     assert torch.equal(limited, start)
 
 
+@pytest.mark.parametrize("h_mm", [-5.0, 0.0, 3.0, None])
+def test_refinement_that_leaves_the_source_detector_gap_keeps_the_rim_pose(
+        shipped_on_drr, monkeypatch, h_mm):
+    """A pass whose pose puts the cup at or behind the detector (h <= 0) or at or beyond
+    the source (h >= SDD; ``None`` here: SDD itself) is undone: the rim-only start comes
+    back. One that stays in the gap (3 mm) is kept."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    h = geometry.sdd if h_mm is None else h_mm
+    moved = pose_to_radians(truth.clone())
+    moved[0, 4] = h
+    monkeypatch.setattr(model, "_outline_pass", lambda *args: moved.clone())
+    monkeypatch.setattr(model.config, "outline_passes", 1)
+    with torch.no_grad():
+        pose = model.outline_refined([sample["image"]], torch.tensor([0]), truth,
+                                     rim_landmarks(truth, geometry, float(diameter), 128),
+                                     torch.ones(1, 128, dtype=torch.float64),
+                                     torch.tensor([0.5], dtype=torch.float64),
+                                     geometry_rows(geometry, 1), diameter)
+    if h_mm == 3.0:
+        assert float(pose[0, 4]) == pytest.approx(3.0) and torch.allclose(pose[0, :4],
+                                                                          truth[0, :4])
+    else:
+        assert torch.equal(pose, truth)
+
+
 @pytest.mark.parametrize("settled", [None, 0.0, 1e6])
 def test_outline_refinement_stops_once_a_cup_settles(shipped_on_drr, monkeypatch, settled):
     """From the true pose and rim, a pass or two settle the cup (at the shipped
