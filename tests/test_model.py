@@ -791,6 +791,29 @@ def test_a_reported_rim_with_a_second_pose_in_range_makes_its_cup_ambiguous() ->
     assert out[0][1] is typical and out[1][0] is failed and out[1][1] is already
 
 
+@pytest.mark.parametrize(("first_phi", "phi", "wins"),
+                         [(-89.0, 89.0, True), (89.0, -89.0, True), (-30.0, 30.0, False)])
+def test_a_candidate_across_the_inclination_wrap_does_not_turn_the_rim(
+        monkeypatch, first_phi: float, phi: float, wins: bool) -> None:
+    """The search's candidates are judged by their turn of the rim modulo 180 deg of
+    inclination: phi 89 against -89 is a turn of 2 deg, so the candidate wins on its summed
+    doubt (1.0 against the cup's 2.0 less the margin 0.5); 30 against -30 turns the rim 60
+    deg, so it must also explain the rim alone better by the margin, which it does not (1.0
+    against the cup's rim doubt 1.0)."""
+    model = CupNet(replace(TINY, verify_turn_deg=15.0, verify_margin=0.5, max_theta_deg=None))
+    first = torch.tensor([20.0, first_phi, 0.0, 0.0, 300.0], dtype=torch.float64)
+    candidate = torch.tensor([20.0, phi, 0.0, 0.0, 300.0], dtype=torch.float64)
+    monkeypatch.setattr(model, "_refined_picks", lambda *args: candidate[None])
+    monkeypatch.setattr(model, "pose_doubt",
+                        lambda *args: torch.tensor([[1.0, 0.0]], dtype=torch.float64))
+    winners = model._least_doubted(
+        [torch.zeros(1, 64, 64)], torch.tensor([0]), [0], [first],
+        torch.tensor([[1.0, 1.0]], dtype=torch.float64), [(0, None, candidate)],
+        Geometry(1000.0, 0.5, 32.0, 32.0), torch.tensor([52.0], dtype=torch.float64), 1,
+        turn_inclination=True)
+    assert (0 in winners) is wins
+
+
 def test_a_cup_within_its_radius_of_the_detector_is_flagged():
     """Its dome would pass through the detector: pure noise had given such cups (h 8-28 mm
     for a 52 mm cup), unflagged under --fastest, where no doubt is measured."""
