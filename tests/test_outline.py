@@ -644,6 +644,9 @@ def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_
         model.config.partner_doubt, None, model.config.partner_doubt, None]
     assert model.config.partner_doubt < model.look_again_doubt
     assert model.config.high_gamma_look > 1 > model.config.third_look_gamma
+    # Only the turned look has a bar of its own for the cups it lets replace one.
+    assert [look.below for look in looks] == [None, None, None,
+                                              model.config.turned_look_doubt]
     assert looks[-1].below < model.config.verify_gate
     calls: list[str] = []
     for name in ("reconsidered", "searched"):
