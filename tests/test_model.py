@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -812,6 +813,47 @@ def test_a_candidate_across_the_inclination_wrap_does_not_turn_the_rim(
         Geometry(1000.0, 0.5, 32.0, 32.0), torch.tensor([52.0], dtype=torch.float64), 1,
         turn_inclination=True)
     assert (0 in winners) is wins
+
+
+def _pick(theta: float) -> tuple:
+    """A landmark pick whose solution's pose has anteversion ``theta`` deg."""
+    pose = torch.tensor([[theta, 10.0, 0.0, 0.0, 300.0]], dtype=torch.float64)
+    return (torch.zeros(8, 2), torch.ones(8), SimpleNamespace(pose=pose, alt_pose=pose), 0)
+
+
+@pytest.mark.parametrize(("found_doubt", "kept"), [((0.5, 0.4), True), ((1.2, 0.9), False)])
+def test_a_grown_start_solves_its_cup_only_where_its_replacement_passes_the_gate(
+        monkeypatch, found_doubt: tuple[float, float], kept: bool) -> None:
+    """An unsolved cup started from its grown ellipse counts as doubted past every gate; it
+    is solved where the verification replaces that start with a pose whose doubt sums to
+    under ``verify_gate`` (0.9 < 2.0), else it is left unsolved with its first pick (2.1).
+    A solved cup beyond ``max_theta_deg`` that nothing replaced gets its measured doubt
+    back, not the infinity it was verified with."""
+    model = CupNet(replace(TINY, max_theta_deg=52.0, verify_gate=2.0, search_gate=None))
+    first, grown, found = _pick(20.0), _pick(30.0), _pick(25.0)
+    monkeypatch.setattr(model, "_grown_start_picks", lambda *args: {1: grown})
+    seen = {}
+
+    def verified(images, index, picks, solved, poses, alt_poses, parts, *rest) -> None:
+        seen["parts"] = parts.clone()
+        picks[1], poses[1] = found, found[2].pose[0]  # the start replaced
+        parts[1] = torch.tensor(found_doubt, dtype=parts.dtype)
+
+    monkeypatch.setattr(model, "verified", verified)
+    picks = [_pick(60.0), first]
+    poses, alt_poses = [pick[2].pose[0] for pick in picks], [None, None]
+    measured = torch.tensor([[0.3, 0.2]], dtype=torch.float64)
+    solved, parts = model.reconsidered(
+        [], torch.tensor([0, 0]), picks, [0], poses, alt_poses, measured.clone(), [], None,
+        Geometry(1000.0, 0.5, 32.0, 32.0), torch.tensor([52.0]), torch.zeros(2, 2), 1)
+    assert torch.isinf(seen["parts"]).all()  # both doubted past every gate while verified
+    assert solved == ([0, 1] if kept else [0])
+    assert torch.equal(parts[0], measured[0])  # cup 0's measured doubt, restored
+    if kept:
+        assert picks[1] is found and torch.equal(parts[1], torch.tensor(found_doubt,
+                                                                        dtype=torch.float64))
+    else:
+        assert picks[1] is first and float(poses[1][0]) == 20.0
 
 
 def test_a_cup_within_its_radius_of_the_detector_is_flagged():
