@@ -204,25 +204,33 @@ def test_detect_reports_the_rim_of_its_outline_refined_pose(shipped_on_drr):
     assert ((pose[0, 2:] - truth[2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()  # mm
 
 
+def _refined_on_the_true_rim(model, sample, start: torch.Tensor | None = None) -> torch.Tensor:
+    """:meth:`CupNet.outline_refined` of ``start`` ``(1, 5)`` deg / mm (the true pose where
+    None) with the sample's exact rim landmarks, their residual 0.5 px."""
+    truth = sample["pose"][:1].double()
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    with torch.no_grad():
+        return model.outline_refined([sample["image"]], torch.tensor([0]),
+                                     truth if start is None else start,
+                                     rim_landmarks(truth, geometry, float(diameter), 128),
+                                     torch.ones(1, 128, dtype=torch.float64),
+                                     torch.tensor([0.5], dtype=torch.float64),
+                                     geometry_rows(geometry, 1), diameter)
+
+
 def test_refinement_beyond_the_anteversion_limit_keeps_the_rim_pose(shipped_on_drr):
     """From 3 deg under the truth, with exact rim landmarks, the refinement goes back to the
     truth; with the limit 2 deg under the truth, that is refused and the start kept."""
     model, sample = shipped_on_drr
     truth = sample["pose"][:1].double()
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
-    diameter = sample["cup_diameter"][:1].double()
-    rim = rim_landmarks(truth, geometry, float(diameter), 128)
     start = truth - torch.tensor([3.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
-    args = ([sample["image"]], torch.tensor([0]), start, rim,
-            torch.ones(1, 128, dtype=torch.float64), torch.tensor([0.5], dtype=torch.float64),
-            geometry_rows(geometry, 1), diameter)
     limit = model.config.max_theta_deg
     try:
-        with torch.no_grad():
-            model.config.max_theta_deg = None
-            free = model.outline_refined(*args)
-            model.config.max_theta_deg = float(truth[0, 0]) - 2.0
-            limited = model.outline_refined(*args)
+        model.config.max_theta_deg = None
+        free = _refined_on_the_true_rim(model, sample, start)
+        model.config.max_theta_deg = float(truth[0, 0]) - 2.0
+        limited = _refined_on_the_true_rim(model, sample, start)
     finally:
         model.config.max_theta_deg = limit
     assert abs(float(free[0, 0] - truth[0, 0])) < 0.5
@@ -237,19 +245,11 @@ def test_refinement_that_leaves_the_source_detector_gap_keeps_the_rim_pose(
     back. One that stays in the gap (3 mm) is kept."""
     model, sample = shipped_on_drr
     truth = sample["pose"][:1].double()
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
-    diameter = sample["cup_diameter"][:1].double()
-    h = geometry.sdd if h_mm is None else h_mm
     moved = pose_to_radians(truth.clone())
-    moved[0, 4] = h
+    moved[0, 4] = float(sample["geometry"][0]) if h_mm is None else h_mm  # SDD or h_mm
     monkeypatch.setattr(model, "_outline_pass", lambda *args: moved.clone())
     monkeypatch.setattr(model.config, "outline_passes", 1)
-    with torch.no_grad():
-        pose = model.outline_refined([sample["image"]], torch.tensor([0]), truth,
-                                     rim_landmarks(truth, geometry, float(diameter), 128),
-                                     torch.ones(1, 128, dtype=torch.float64),
-                                     torch.tensor([0.5], dtype=torch.float64),
-                                     geometry_rows(geometry, 1), diameter)
+    pose = _refined_on_the_true_rim(model, sample)
     if h_mm == 3.0:
         assert float(pose[0, 4]) == pytest.approx(3.0) and torch.allclose(pose[0, :4],
                                                                           truth[0, :4])
@@ -266,19 +266,12 @@ def test_outline_refinement_stops_once_a_cup_settles(shipped_on_drr, monkeypatch
     if settled is not None:
         monkeypatch.setattr(model.config, "outline_settled", settled)
     truth = sample["pose"][:1].double()
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
-    diameter = sample["cup_diameter"][:1].double()
     passes = []
     run_pass = model._outline_pass
     monkeypatch.setattr(model, "_outline_pass",
                         lambda *args: passes.append(len(args[1])) or run_pass(*args))
     monkeypatch.setattr(model.config, "outline_passes", 20)
-    with torch.no_grad():
-        pose = model.outline_refined([sample["image"]], torch.tensor([0]), truth,
-                                     rim_landmarks(truth, geometry, float(diameter), 128),
-                                     torch.ones(1, 128, dtype=torch.float64),
-                                     torch.tensor([0.5], dtype=torch.float64),
-                                     geometry_rows(geometry, 1), diameter)
+    pose = _refined_on_the_true_rim(model, sample)
     assert {None: 1 <= len(passes) <= 3, 0.0: len(passes) == 20, 1e6: len(passes) == 1}[settled]
     assert abs(float(pose[0, 4] - truth[0, 4])) < 4.0
 
