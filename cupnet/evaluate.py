@@ -29,13 +29,12 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from cupnet.geometry import Geometry
-from cupnet.io.meta import image_table, row_for_image
-from cupnet.io.results import ALT_COLUMNS
+from cupnet.io.meta import GEOMETRY_KEYS, image_table, row_for_image
+from cupnet.io.results import ALT_COLUMNS, ELLIPSE_COLUMNS, POSE_COLUMNS
 from cupnet.pose import ellipse_of_pose, orthographic_pose
 
-POSE = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
-ELLIPSE = ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px", "ellipse_b_px", "ellipse_angle_deg")
-GEOMETRY = ("sdd_mm", "pixel_spacing_mm", "cup_diameter_mm", "principal_u_px", "principal_v_px")
+# The columns results.csv and meta.csv are written with (the three required first).
+POSE, ELLIPSE, GEOMETRY = POSE_COLUMNS, ELLIPSE_COLUMNS, GEOMETRY_KEYS
 LABELS = {"anteversion_deg": "anteversion (deg)", "inclination_deg": "inclination (deg)",
           "k_mm": "k (mm)", "l_mm": "l (mm)", "kl_mm": "in-plane (k, l) distance (mm)",
           "h_mm": "h (mm)", "hausdorff_px": "Hausdorff (px)"}
