@@ -2,10 +2,11 @@
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
 ...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh newer blind
-unseen against small captures degraded] [--against JSON]``. Writes the ``model`` (speed),
+unseen against small captures degraded hardware] [--against JSON]``. Writes the ``model`` (speed),
 ``model_accuracy`` (accuracy, ablation), ``model_oblong`` (oblong images), ``model_small`` (small
-images), ``model_captures`` (screenshots) and ``model_degraded`` (JPEG, halved, noisier and
-blurrier images; these three not by default),
+images), ``model_captures`` (screenshots), ``model_degraded`` (JPEG, halved, noisier and
+blurrier images) and ``model_hardware`` (screws and the cup's inserter in the image; these
+four not by default),
 ``model_fresh_seed`` (seeds no setting was chosen on), ``model_newer_seeds``,
 ``model_blind_seeds`` and ``model_unseen_seeds`` (seeds nobody had looked at when a rule was
 made; not by default) and
@@ -29,6 +30,7 @@ from unittest import mock
 import cv2
 import numpy as np
 import torch
+import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
@@ -98,10 +100,10 @@ def write(name: str, body: str, args: argparse.Namespace) -> None:
     write_section(name, body, args.doc, args.header)
 
 
-def samples(config: str, seed: int, count: int,
+def samples(config: str | dict, seed: int, count: int,
             sizes: list[int] | list[tuple[int, int]] | None = None) -> list[dict]:
-    """``count`` fresh samples, split evenly over image ``sizes``: square sides, or
-    ``(width, height)`` (None: the config's)."""
+    """``count`` fresh samples of ``config`` (a YAML path or a dict of fields), split evenly
+    over image ``sizes``: square sides, or ``(width, height)`` (None: the config's)."""
     from data_synth import SynthDataset
 
     sizes = sizes or [None]
@@ -356,6 +358,52 @@ DEGRADATIONS: dict[str, Callable[[dict, np.random.Generator], dict]] = {
 }
 
 
+def robustness_rows(part: str, label: str, models: dict[str, CupNet], images: list[dict]
+                    ) -> list[list]:
+    """A row a model of ``models`` on ``images`` (the ``label`` row group of ``part``): its
+    :func:`scored` figures, the angles' medians and the gross failures (flagged)."""
+    rows = []
+    for name, model in models.items():
+        res = accuracy(model, images)
+        print(part, label, name, res)
+        rows.append([label, name, *scored(res), f"{res['median_theta']:.2f}",
+                     f"{res['median_phi']:.2f}", f"{res['gross']} ({res['gross_flagged']})"])
+    return rows
+
+
+ROBUSTNESS_COLUMNS = ["images", "settings", *[f"MAE {n}" for n in NAMES], "detected",
+                      "false positives", "median theta", "median phi", "gross (flagged)"]
+# Surgical hardware in the image (docs/synth.md): SynthConfig fields set on the eval config.
+HARDWARE = {
+    "none": {},
+    "screws (1-3 through the dome)": {"p_screws": 1.0},
+    "inserter (a rod along the cup's axis)": {"p_impactor": 1.0},
+    "screws and inserter": {"p_screws": 1.0, "p_impactor": 1.0},
+}
+
+
+def hardware_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
+    """The shipped model (and ``models``' presets) on the same fresh DRRs without and with
+    surgical hardware no training image held, screws and the cup's inserter: the
+    ``model_hardware`` section."""
+    rows = []
+    for label, fields in HARDWARE.items():
+        config = {**(yaml.safe_load(Path(args.eval_config).read_text()) or {}), **fields}
+        images = samples(config, args.seed + 51, args.hardware_images, args.sizes)
+        rows += robustness_rows("hardware", label, models, images)
+    return ("## CupNet with surgical hardware in the image\n\n"
+            f"`python benchmarks/model.py --parts hardware --runtimes {' '.join(args.runtimes)}"
+            + "".join(f" --seed-presets {p}" for p in args.seed_presets)
+            + f"`: {args.hardware_images} fresh DRRs from `{args.eval_config}` at "
+            f"{', '.join(map(str, args.sizes))} px in equal shares (seeds {args.seed + 51} "
+            "on), each row the same scenes and noise with the hardware added (`SynthConfig`'s "
+            "`p_screws` and `p_impactor`, docs/synth.md): 1-3 titanium screws 20-45 mm long "
+            "through each cup's dome, or the inserter the first cup is held on during "
+            "impaction, a steel rod 8-16 mm across along the cup's axis, out through the "
+            "opening. No training image held either. Columns as in the degraded table.\n\n"
+            + markdown_table(ROBUSTNESS_COLUMNS, rows))
+
+
 def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
     """The shipped model (and ``models``' presets) on the same fresh DRRs as exported,
     compressed, shrunk, noisier and blurrier than any training image: the
@@ -366,11 +414,7 @@ def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
     for label, degrade in DEGRADATIONS.items():
         rng = np.random.default_rng(args.seed + 41)  # each row's noise, the same for each model
         images = [degrade(s, rng) for s in data]
-        for name, model in models.items():
-            res = accuracy(model, images)
-            print("degraded", label, name, res)
-            rows.append([label, name, *scored(res), f"{res['median_theta']:.2f}",
-                         f"{res['median_phi']:.2f}", f"{res['gross']} ({res['gross_flagged']})"])
+        rows += robustness_rows("degraded", label, models, images)
     return ("## CupNet on degraded images\n\n"
             f"`python benchmarks/model.py --parts degraded --runtimes {' '.join(args.runtimes)}"
             + "".join(f" --seed-presets {p}" for p in args.seed_presets)
@@ -388,9 +432,7 @@ def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
             "positives as in the accuracy table, the angles' medians (deg: the typical cup, "
             "where a few gross failures move the MAE); gross: cups whose theta or phi is off by "
             f"more than {GROSS_DEG:g} deg (of them flagged `check`).\n\n"
-            + markdown_table(["images", "settings", *[f"MAE {n}" for n in NAMES], "detected",
-                              "false positives", "median theta", "median phi",
-                              "gross (flagged)"], rows))
+            + markdown_table(ROBUSTNESS_COLUMNS, rows))
 
 
 def captures_section(model: CupNet, args: argparse.Namespace) -> str:
@@ -713,6 +755,8 @@ def main() -> None:
                         help="frames shown as screenshots (--parts captures)")
     parser.add_argument("--degraded-images", type=int, default=180,
                         help="images a degradation (--parts degraded)")
+    parser.add_argument("--hardware-images", type=int, default=120,
+                        help="images a kind of surgical hardware (--parts hardware)")
     parser.add_argument("--seed", type=int, default=20_261_123)
     parser.add_argument("--fresh-seeds", type=int, nargs="+",
                         default=FRESH_SEEDS,
@@ -738,7 +782,7 @@ def main() -> None:
                              "model of the first is the shipped one of the gallery")
     parser.add_argument("--parts", nargs="+", default=["speed", "accuracy", "oblong", "fresh"],
                         choices=["speed", "accuracy", "oblong", *SEED_SECTIONS, "against",
-                                 "small", "captures", "degraded"],
+                                 "small", "captures", "degraded", "hardware"],
                         help="the sections to measure; the others are left as they are "
                              "(speed alone: for a change that keeps every pose)")
     args = parser.parse_args()
@@ -799,6 +843,10 @@ def main() -> None:
         text = degraded_section(seed_models, args)
         print(text)
         write("model_degraded", text, args)
+    if "hardware" in args.parts and args.hardware_images:
+        text = hardware_section(seed_models, args)
+        print(text)
+        write("model_hardware", text, args)
     if "against" in args.parts:
         other = loaded(args.checkpoint, None, args.runtimes[0])
         for key, value in json.loads(args.against).items():

@@ -1,4 +1,5 @@
-"""Hip implant as closed-form solids: acetabular shell, liner, femoral head, stem.
+"""Hip implant as closed-form solids: acetabular shell, liner, femoral head, stem, screws and
+the cup's inserter.
 
 The shell is the CONVENTIONS cup: a hemisphere of outer radius ``r`` whose rim circle is
 ``c + R (r cos t, 0, r sin t)``; its dome lies on the side of the rim plane away from the
@@ -117,8 +118,11 @@ class Ellipsoid:
     """A solid ellipsoid ``centre + axes @ diag(semi_axes) @ unit ball`` of attenuation ``mu``.
 
     ``hollow`` in ``[0, 1)``: the inner ellipsoid scaled by ``hollow`` has ``mu_inner``
-    instead (a bone's cortex around its marrow). ``centre (3,)`` mm, ``axes (3, 3)`` (columns
-    the principal directions) and ``semi_axes (3,)`` mm may be given as arrays or tensors.
+    instead (a bone's cortex around its marrow). ``cut (3,)``: only the half
+    ``(X - centre) . cut <= 0`` is kept (None: the whole), so a long half-ellipsoid is a rod
+    of nearly constant section near its flat end. ``centre (3,)`` mm, ``axes (3, 3)``
+    (columns the principal directions), ``semi_axes (3,)`` mm and ``cut`` may be given as
+    arrays or tensors.
     """
 
     centre: Tensor
@@ -127,12 +131,14 @@ class Ellipsoid:
     mu: float
     hollow: float = 0.0
     mu_inner: float = 0.0
+    cut: Tensor | None = None
 
     def __post_init__(self) -> None:
         # Scenes are sampled in numpy (small-array maths costs ~5x less there); rays are torch.
-        for name in ("centre", "axes", "semi_axes"):
-            setattr(self, name, torch.as_tensor(np.asarray(getattr(self, name)),
-                                                dtype=torch.float32))
+        for name in ("centre", "axes", "semi_axes", "cut"):
+            if getattr(self, name) is not None:
+                setattr(self, name, torch.as_tensor(np.asarray(getattr(self, name)),
+                                                    dtype=torch.float32))
 
     @classmethod
     def along(cls, start: np.ndarray, end: np.ndarray, radii: tuple[float, float], mu: float,
@@ -144,11 +150,13 @@ class Ellipsoid:
         return cls((start + end) / 2, frame_along(axis), semi, mu, **kwargs)
 
     def line_integral(self, rays: Rays) -> Tensor:
+        scales = torch.tensor([1.0, self.hollow] if self.hollow > 0 else [1.0])
+        chords = ellipsoid_interval(rays, self.centre, self.axes, self.semi_axes, scales)
+        if self.cut is not None:
+            chords = clip_halfspace(chords, rays, self.centre, self.cut)
         if self.hollow <= 0:
-            return self.mu * length(ellipsoid_interval(rays, self.centre, self.axes,
-                                                       self.semi_axes))
-        outer, inner = length(ellipsoid_interval(rays, self.centre, self.axes, self.semi_axes,
-                                                 torch.tensor([1.0, self.hollow])))
+            return self.mu * length(chords)[0]
+        outer, inner = length(chords)
         return self.mu * (outer - inner) + self.mu_inner * inner
 
     def part(self, supersample: int = 1) -> Part:

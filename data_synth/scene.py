@@ -18,7 +18,7 @@ from torch import Tensor
 
 from cupnet.geometry import Geometry, pose_to_radians, project_rim
 from data_synth.config import SynthConfig
-from data_synth.implant import Cup, Ellipsoid, cup_part
+from data_synth.implant import Cup, Ellipsoid, cup_part, frame_along
 from data_synth.raycast import Part
 
 MAX_CUPS = 2
@@ -37,7 +37,7 @@ class Scene:
         diameters: ``(n,)`` float64 cup outer diameters.
         nominal_diameter: the image's cup diameter as a user would give it (mm), also for an
             image without a cup.
-        metal: implant parts (shells, liners, heads, stems).
+        metal: implant parts (shells, liners, heads, stems, screws, inserters).
         bones: procedural pelvis and femur parts.
     """
 
@@ -150,6 +150,24 @@ def sample_poses(config: SynthConfig, rng: np.random.Generator, geometry: Geomet
     return pose[0], radii[:1] * 2
 
 
+def dome_holes(rng: np.random.Generator, cup: Cup, pose: Tensor) -> tuple[Tensor, Tensor]:
+    """1-3 holes through a cup's dome, clustered in one sector 15-60 degrees from its pole.
+
+    Returns:
+        ``(K, 4)`` hole spheres (centre xyz in the wall's middle, radius; mm, float64) and
+        ``(K, 3)`` their unit directions from the cup's centre.
+    """
+    count = int(rng.integers(1, 4))
+    polar = np.deg2rad(rng.uniform(15, 60, count))
+    azimuth = rng.uniform(0, 2 * np.pi) + rng.uniform(-0.8, 0.8, count)
+    local = np.stack([np.sin(polar) * np.cos(azimuth), -np.cos(polar),
+                      np.sin(polar) * np.sin(azimuth)], -1)
+    dirs = torch.as_tensor(local) @ cup.axes.double().T
+    centres = pose[2:5] + (cup.radius - cup.wall / 2) * dirs
+    hole_radius = torch.as_tensor(rng.uniform(2.5, 3.5, count))[:, None]
+    return torch.cat([centres, hole_radius], -1), dirs
+
+
 def sample_cup(config: SynthConfig, rng: np.random.Generator, pose: Tensor, diameter: float
                ) -> Cup:
     """Shell, liner, head and screw holes of one cup (``pose (5,)`` public units)."""
@@ -160,17 +178,7 @@ def sample_cup(config: SynthConfig, rng: np.random.Generator, pose: Tensor, diam
     if rng.random() < config.p_porous_rim:
         cup.porous_depth = min(rng.uniform(0.5, 1.5), wall * 0.5)
     if rng.random() < config.p_screw_holes:
-        # Holes cluster in one sector of the dome, 15-60 degrees from its pole.
-        n_holes = int(rng.integers(1, 4))
-        polar = np.deg2rad(rng.uniform(15, 60, n_holes))
-        azimuth = rng.uniform(0, 2 * np.pi) + rng.uniform(-0.8, 0.8, n_holes)
-        axes = cup.axes.double()
-        local = np.stack([np.sin(polar) * np.cos(azimuth), -np.cos(polar),
-                          np.sin(polar) * np.sin(azimuth)], -1)
-        dirs = torch.as_tensor(local) @ axes.T
-        centres = pose[2:5] + (radius - wall / 2) * dirs
-        hole_radius = torch.as_tensor(rng.uniform(2.5, 3.5, n_holes))[:, None]
-        cup.screw_holes = torch.cat([centres, hole_radius], -1).float()
+        cup.screw_holes = dome_holes(rng, cup, pose)[0].float()
     head = rng.random() < config.p_head
     inner = radius - wall
     if head:
@@ -183,6 +191,41 @@ def sample_cup(config: SynthConfig, rng: np.random.Generator, pose: Tensor, diam
         cup.liner_inner = cup.head_radius + 0.3 if head else max(inner - rng.uniform(6, 10), 5)
         cup.mu_liner = uniform(rng, config.mu_liner)
     return cup
+
+
+def surgical_hardware(config: SynthConfig, rng: np.random.Generator, cup: Cup, pose: Tensor,
+                      inserted: bool, sdd: float) -> list[Part]:
+    """Screws fixing ``cup`` (chance ``p_screws``) and, where ``inserted``, the inserter it
+    is held on (chance ``p_impactor``); screws' holes are added to the cup (before its
+    part is made). ``rng`` is a generator of its own, so that a scene's other solids, and
+    the image's noise, are those of the same scene without them.
+
+    A screw is a thin ellipsoid from the cup's inner surface through its hole, out into the
+    bone. The inserter screws into the dome's pole from inside and leaves through the
+    opening along the cup's axis: a steel rod, a half-ellipsoid far longer than the image,
+    across the opening's ellipse on the side the axis points to. It ends short of the
+    source's plane (``sdd`` mm from the detector), which no solid may reach.
+    """
+    parts: list[Part] = []
+    if rng.random() < config.p_screws:
+        holes, dirs = dome_holes(rng, cup, pose)
+        cup.screw_holes = torch.cat([cup.screw_holes, holes.float()])
+        centre = pose[2:5].numpy()
+        for direction, radius in zip(dirs.numpy(), holes[:, 3].tolist(), strict=True):
+            start = centre + direction * (cup.radius - cup.wall)
+            end = centre + direction * (cup.radius + uniform(rng, config.screw_length_mm))
+            parts.append(Ellipsoid.along(start, end, (radius * 0.9, radius * 0.9),
+                                         cup.mu_shell).part())
+    if inserted and rng.random() < config.p_impactor:
+        axis = cup.axes[:, 1].double().numpy()
+        pole = pose[2:5].numpy() - axis * (cup.radius - cup.wall)
+        rod = uniform(rng, config.impactor_diameter_mm) / 2
+        reach = uniform(rng, config.impactor_length_mm)
+        if axis[2] > 0:  # towards the source: stop 10 % of the way short of its plane
+            reach = min(reach, (0.9 * sdd - pole[2]) / axis[2])
+        parts.append(Ellipsoid(pole, frame_along(axis), np.array([reach, rod, rod]),
+                               uniform(rng, config.mu_head), cut=-axis).part())
+    return parts
 
 
 def _unit(*xyz: float) -> np.ndarray:
@@ -273,16 +316,22 @@ def sample_scene(config: SynthConfig, rng: np.random.Generator) -> Scene:
     no_cup = rng.random() < config.p_no_cup
     bilateral = rng.random() < config.p_bilateral
     poses, diameters = sample_poses(config, rng, geometry, field_radius, bilateral)
+    # A child generator (spawning draws nothing from rng) for the surgical hardware, so
+    # that a config with it makes the same scenes and images as without, plus the hardware.
+    hardware_rng = rng.spawn(1)[0] if config.p_screws or config.p_impactor else None
     metal: list[Part] = []
     bones: list[Part] = []
-    for pose, diameter in zip(poses, diameters, strict=True):
+    for slot, (pose, diameter) in enumerate(zip(poses, diameters, strict=True)):
         cup = sample_cup(config, rng, pose, float(diameter))
+        hardware = ([] if hardware_rng is None
+                    else surgical_hardware(config, hardware_rng, cup, pose, slot == 0,
+                                         float(geometry.sdd)))
         lateral = -1.0 if float(pose[1]) > 0 else 1.0
         stem = cup.head_radius > 0 and rng.random() < config.p_stem
         stem_metal, hip_bones = hip_parts(config, rng, pose[2:5], cup.radius, lateral, stem,
                                           cup.mu_shell * rng.uniform(1.0, 1.8))
         if not no_cup:
-            metal += [cup_part(cup, config.supersample), *stem_metal]
+            metal += [cup_part(cup, config.supersample), *stem_metal, *hardware]
         bones += hip_bones
     nominal = float(diameters[0])
     if no_cup:  # the hip stays (native bone), the implant goes

@@ -1,4 +1,5 @@
-"""benchmarks/model.py's degraded exports: what each does to a DRR, its geometry and truth."""
+"""benchmarks/model.py's degraded exports (what each does to a DRR, its geometry and truth)
+and its robustness tables (degraded images, surgical hardware)."""
 
 from __future__ import annotations
 
@@ -7,15 +8,18 @@ from types import SimpleNamespace
 
 import numpy as np
 import torch
+import yaml
 from markdown_tables import table_cells
 
 from benchmarks import model as bench_model
 from benchmarks.model import (
     DEGRADATIONS,
+    HARDWARE,
     as_8_bit,
     blurrier,
     degraded_section,
     halved,
+    hardware_section,
     jpeg_exported,
     noisier,
 )
@@ -88,23 +92,49 @@ def test_every_degradation_gives_an_image_detect_takes():
         assert float(image.min()) >= 0 and float(image.max()) <= 1, label
 
 
-def test_each_degraded_row_puts_its_figures_under_their_headers(monkeypatch):
-    """Stub scores (the same for every degradation): each figure read back by its column's
-    name, so that no two columns can trade places unseen."""
-    res = {"mae_theta": 1.5, "mae_phi": 2.5, "mae_k": 3.5, "mae_l": 4.5, "mae_h": 5.5,
-           "detected": 0.75, "cups": 8, "false_positives": 3, "false_positives_flagged": 2,
-           "median_theta": 0.25, "median_phi": 0.5, "gross": 4, "gross_flagged": 1}
-    monkeypatch.setattr(bench_model, "samples", lambda *_: [])
-    monkeypatch.setattr(bench_model, "accuracy", lambda *_: res)
-    stub = SimpleNamespace(config=SimpleNamespace(enlarge_below=384, enlarge_to=512))
-    args = argparse.Namespace(eval_config="configs/synth_eval.yaml", seed=0,
-                              degraded_images=6, sizes=[512], runtimes=["onnx"],
+# Stub scores (the same for every row) and the cells they must give, column by column.
+STUB_SCORES = {"mae_theta": 1.5, "mae_phi": 2.5, "mae_k": 3.5, "mae_l": 4.5, "mae_h": 5.5,
+               "detected": 0.75, "cups": 8, "false_positives": 3, "false_positives_flagged": 2,
+               "median_theta": 0.25, "median_phi": 0.5, "gross": 4, "gross_flagged": 1}
+STUB_CELLS = {"settings": "onnx", "MAE theta": "1.5", "MAE phi": "2.5", "MAE k": "3.5",
+              "MAE l": "4.5", "MAE h": "5.5", "detected": "75.0 % of 8",
+              "false positives": "3 (2 flagged)", "median theta": "0.25",
+              "median phi": "0.50", "gross (flagged)": "4 (1)"}
+STUB_MODEL = SimpleNamespace(config=SimpleNamespace(enlarge_below=384, enlarge_to=512))
+
+
+def _robustness_args() -> argparse.Namespace:
+    return argparse.Namespace(eval_config="configs/synth_eval.yaml", seed=0, degraded_images=6,
+                              hardware_images=4, sizes=[512], runtimes=["onnx"],
                               seed_presets=[])
-    header, *rows = table_cells(degraded_section({"onnx": stub}, args), "images")
+
+
+def test_each_degraded_row_puts_its_figures_under_their_headers(monkeypatch):
+    """Each figure read back by its column's name, so that no two columns can trade places
+    unseen."""
+    monkeypatch.setattr(bench_model, "samples", lambda *_: [])
+    monkeypatch.setattr(bench_model, "accuracy", lambda *_: STUB_SCORES)
+    text = degraded_section({"onnx": STUB_MODEL}, _robustness_args())
+    header, *rows = table_cells(text, "images")
     assert [row[0] for row in rows] == list(DEGRADATIONS)
-    expected = {"settings": "onnx", "MAE theta": "1.5", "MAE phi": "2.5", "MAE k": "3.5",
-                "MAE l": "4.5", "MAE h": "5.5", "detected": "75.0 % of 8",
-                "false positives": "3 (2 flagged)", "median theta": "0.25",
-                "median phi": "0.50", "gross (flagged)": "4 (1)"}
     for row in rows:
-        assert dict(zip(header[1:], row[1:], strict=True)) == expected, row[0]
+        assert dict(zip(header[1:], row[1:], strict=True)) == STUB_CELLS, row[0]
+
+
+def test_each_hardware_row_scores_the_same_scenes_with_its_hardware(monkeypatch):
+    """Every row draws the same seed's scenes from the eval config with its hardware's
+    fields set (the scenes stay the same, tests/test_synth_dataset.py), and puts its
+    figures under their headers."""
+    drawn = []
+    monkeypatch.setattr(bench_model, "samples",
+                        lambda config, *rest: drawn.append((config, *rest)) or [])
+    monkeypatch.setattr(bench_model, "accuracy", lambda *_: STUB_SCORES)
+    args = _robustness_args()
+    header, *rows = table_cells(hardware_section({"onnx": STUB_MODEL}, args), "images")
+    assert [row[0] for row in rows] == list(HARDWARE)
+    for row in rows:
+        assert dict(zip(header[1:], row[1:], strict=True)) == STUB_CELLS, row[0]
+    eval_fields = yaml.safe_load(open(args.eval_config))
+    assert [config for config, *_ in drawn] == [{**eval_fields, **fields}
+                                                 for fields in HARDWARE.values()]
+    assert [rest for _, *rest in drawn] == [[51, 4, [512]]] * len(HARDWARE)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -217,6 +218,55 @@ def test_the_stem_lies_on_the_hips_lateral_side(phi_deg, side):
         _, ellipse, _ = rim_truth(scene.poses, scene.diameters, scene.geometry)
         stem_u = centroid(render_parts(stem, scene.geometry, *size))[0]
         assert side * (stem_u - ellipse[0, 0]) > 3.0, seed
+
+
+def test_surgical_hardware_adds_to_the_same_scene_and_truth():
+    """Screws and the inserter draw from a generator of their own: the same seed gives the
+    same truth and, but for the hardware, the same scene, so a benchmark with and without
+    them compares the same cups."""
+    config = SynthConfig(image_size=(128, 128), p_no_cup=0.0, p_bilateral=0.5)
+    fitted = dataclasses.replace(config, p_screws=1.0, p_impactor=1.0)
+    for index in range(4):
+        plain, held = synthesize(config, 11, index), synthesize(fitted, 11, index)
+        for key in ("pose", "ellipse", "rim", "mask", "geometry", "cup_diameter", "cup_valid"):
+            assert torch.equal(plain[key], held[key]), key
+        assert not torch.equal(plain["image"], held["image"])
+        bare = sample_scene(config, np.random.default_rng([11, index]))
+        scene = sample_scene(fitted, np.random.default_rng([11, index]))
+        assert len(scene.bones) == len(bare.bones)
+        # 1-3 screws a cup and one inserter
+        added = len(scene.metal) - len(bare.metal)
+        assert len(scene.poses) + 1 <= added <= 3 * len(scene.poses) + 1
+
+
+def test_screws_leave_the_dome_and_the_inserter_the_opening():
+    """A screw lies outside the cup on its dome's side; the inserter's rod covers the
+    axis beyond the opening and stops at the dome's pole, where it is screwed in (a ray
+    through the axis behind the dome misses it)."""
+    from data_synth.raycast import detector_rays
+    from data_synth.scene import sample_cup, surgical_hardware
+
+    config = SynthConfig(p_screws=1.0, p_impactor=1.0)
+    geometry = Geometry(1000.0, 0.3, 255.5, 255.5)
+    pose = torch.tensor([25.0, 40.0, 10.0, -5.0, 300.0], dtype=torch.float64)
+    rng = np.random.default_rng(3)
+    cup = sample_cup(config, rng, pose, 52.0)
+    *screws, rod = surgical_hardware(config, rng, cup, pose, True, geometry.sdd)
+    centre, axis = pose[2:5].float(), cup.axes[:, 1]
+    assert 1 <= len(screws) <= 3 and len(cup.screw_holes) == len(screws)
+    for screw in screws:
+        middle = screw.bounds.mean(0) - centre
+        assert float(middle @ axis) < 0 and float(middle.norm()) > cup.radius
+
+    def rod_integral(point: torch.Tensor) -> float:
+        """The rod's line integral along the ray through 3D ``point`` (mm)."""
+        scale = geometry.sdd / (geometry.sdd - float(point[2]))
+        u = torch.tensor([float(point[0]) * scale / geometry.pixel_spacing + 255.5])
+        v = torch.tensor([float(point[1]) * scale / geometry.pixel_spacing + 255.5])
+        return float(rod.line_integral(detector_rays(geometry, u, v))[0])
+
+    assert rod_integral(centre + axis * (cup.radius + 30)) > 5 * cup.mu_shell
+    assert rod_integral(centre - axis * (cup.radius + 3)) == 0.0
 
 
 def test_no_cup_images():

@@ -81,6 +81,26 @@ def test_hollow_ellipsoid_volume():
     assert abs(volume - expected) / expected < 3e-3
 
 
+def test_a_cut_ball_keeps_the_half_behind_its_cut_with_its_centroid_there():
+    """Hand-derived: any plane through a ball's centre halves it, and a half ball's centroid
+    lies 3 R / 8 from its flat face. Near-parallel rays (a far source) make the image a
+    projection along z, so the image's volume and centroid are the solid's."""
+    sdd, spacing, size = 1e6, 0.25, 160
+    geometry = Geometry.for_image(size, size, sdd, spacing)
+    radius, cut = 15.0, torch.tensor([0.6, -0.8, 0.0])
+    ball = Ellipsoid(torch.tensor([0.0, 0.0, 60.0]), torch.eye(3), torch.full((3,), radius),
+                     mu=1.0, cut=cut)
+    image = render_parts([ball.part(supersample=2)], geometry, size, size).double()
+    volume = float(image.sum()) * spacing**2
+    assert abs(volume - 2 / 3 * math.pi * radius**3) / volume < 3e-3
+    v, u = torch.meshgrid(torch.arange(size, dtype=torch.float64),
+                          torch.arange(size, dtype=torch.float64), indexing="ij")
+    centroid_mm = (torch.stack([(image * u).sum(), (image * v).sum()]) / image.sum()
+                   - (size - 1) / 2) * spacing
+    # the kept half is (X - centre) . cut <= 0: its centroid 3 R / 8 along -cut
+    assert torch.allclose(centroid_mm, -3 * radius / 8 * cut[:2].double(), atol=0.02)
+
+
 def test_edge_refinement_matches_full_supersampling():
     """Supersampling only edge pixels gives the image that supersampling every pixel gives."""
     from data_synth.raycast import detector_rays, subpixel_grid
