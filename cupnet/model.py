@@ -940,29 +940,7 @@ class CupNet(nn.Module):
                             *([run(self.coarse_framed_rim_landmarks)] if self.coarse_rim
                               is not None else []),
                             refiner, *grown]
-        chosen: list[_Pick | None] = [None] * len(cup_index)
-        fallback: list[_Pick | None] = [None] * len(cup_index)
-        for source in sources:
-            todo = torch.tensor([k for k, pick in enumerate(chosen) if pick is None],
-                                dtype=torch.long)
-            if len(todo) == 0:
-                break
-            solved = self._solved_picks(source, todo, geometry, diameter, cup_index, batch)
-            solution = solved[0][1][2]  # one solution for the source's rows
-            in_range = solution.valid & self.in_theta_range(solution.pose)
-            solved_before = torch.tensor([fallback[k] is not None and
-                                          bool(fallback[k][2].valid[fallback[k][3]])
-                                          for k in todo.tolist()], dtype=torch.bool,
-                                         device=solution.valid.device)
-            took = takes_pick(solution.valid, in_range, solved_before, source is refiner)
-            for (k, pick), take, final in zip(solved, took.tolist(), in_range.tolist(),
-                                              strict=True):
-                if take and final:
-                    chosen[k] = pick
-                elif take:
-                    fallback[k] = pick
-        picks = [pick if pick is not None else other
-                 for pick, other in zip(chosen, fallback, strict=True)]
+        picks = self._first_picks(sources, refiner, geometry, diameter, cup_index, batch)
         poses = [solution.pose[row] for _, _, solution, row in picks]
         alt_poses = [solution.alt_pose[row] for _, _, solution, row in picks]
         ellipses = [solution.ellipse[row] for _, _, solution, row in picks]
@@ -1026,6 +1004,36 @@ class CupNet(nn.Module):
                 metal_bright=bright[i],
             ))
         return [distinct_cups(cups) for cups in results]
+
+    def _first_picks(self, sources: list[_Source], refiner: _Source, geometry: Geometry,
+                     diameter: Tensor, cup_index: Tensor, batch: int) -> list[_Pick]:
+        """Each cup's pick (``cup_index (K, 2)``) from ``sources``, each run in turn on the
+        cups still without a pose within ``max_theta_deg`` (:func:`takes_pick`): the first
+        such pose; where none gives one, the first valid pose found, else the refiner's
+        failure (its ellipse is the one its mask shows)."""
+        chosen: list[_Pick | None] = [None] * len(cup_index)
+        fallback: list[_Pick | None] = [None] * len(cup_index)
+        for source in sources:
+            todo = torch.tensor([k for k, pick in enumerate(chosen) if pick is None],
+                                dtype=torch.long)
+            if len(todo) == 0:
+                break
+            solved = self._solved_picks(source, todo, geometry, diameter, cup_index, batch)
+            solution = solved[0][1][2]  # one solution for the source's rows
+            in_range = solution.valid & self.in_theta_range(solution.pose)
+            solved_before = torch.tensor([fallback[k] is not None and
+                                          bool(fallback[k][2].valid[fallback[k][3]])
+                                          for k in todo.tolist()], dtype=torch.bool,
+                                         device=solution.valid.device)
+            took = takes_pick(solution.valid, in_range, solved_before, source is refiner)
+            for (k, pick), take, final in zip(solved, took.tolist(), in_range.tolist(),
+                                              strict=True):
+                if take and final:
+                    chosen[k] = pick
+                elif take:
+                    fallback[k] = pick
+        return [pick if pick is not None else other
+                for pick, other in zip(chosen, fallback, strict=True)]
 
     def _solved_picks(self, source: _Source, todo: Tensor, geometry: Geometry,
                       diameter: Tensor, cup_index: Tensor, batch: int

@@ -856,6 +856,43 @@ def test_a_grown_start_solves_its_cup_only_where_its_replacement_passes_the_gate
         assert picks[1] is first and float(poses[1][0]) == 20.0
 
 
+def test_each_cup_takes_the_first_pose_in_range_else_the_first_found_else_the_refiners(
+        monkeypatch) -> None:
+    """``_first_picks`` by hand, sources stubbed (anteversion deg, or None where the source's
+    solve fails), ``max_theta_deg`` 52: cup 0's first source ends its search; cup 1 keeps
+    the first out-of-range pose over the later ones; cup 2 takes a later source's pose
+    (out of range) over the refiner's failure; cup 3, failed by every source, keeps the
+    refiner's failure; cup 4 takes the last source's pose in range over the first's out of
+    range."""
+    model = CupNet(replace(TINY, max_theta_deg=52.0))
+    rim = {0: 20.0, 1: 60.0, 2: None, 3: None, 4: 58.0}
+    refiner = {1: 55.0, 2: None, 3: None, 4: 57.0}
+    later = {1: 54.0, 2: 58.0, 3: None, 4: 30.0}
+    asked: dict[int, list[int]] = {}
+    made: dict[int, SimpleNamespace] = {}  # each source's solution of the cups it was asked
+
+    def solved_picks(source, todo, *rest) -> list:
+        asked[id(source)] = todo.tolist()
+        thetas = [source[k] for k in todo.tolist()]
+        pose = torch.tensor([[math.nan if t is None else t, 10.0, 0.0, 0.0, 300.0]
+                             for t in thetas], dtype=torch.float64)
+        solution = made[id(source)] = SimpleNamespace(
+            pose=pose, valid=torch.tensor([t is not None for t in thetas]))
+        return [(k, (torch.zeros(8, 2), torch.ones(8), solution, row))
+                for row, k in enumerate(todo.tolist())]
+
+    monkeypatch.setattr(model, "_solved_picks", solved_picks)
+    picks = model._first_picks([rim, refiner, later], refiner, None, None,
+                               torch.zeros(5, 2, dtype=torch.long), 1)
+    assert asked == {id(rim): [0, 1, 2, 3, 4], id(refiner): [1, 2, 3, 4],
+                     id(later): [1, 2, 3, 4]}
+    sources = [rim, rim, later, refiner, later]
+    assert [id(solution) for _, _, solution, _ in picks] == [id(made[id(s)]) for s in sources]
+    assert [float(solution.pose[row, 0]) for _, _, solution, row in picks[:3]] == [
+        20.0, 60.0, 58.0]
+    assert float(picks[4][2].pose[picks[4][3], 0]) == 30.0
+
+
 def test_a_cup_within_its_radius_of_the_detector_is_flagged():
     """Its dome would pass through the detector: pure noise had given such cups (h 8-28 mm
     for a 52 mm cup), unflagged under --fastest, where no doubt is measured."""
