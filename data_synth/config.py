@@ -74,12 +74,13 @@ class SynthConfig:
     p_porous_rim: float = _prob(0.5)
     # Surgical hardware, none by default (the shipped model never saw it): 1-3 screws
     # through a cup's dome into the bone, and the inserter on which an image's first cup is
-    # held, a steel rod along its axis out through the opening (docs/synth.md).
+    # held, a steel rod along its axis out through the opening, the cup then without liner,
+    # head or stem (docs/synth.md).
     p_screws: float = _prob(0.0)
     screw_length_mm: Range = _range((20.0, 45.0), 1.0)
     p_impactor: float = _prob(0.0)
     impactor_diameter_mm: Range = _range((8.0, 16.0), 1.0)
-    impactor_length_mm: Range = _range((150.0, 300.0), 1.0)
+    impactor_length_mm: Range = _range((300.0, 500.0), 1.0)
     # Attenuation (1/mm at the reference energy).
     mu_shell: Range = _range((0.15, 0.35), 0.0)
     mu_head: Range = _range((0.35, 0.9), 0.0)  # CoCr or zirconia: denser than the shell

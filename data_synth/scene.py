@@ -194,17 +194,26 @@ def sample_cup(config: SynthConfig, rng: np.random.Generator, pose: Tensor, diam
 
 
 def surgical_hardware(config: SynthConfig, rng: np.random.Generator, cup: Cup, pose: Tensor,
-                      inserted: bool, sdd: float) -> list[Part]:
+                      inserted: bool, sdd: float) -> tuple[list[Part], bool]:
     """Screws fixing ``cup`` (chance ``p_screws``) and, where ``inserted``, the inserter it
-    is held on (chance ``p_impactor``); screws' holes are added to the cup (before its
-    part is made). ``rng`` is a generator of its own, so that a scene's other solids, and
-    the image's noise, are those of the same scene without them.
+    is held on (chance ``p_impactor``).
 
-    A screw is a thin ellipsoid from the cup's inner surface through its hole, out into the
-    bone. The inserter screws into the dome's pole from inside and leaves through the
-    opening along the cup's axis: a steel rod, a half-ellipsoid far longer than the image,
-    across the opening's ellipse on the side the axis points to. It ends short of the
-    source's plane (``sdd`` mm from the detector), which no solid may reach.
+    The screws' holes are added to ``cup`` (before its part is made). A cup on its inserter
+    is being impacted: it has no liner or femoral head yet (they are taken out of ``cup``),
+    and the caller leaves its stem out. ``rng`` is a generator of its own, so that a
+    scene's other draws, and the image's noise, are those of the same scene without them.
+
+    A screw's head sits in its hole at the cup's inner surface; its shank, a half-ellipsoid
+    cut at the head, tapers to its tip in the bone. The inserter screws into the dome's pole
+    from inside and leaves through the opening along the cup's axis: a steel rod, a
+    half-ellipsoid cut at the pole and longer than the field (so of nearly constant section
+    across it), across the opening's ellipse on the side the axis points to. It ends short
+    of the source's plane, ``sdd`` mm from the detector, which no solid may reach.
+
+    Args:
+        pose: ``(5,)`` the cup's pose, public units (deg, mm). sdd: mm.
+    Returns:
+        the hardware's parts, and whether the cup is held on its inserter.
     """
     parts: list[Part] = []
     if rng.random() < config.p_screws:
@@ -212,11 +221,13 @@ def surgical_hardware(config: SynthConfig, rng: np.random.Generator, cup: Cup, p
         cup.screw_holes = torch.cat([cup.screw_holes, holes.float()])
         centre = pose[2:5].numpy()
         for direction, radius in zip(dirs.numpy(), holes[:, 3].tolist(), strict=True):
-            start = centre + direction * (cup.radius - cup.wall)
-            end = centre + direction * (cup.radius + uniform(rng, config.screw_length_mm))
-            parts.append(Ellipsoid.along(start, end, (radius * 0.9, radius * 0.9),
-                                         cup.mu_shell).part())
-    if inserted and rng.random() < config.p_impactor:
+            head = centre + direction * (cup.radius - cup.wall)
+            shank = cup.wall + uniform(rng, config.screw_length_mm)
+            parts.append(Ellipsoid(head, frame_along(direction),
+                                   np.array([shank, radius * 0.9, radius * 0.9]),
+                                   cup.mu_shell, cut=-direction).part())
+    held = inserted and rng.random() < config.p_impactor
+    if held:
         axis = cup.axes[:, 1].double().numpy()
         pole = pose[2:5].numpy() - axis * (cup.radius - cup.wall)
         rod = uniform(rng, config.impactor_diameter_mm) / 2
@@ -225,7 +236,8 @@ def surgical_hardware(config: SynthConfig, rng: np.random.Generator, cup: Cup, p
             reach = min(reach, (0.9 * sdd - pole[2]) / axis[2])
         parts.append(Ellipsoid(pole, frame_along(axis), np.array([reach, rod, rod]),
                                uniform(rng, config.mu_head), cut=-axis).part())
-    return parts
+        cup.head_radius = cup.liner_inner = 0.0
+    return parts, held
 
 
 def _unit(*xyz: float) -> np.ndarray:
@@ -323,13 +335,16 @@ def sample_scene(config: SynthConfig, rng: np.random.Generator) -> Scene:
     bones: list[Part] = []
     for slot, (pose, diameter) in enumerate(zip(poses, diameters, strict=True)):
         cup = sample_cup(config, rng, pose, float(diameter))
-        hardware = ([] if hardware_rng is None
-                    else surgical_hardware(config, hardware_rng, cup, pose, slot == 0,
-                                         float(geometry.sdd)))
         lateral = -1.0 if float(pose[1]) > 0 else 1.0
         stem = cup.head_radius > 0 and rng.random() < config.p_stem
         stem_metal, hip_bones = hip_parts(config, rng, pose[2:5], cup.radius, lateral, stem,
                                           cup.mu_shell * rng.uniform(1.0, 1.8))
+        # After the stem's draws (which depend on the head), so that they stay the same.
+        hardware, held = (([], False) if hardware_rng is None
+                          else surgical_hardware(config, hardware_rng, cup, pose, slot == 0,
+                                                 float(geometry.sdd)))
+        if held:  # the femoral side comes after the cup is impacted
+            stem_metal = []
         if not no_cup:
             metal += [cup_part(cup, config.supersample), *stem_metal, *hardware]
         bones += hip_bones

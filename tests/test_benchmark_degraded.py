@@ -4,6 +4,7 @@ and its robustness tables (degraded images, surgical hardware)."""
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -134,7 +135,7 @@ def test_each_hardware_row_scores_the_same_scenes_with_its_hardware(monkeypatch)
     assert [row[0] for row in rows] == list(HARDWARE)
     for row in rows:
         assert dict(zip(header[1:], row[1:], strict=True)) == STUB_CELLS, row[0]
-    eval_fields = yaml.safe_load(open(args.eval_config))
+    eval_fields = yaml.safe_load(Path(args.eval_config).read_text())
     assert [config for config, *_ in drawn] == [{**eval_fields, **fields}
                                                  for fields in HARDWARE.values()]
     assert [rest for _, *rest in drawn] == [[51, 4, [512]]] * len(HARDWARE)

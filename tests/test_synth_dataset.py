@@ -220,43 +220,70 @@ def test_the_stem_lies_on_the_hips_lateral_side(phi_deg, side):
         assert side * (stem_u - ellipse[0, 0]) > 3.0, seed
 
 
+def _bounds(parts: list) -> list[list[float]]:
+    """Each part's bounding box, ``(2, 3)`` mm, as nested lists (the order kept)."""
+    return [part.bounds.tolist() for part in parts]
+
+
 def test_surgical_hardware_adds_to_the_same_scene_and_truth():
     """Screws and the inserter draw from a generator of their own: the same seed gives the
-    same truth and, but for the hardware, the same scene, so a benchmark with and without
-    them compares the same cups."""
+    same truth and, but for the hardware, the same scene (every bone, and with screws alone
+    every other metal part, in the same place), so a benchmark with and without them
+    compares the same cups."""
     config = SynthConfig(image_size=(128, 128), p_no_cup=0.0, p_bilateral=0.5)
     fitted = dataclasses.replace(config, p_screws=1.0, p_impactor=1.0)
+    screwed = dataclasses.replace(config, p_screws=1.0)
     for index in range(4):
         plain, held = synthesize(config, 11, index), synthesize(fitted, 11, index)
         for key in ("pose", "ellipse", "rim", "mask", "geometry", "cup_diameter", "cup_valid"):
             assert torch.equal(plain[key], held[key]), key
         assert not torch.equal(plain["image"], held["image"])
         bare = sample_scene(config, np.random.default_rng([11, index]))
-        scene = sample_scene(fitted, np.random.default_rng([11, index]))
-        assert len(scene.bones) == len(bare.bones)
-        # 1-3 screws a cup and one inserter
-        added = len(scene.metal) - len(bare.metal)
-        assert len(scene.poses) + 1 <= added <= 3 * len(scene.poses) + 1
+        for other in (fitted, screwed):
+            scene = sample_scene(other, np.random.default_rng([11, index]))
+            assert _bounds(scene.bones) == _bounds(bare.bones)
+            assert scene.geometry == bare.geometry and torch.equal(scene.poses, bare.poses)
+        # with screws alone, 1-3 a cup added to the same parts
+        metal = _bounds(scene.metal)
+        assert all(box in metal for box in _bounds(bare.metal))
+        assert len(scene.poses) <= len(metal) - len(bare.metal) <= 3 * len(scene.poses)
+
+
+def test_a_cup_on_its_inserter_has_no_liner_head_or_stem_yet():
+    """The femoral side comes after the cup is impacted: the held cup's scene keeps only the
+    cup and the rod of the parts a head, liner and stem would add to."""
+    config = SynthConfig(p_no_cup=0.0, p_bilateral=0.0, p_head=1.0, p_liner=1.0, p_stem=1.0)
+    held = dataclasses.replace(config, p_impactor=1.0)
+    for index in range(3):
+        bare = sample_scene(config, np.random.default_rng([5, index]))
+        scene = sample_scene(held, np.random.default_rng([5, index]))
+        assert len(bare.metal) == 3 and len(scene.metal) == 2  # cup, neck, shaft; cup, rod
+        assert scene.metal[0].bounds.tolist() == bare.metal[0].bounds.tolist()
 
 
 def test_screws_leave_the_dome_and_the_inserter_the_opening():
-    """A screw lies outside the cup on its dome's side; the inserter's rod covers the
-    axis beyond the opening and stops at the dome's pole, where it is screwed in (a ray
-    through the axis behind the dome misses it)."""
+    """A screw's head sits at the cup's inner surface on its dome, its shank outside; the
+    inserter's rod covers the axis beyond the opening and stops at the dome's pole, where
+    it is screwed in (a ray through the axis behind the dome misses it); the held cup has
+    no head or liner."""
     from data_synth.raycast import detector_rays
     from data_synth.scene import sample_cup, surgical_hardware
 
-    config = SynthConfig(p_screws=1.0, p_impactor=1.0)
+    config = SynthConfig(p_screws=1.0, p_impactor=1.0, p_screw_holes=0.0, p_head=1.0,
+                         p_liner=1.0)
     geometry = Geometry(1000.0, 0.3, 255.5, 255.5)
     pose = torch.tensor([25.0, 40.0, 10.0, -5.0, 300.0], dtype=torch.float64)
     rng = np.random.default_rng(3)
     cup = sample_cup(config, rng, pose, 52.0)
-    *screws, rod = surgical_hardware(config, rng, cup, pose, True, geometry.sdd)
+    assert cup.head_radius > 0 and cup.liner_inner > 0
+    (*screws, rod), held = surgical_hardware(config, rng, cup, pose, True, geometry.sdd)
+    assert held and cup.head_radius == 0 and cup.liner_inner == 0
     centre, axis = pose[2:5].float(), cup.axes[:, 1]
     assert 1 <= len(screws) <= 3 and len(cup.screw_holes) == len(screws)
     for screw in screws:
-        middle = screw.bounds.mean(0) - centre
-        assert float(middle @ axis) < 0 and float(middle.norm()) > cup.radius
+        head = screw.bounds.mean(0) - centre  # the half-ellipsoid's flat end
+        assert float(head @ axis) < 0
+        assert abs(float(head.norm()) - (cup.radius - cup.wall)) < 1e-3
 
     def rod_integral(point: torch.Tensor) -> float:
         """The rod's line integral along the ray through 3D ``point`` (mm)."""
@@ -267,6 +294,23 @@ def test_screws_leave_the_dome_and_the_inserter_the_opening():
 
     assert rod_integral(centre + axis * (cup.radius + 30)) > 5 * cup.mu_shell
     assert rod_integral(centre - axis * (cup.radius + 3)) == 0.0
+
+
+def test_the_inserter_stops_short_of_the_source():
+    """A rod pointing towards the source ends 10 % of the SDD short of its plane."""
+    from data_synth.scene import sample_cup, surgical_hardware
+
+    config = SynthConfig(p_impactor=1.0, impactor_length_mm=(500.0, 500.0))
+    sdd = 1000.0
+    pose = torch.tensor([40.0, 20.0, 0.0, 0.0, 600.0], dtype=torch.float64)
+    cup = sample_cup(config, np.random.default_rng(0), pose, 50.0)
+    axis = cup.axes[:, 1].double()
+    assert axis[2] > 0.5  # this anteversion turns the opening towards the source
+    (rod,), _ = surgical_hardware(config, np.random.default_rng(1), cup, pose, True, sdd)
+    solid = rod.line_integral.__self__  # the rod's Ellipsoid
+    pole_z = 600.0 - float(axis[2]) * (cup.radius - cup.wall)
+    tip_z = pole_z + float(solid.semi_axes[0]) * float(axis[2])
+    assert tip_z == pytest.approx(0.9 * sdd, abs=1e-3)
 
 
 def test_no_cup_images():
