@@ -359,9 +359,10 @@ DEGRADATIONS: dict[str, Callable[[dict, np.random.Generator], dict]] = {
 
 
 def robustness_rows(part: str, label: str, models: dict[str, CupNet], images: list[dict]
-                    ) -> list[list]:
-    """A row a model of ``models`` on ``images`` (the ``label`` row group of ``part``): its
-    :func:`scored` figures, the angles' medians and the gross failures (flagged)."""
+                    ) -> list[list[object]]:
+    """One table row for each of ``models``, scored on ``images``: ``label`` (the row
+    group; printed with ``part``), the model's name, its :func:`scored` figures, the
+    angles' medians and its gross failures (of them flagged)."""
     rows = []
     for name, model in models.items():
         res = accuracy(model, images)
@@ -369,6 +370,15 @@ def robustness_rows(part: str, label: str, models: dict[str, CupNet], images: li
         rows.append([label, name, *scored(res), f"{res['median_theta']:.2f}",
                      f"{res['median_phi']:.2f}", f"{res['gross']} ({res['gross_flagged']})"])
     return rows
+
+
+def robustness_intro(part: str, count: int, seed: int, args: argparse.Namespace) -> str:
+    """A robustness section's command (``--parts part``) and the ``count`` fresh DRRs it
+    scores, from seed ``seed`` on."""
+    return (f"`python benchmarks/model.py --parts {part} --runtimes {' '.join(args.runtimes)}"
+            + "".join(f" --seed-presets {p}" for p in args.seed_presets)
+            + f"`: {count} fresh DRRs from `{args.eval_config}` at "
+            f"{', '.join(map(str, args.sizes))} px in equal shares (seeds {seed} on)")
 
 
 ROBUSTNESS_COLUMNS = ["images", "settings", *[f"MAE {n}" for n in NAMES], "detected",
@@ -383,24 +393,22 @@ HARDWARE = {
 
 
 def hardware_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
-    """The shipped model (and ``models``' presets) on the same fresh DRRs without and with
-    surgical hardware no training image held, screws and the cup's inserter: the
-    ``model_hardware`` section."""
+    """The ``model_hardware`` section: each of ``models`` (the shipped model and its presets)
+    on the same fresh DRRs without surgical hardware and with each kind of it (screws, the
+    cup's inserter), which no training image held."""
     rows = []
     for label, fields in HARDWARE.items():
         config = {**(yaml.safe_load(Path(args.eval_config).read_text()) or {}), **fields}
         images = samples(config, args.seed + 51, args.hardware_images, args.sizes)
         rows += robustness_rows("hardware", label, models, images)
     return ("## CupNet with surgical hardware in the image\n\n"
-            f"`python benchmarks/model.py --parts hardware --runtimes {' '.join(args.runtimes)}"
-            + "".join(f" --seed-presets {p}" for p in args.seed_presets)
-            + f"`: {args.hardware_images} fresh DRRs from `{args.eval_config}` at "
-            f"{', '.join(map(str, args.sizes))} px in equal shares (seeds {args.seed + 51} "
-            "on), each row the same scenes and noise with the hardware added (`SynthConfig`'s "
+            + robustness_intro("hardware", args.hardware_images, args.seed + 51, args)
+            + ", each row the same scenes and noise with the hardware added (`SynthConfig`'s "
             "`p_screws` and `p_impactor`, docs/synth.md): 1-3 titanium screws 20-45 mm long "
             "through each cup's dome, or the inserter the first cup is held on during "
             "impaction, a steel rod 8-16 mm across along the cup's axis, out through the "
-            "opening. No training image held either. Columns as in the degraded table.\n\n"
+            "opening and the field (the cup on it without liner, head or stem yet). No "
+            "training image held either. Columns as in the degraded table.\n\n"
             + markdown_table(ROBUSTNESS_COLUMNS, rows))
 
 
@@ -416,11 +424,8 @@ def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
         images = [degrade(s, rng) for s in data]
         rows += robustness_rows("degraded", label, models, images)
     return ("## CupNet on degraded images\n\n"
-            f"`python benchmarks/model.py --parts degraded --runtimes {' '.join(args.runtimes)}"
-            + "".join(f" --seed-presets {p}" for p in args.seed_presets)
-            + f"`: {args.degraded_images} fresh DRRs from `{args.eval_config}` at "
-            f"{', '.join(map(str, args.sizes))} px in equal shares (seeds {args.seed + 41} "
-            "on), each row the same images degraded as a user's export may be "
+            + robustness_intro("degraded", args.degraded_images, args.seed + 41, args)
+            + ", each row the same images degraded as a user's export may be "
             "(`benchmarks/model.py`, `DEGRADATIONS`): 8-bit, JPEG (OpenCV), halved in size "
             "(area-averaged, the pixel spacing and principal point given accordingly; the "
             f"model enlarges those under {shipped.enlarge_below} px to {shipped.enlarge_to} "
