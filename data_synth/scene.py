@@ -153,6 +153,8 @@ def sample_poses(config: SynthConfig, rng: np.random.Generator, geometry: Geomet
 def dome_holes(rng: np.random.Generator, cup: Cup, pose: Tensor) -> tuple[Tensor, Tensor]:
     """1-3 holes through a cup's dome, clustered in one sector 15-60 degrees from its pole.
 
+    Args:
+        pose: ``(5,)`` the cup's pose, public units (deg, mm), float64.
     Returns:
         ``(K, 4)`` hole spheres (centre xyz in the wall's middle, radius; mm, float64) and
         ``(K, 3)`` their unit directions from the cup's centre.
