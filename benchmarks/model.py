@@ -396,10 +396,10 @@ def hardware_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
     """The ``model_hardware`` section: each of ``models`` (the shipped model and its presets)
     on the same fresh DRRs without surgical hardware and with each kind of it (screws, the
     cup's inserter), which no training image held."""
-    rows = []
+    rows, eval_fields = [], yaml.safe_load(Path(args.eval_config).read_text()) or {}
     for label, fields in HARDWARE.items():
-        config = {**(yaml.safe_load(Path(args.eval_config).read_text()) or {}), **fields}
-        images = samples(config, args.seed + 51, args.hardware_images, args.sizes)
+        images = samples({**eval_fields, **fields}, args.seed + 51, args.hardware_images,
+                         args.sizes)
         rows += robustness_rows("hardware", label, models, images)
     return ("## CupNet with surgical hardware in the image\n\n"
             + robustness_intro("hardware", args.hardware_images, args.seed + 51, args)
