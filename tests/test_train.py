@@ -17,7 +17,7 @@ from torch.utils.data import DataLoader
 
 from cupnet.cli import main as cupnet_main
 from cupnet.crops import resample_batch, square_windows
-from cupnet.model import load_model, save_model
+from cupnet.model import DEFAULT_CHECKPOINT, load_model, save_model
 from data_synth.dataset import stream_share
 from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule, RoundRobinBatches
@@ -624,6 +624,22 @@ def _make_rules() -> dict[str, tuple[list[str], list[list[str]]]]:
     return rules
 
 
+def _make_variable(name: str) -> list[str]:
+    """The words of the Makefile's ``name := ...``."""
+    lines = (ROOT / "Makefile").read_text().splitlines()
+    return next(x.split(":=", 1)[1].split() for x in lines if x.startswith(f"{name} :="))
+
+
+def _stage_config(words: list[str], capsys: pytest.CaptureFixture[str]) -> dict:
+    """The whole config of a Makefile training stage, ``$(TRAIN) -c ... $(HOUR_ARGS)``, as
+    ``python -m train fit`` parses it (from the checkout's root)."""
+    train = _make_variable("TRAIN")
+    assert words[0] == "$(TRAIN)" and words[-1] == "$(HOUR_ARGS)"
+    with pytest.raises(SystemExit):
+        main([*train[train.index("fit"):], *words[1:-1], "--print_config"])
+    return yaml.safe_load(capsys.readouterr().out)
+
+
 def test_hour_recipe_runs_two_chains_then_merges_within_the_hour(capsys, monkeypatch):
     """``make train-hour``: two chains of one-thread training processes run side by side
     (``make -j2``); each stage parses and starts from the export of a stage it waits for;
@@ -633,15 +649,9 @@ def test_hour_recipe_runs_two_chains_then_merges_within_the_hour(capsys, monkeyp
     settings land beside the last stage's export."""
     monkeypatch.chdir(ROOT)  # the Makefile's paths are relative to the checkout
     rules = _make_rules()
-    lines = (ROOT / "Makefile").read_text().splitlines()
-    train = next(x.split(":=", 1)[1].split() for x in lines if x.startswith("TRAIN :="))
-    train = train[train.index("fit"):]
 
     def config(words: list[str]) -> dict:
-        assert words[0] == "$(TRAIN)" and words[-1] == "$(HOUR_ARGS)"
-        with pytest.raises(SystemExit):
-            main([*train, *words[1:-1], "--print_config"])
-        return yaml.safe_load(capsys.readouterr().out)
+        return _stage_config(words, capsys)
 
     def minutes(cfg: dict) -> float:
         days, hours, mins, secs = map(int, cfg["trainer"]["max_time"].split(":"))
@@ -827,3 +837,24 @@ def test_two_process_ddp_runs_from_lightnings_flags_alone(tmp_path):
     export = tmp_path / "runs" / "smoke" / "cupnet.safetensors"
     assert load_model(str(export)) is not None
     assert (tmp_path / "runs" / "smoke" / "checkpoints" / "last.ckpt").exists()
+
+
+def test_hardware_recipe_starts_from_the_weights_shipped_before_it(capsys, monkeypatch):
+    """``make train-hardware`` made the shipped weights from those shipped before it: both
+    stages start from the weights its rule takes out of git, never from the shipped file
+    (a rerun would fine-tune its own output), wait for that rule, and end by their step
+    caps before their time caps on this machine (27 and 29 of 40 min)."""
+    monkeypatch.chdir(ROOT)
+    rules = _make_rules()
+    [before] = _make_variable("PRE_HARDWARE")
+    for name in ("hardware-locator", "hardware-rim"):
+        prerequisites, [words] = rules[name]
+        assert "$(PRE_HARDWARE)" in prerequisites
+        stage = _stage_config(words, capsys)
+        assert stage["model"]["init_weights"] == before
+        assert (ROOT / before).resolve() != DEFAULT_CHECKPOINT.resolve()
+        assert stage["trainer"]["max_time"] == "00:00:40:00"
+    assert "$(PRE_HARDWARE)" in rules["train-hardware"][0]
+    recipe = rules["$(PRE_HARDWARE)"][1]
+    assert ["git", "show", "d89edca:cupnet/assets/cupnet_default.safetensors", ">",
+            "$@.part"] in recipe
