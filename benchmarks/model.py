@@ -395,7 +395,7 @@ HARDWARE = {
 def hardware_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
     """The ``model_hardware`` section: each of ``models`` (the shipped model and its presets)
     on the same fresh DRRs without surgical hardware and with each kind of it (screws, the
-    cup's inserter), which no training image held."""
+    cup's inserter), as the shipped weights' last stage was trained on (other seeds)."""
     rows, eval_fields = [], yaml.safe_load(Path(args.eval_config).read_text()) or {}
     for label, fields in HARDWARE.items():
         images = samples({**eval_fields, **fields}, args.seed + 51, args.hardware_images,
@@ -407,8 +407,9 @@ def hardware_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
             "`p_screws` and `p_impactor`, docs/synth.md): 1-3 titanium screws 20-45 mm long "
             "through each cup's dome, or the inserter the first cup is held on during "
             "impaction, a steel rod 8-16 mm across along the cup's axis, out through the "
-            "opening and the field (the cup on it without liner, head or stem yet). No "
-            "training image held either. Columns as in the degraded table.\n\n"
+            "opening and the field (the cup on it without liner, head or stem yet). The "
+            "shipped weights' last stage trained on images with both (docs/training.md, "
+            "item 64; other seeds). Columns as in the degraded table.\n\n"
             + markdown_table(ROBUSTNESS_COLUMNS, rows))
 
 
