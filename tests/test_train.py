@@ -842,8 +842,8 @@ def test_two_process_ddp_runs_from_lightnings_flags_alone(tmp_path):
 def test_hardware_recipe_starts_from_the_weights_shipped_before_it(capsys, monkeypatch):
     """``make train-hardware`` made the shipped weights from those shipped before it: both
     stages start from the weights its rule takes out of git, never from the shipped file
-    (a rerun would fine-tune its own output), wait for that rule, and end by their step
-    caps before their time caps on this machine (27 and 29 of 40 min)."""
+    (a rerun would fine-tune its own output), and wait for that rule; their time caps are
+    40 min (on this machine their step caps ended them at 27 and 29 min)."""
     monkeypatch.chdir(ROOT)
     rules = _make_rules()
     [before] = _make_variable("PRE_HARDWARE")
