@@ -416,8 +416,10 @@ def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, request, 
         # A known defect of the weights shipped since the fiftieth session (docs/training.md,
         # item 64): each look judges the display anew from its own blobs, and the mirrored
         # look's locator adds a 9 x 4 px blob beside this bright DRR's cup, which tips the
-        # judgement to dark (the pose still comes out right). A later look should take the
-        # first look's judgement; strict, so that fixing it fails here until this goes.
+        # judgement to dark (the pose still comes out right). Looks judge afresh so that a
+        # later one can mend a first look's wrong judgement (CupNet._looked_again); whether
+        # one should keep the first look's where it had cups is to be measured on bright
+        # images. Strict, so that a mend fails here until this goes.
         request.applymarker(pytest.mark.xfail(strict=True, reason="a later look re-judges "
                                               "the display from its own blobs"))
     model, sample = shipped_on_drr
