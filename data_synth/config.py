@@ -72,7 +72,8 @@ class SynthConfig:
     p_stem: float = _prob(0.6)
     p_screw_holes: float = _prob(0.4)
     p_porous_rim: float = _prob(0.5)
-    # Surgical hardware, none by default (the shipped model never saw it): 1-3 screws
+    # Surgical hardware, none by default (configs/synth_hardware.yaml, which the shipped
+    # weights' last stage trained on, draws it; docs/training.md, item 64): 1-3 screws
     # through a cup's dome into the bone, and the inserter on which an image's first cup is
     # held, a steel rod along its axis out through the opening, the cup then without liner,
     # head or stem (docs/synth.md).
