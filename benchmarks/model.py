@@ -65,6 +65,8 @@ UNSEEN_SEEDS = [20_274_123, 20_275_123, 20_276_123, 20_277_123]
 LOOKED_AT = {42: FRESH_SEEDS, 43: NEWER_SEEDS, 44: BLIND_SEEDS}
 # The --parts name of the seeds nobody has looked at yet.
 UNLOOKED_PART = "unseen"
+# accuracy()'s counts of what the check flag marks, summed over a part's seeds.
+FLAG_COUNTS = ("flagged", "gross", "gross_flagged", "gross_alt_right")
 # --parts name -> its section in the doc, its title and its seeds (None: --fresh-seeds).
 SEED_SECTIONS = {"fresh": ("model_fresh_seed", "CupNet on fresh seeds", None),
                  "newer": ("model_newer_seeds", "CupNet on newer fresh seeds", NEWER_SEEDS),
@@ -506,6 +508,19 @@ def oblong_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
                              rows))
 
 
+def flag_summary(res: dict[str, float], detected: int, model: CupNet) -> str:
+    """What ``model``'s ``check`` flag marks among its ``detected`` cups (``res``:
+    :func:`accuracy`'s counts, or their sums over sets), as a clause."""
+    share = 100 * res["flagged"] / max(detected, 1)
+    return (f"flags {res['flagged']} of the {detected} detected cups ({share:.1f} %) `check` "
+            f"(its doubt >= `check_doubt` {model.config.check_doubt}), "
+            f"{res['gross_flagged']} of the {res['gross']} gross failures (anteversion or "
+            f"inclination off by more than {GROSS_DEG:g} deg) among them; "
+            f"{res['gross_alt_right']} of those {res['gross']} are ambiguous pairs reported "
+            "in the wrong order (status `ambiguous`, the second pose right), which no doubt "
+            "flags")
+
+
 def interval(values: np.ndarray, draws: int = 1000) -> np.ndarray:
     """95 % bootstrap interval ``(2, ...)`` of the mean of ``values`` ``(N, ...)`` over its
     first axis (seeded: the same values give the same interval)."""
@@ -555,14 +570,18 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
     and pooled (with 95 % bootstrap intervals over the cups), with the networks in each runtime
     and under each speed preset ``models`` holds (by name): that part's section
     (:data:`SEED_SECTIONS`)."""
-    rows = []
+    rows, flags = [], []
     for name, model in models.items():
         per_cup: list[np.ndarray | None] = []  # each true cup's, None where missed
+        checked: list[bool] = []  # each found cup's check flag
+        counts = dict.fromkeys(FLAG_COUNTS, 0)
         for seed in part_seeds(part, args):
             cases: list = []
             res = accuracy(model, samples(args.eval_config, seed, args.fresh_images,
                                           args.sizes), cases)
             per_cup += [err for *_, err in cases]  # not the samples: their images are big
+            checked += [bool(det.check) for _, _, det, err in cases if err is not None]
+            counts = {key: counts[key] + res[key] for key in FLAG_COUNTS}
             print("fresh seed", seed, name, res)
             rows.append([name, seed, *[f"{res[f'mae_{n}']:.3g}" for n in NAMES],
                          f"{100 * res['detected']:.1f} % of {res['cups']}",
@@ -578,9 +597,15 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
                      # decimal rounded 755 of 763 (98.95 %) up to the target.
                      f"{int(found.sum())} of {len(found)}, {100 * found.mean():.2f} % "
                      f"[{found_low:.1f}, {found_high:.1f}]", ""])
+        # The README's advice to look at flagged cups rests on these pooled counts.
+        unflagged = errors[~np.array(checked, dtype=bool)].mean(0)
+        flags.append(f"Pooled, {name} {flag_summary(counts, len(errors), model)}; the cups "
+                     f"not flagged have MAE theta {unflagged[0]:.3g} deg, phi "
+                     f"{unflagged[1]:.3g} deg, h {unflagged[4]:.3g} mm.")
     return (fresh_seed_intro(args, args.runtimes, part)
             + markdown_table(["runtime", "seed", *[f"MAE {n}" for n in NAMES], "detected",
-                              "false positives"], rows))
+                              "false positives"], rows)
+            + "".join(f"\n\n{line}" for line in flags))
 
 
 class StripCounter(PassThrough):
@@ -703,14 +728,8 @@ def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> Non
                  for stat, key in (("mean", "mae"), ("median", "median"),
                                    ("90th percentile", "p90"), ("MAE of the cups not flagged "
                                                                 "`check`", "unflagged_mae"))])
-            spread += (f"\n\nThe shipped model flags {res['flagged']} of the "
-                       f"{round(res['detected'] * res['cups'])} detected cups `check` (its "
-                       f"doubt >= `check_doubt` {net.config.check_doubt}), "
-                       f"{res['gross_flagged']} of the {res['gross']} gross failures "
-                       f"(anteversion or inclination off by more than {GROSS_DEG:g} deg) "
-                       f"among them; {res['gross_alt_right']} of those {res['gross']} are "
-                       "ambiguous pairs reported in the wrong order (status `ambiguous`, "
-                       "the second pose right), which no doubt flags.")
+            spread += (f"\n\nThe shipped model "
+                       f"{flag_summary(res, round(res['detected'] * res['cups']), net)}.")
         no_cup, no_cup_flagged = false_detections(net, no_cup_set)
         table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
                       f"{res['false_positives']} ({res['false_positives_flagged']} flagged)",

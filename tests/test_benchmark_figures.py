@@ -93,6 +93,29 @@ def test_the_pooled_oblong_mae_weights_each_shape_by_its_found_cups(monkeypatch)
     assert pooled == "| onnx | all | 10 | 2 | 3 | 2 | 3 | 5 | 75.0 % of 8 | 3 (1 flagged) |"
 
 
+def test_a_seed_section_pools_what_the_check_flag_marks_over_its_seeds(stub_detect,
+                                                                        monkeypatch):
+    """Two seeds, each the images below: per seed 4 cups found, 2 flagged, both gross (one an
+    ambiguous pair whose second pose is right), 1 missed. Pooled: 4 of 8 flagged, 4 of 4
+    gross flagged, 2 pairs; the unflagged cups' theta errors 1 and 3 (twice): MAE 2."""
+    data = [
+        image(3, [detection(100, [1, 0, 2, 0, 4]),
+                  detection(200, [2, 6, 0, 2, 8], check=True, alt_error=[0, 0, 0, 0, 0])]),
+        image(2, [detection(100, [3, 0, 4, 0, 0]),
+                  detection(200, [10, 0, 0, 4, 12], check=True)]),
+    ]
+    monkeypatch.setattr(bench_model, "samples", lambda *_: data)
+    args = argparse.Namespace(fresh_seeds=[1, 2], fresh_images=2, sizes=[512], seed=0,
+                              eval_config="configs/synth_eval.yaml", runtimes=["onnx"],
+                              checkpoint=str(bench_model.DEFAULT_CHECKPOINT), seed_presets=[])
+    model = SimpleNamespace(config=SimpleNamespace(check_doubt=1.4))
+    pooled = bench_model.fresh_seed_section({"onnx": model}, args).splitlines()[-1]
+    assert pooled.startswith("Pooled, onnx flags 4 of the 8 detected cups (50.0 %) `check` "
+                             "(its doubt >= `check_doubt` 1.4), 4 of the 4 gross failures")
+    assert "; 2 of those 4 are ambiguous pairs" in pooled
+    assert pooled.endswith("the cups not flagged have MAE theta 2 deg, phi 0 deg, h 2 mm.")
+
+
 def test_a_bootstrap_interval_of_a_constant_is_the_constant():
     values = np.tile([[2.5, -1.0]], (7, 1))
     np.testing.assert_allclose(interval(values), [[2.5, -1.0], [2.5, -1.0]])
