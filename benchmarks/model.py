@@ -66,7 +66,8 @@ LOOKED_AT = {42: FRESH_SEEDS, 43: NEWER_SEEDS, 44: BLIND_SEEDS}
 # The --parts name of the seeds nobody has looked at yet.
 UNLOOKED_PART = "unseen"
 # accuracy()'s counts of what the check flag marks, summed over a part's seeds.
-FLAG_COUNTS = ("flagged", "gross", "gross_flagged", "gross_alt_right")
+FLAG_COUNTS = ("flagged", "gross", "gross_flagged", "gross_alt_right", "ambiguous",
+               "ambiguous_gross")
 # --parts name -> its section in the doc, its title and its seeds (None: --fresh-seeds).
 SEED_SECTIONS = {"fresh": ("model_fresh_seed", "CupNet on fresh seeds", None),
                  "newer": ("model_newer_seeds", "CupNet on newer fresh seeds", NEWER_SEEDS),
@@ -183,7 +184,8 @@ def failure_gallery(cases: list[tuple[dict, int, CupDetection | None, np.ndarray
 def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict[str, float]:
     """Pose MAE of matched cups and the fraction of true cups detected with a pose; appends
     ``(sample, cup index, detection, errors)`` of each true cup to ``cases`` when given."""
-    errors, check, alt_right, found, total, false_pos, false_flagged = [], [], [], 0, 0, 0, 0
+    errors, check, alt_right, ambiguous = [], [], [], []
+    found, total, false_pos, false_flagged = 0, 0, 0, 0
     for s in data:
         dets = detect_sample(model, s)
         truth = s["pose"].double()
@@ -197,6 +199,7 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
         alt_right += [det.alt_pose is not None and bool(
             (pose_errors(torch.from_numpy(det.alt_pose)[None], truth[c:c + 1])[0, :2].abs()
              <= GROSS_DEG).all()) for c, det, err in cups if err is not None]
+        ambiguous += [det.alt_pose is not None for _, det, err in cups if err is not None]
         found += sum(err is not None for _, _, err in cups)
         total += len(cups)
         false_pos += fp
@@ -214,9 +217,11 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
     gross = errors[:, :2].max(1) > GROSS_DEG
     rest = errors[~check] if (~check).any() else np.full((1, 5), np.nan)
     alt_right = np.array(alt_right or [False] * len(errors), dtype=bool)
+    ambiguous = np.array(ambiguous or [False] * len(errors), dtype=bool)
     out.update(flagged=int(check.sum()), gross=int(gross.sum()),
                gross_flagged=int((gross & check).sum()),
                gross_alt_right=int((gross & alt_right).sum()),
+               ambiguous=int(ambiguous.sum()), ambiguous_gross=int((ambiguous & gross).sum()),
                **{f"unflagged_mae_{n}": float(v) for n, v in zip(NAMES, rest.mean(0),
                                                                  strict=True)})
     return out
@@ -601,7 +606,11 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
         unflagged = errors[~np.array(checked, dtype=bool)].mean(0)
         flags.append(f"Pooled, {name} {flag_summary(counts, len(errors), model)}; the cups "
                      f"not flagged have MAE theta {unflagged[0]:.3g} deg, phi "
-                     f"{unflagged[1]:.3g} deg, h {unflagged[4]:.3g} mm.")
+                     f"{unflagged[1]:.3g} deg, h {unflagged[4]:.3g} mm. "
+                     f"{counts['ambiguous']} of the found cups are `ambiguous`: the pose "
+                     f"reported first lies within {GROSS_DEG:g} deg for "
+                     f"{counts['ambiguous'] - counts['ambiguous_gross']} of them, the second "
+                     f"for {counts['gross_alt_right']} of the other {counts['ambiguous_gross']}.")
     return (fresh_seed_intro(args, args.runtimes, part)
             + markdown_table(["runtime", "seed", *[f"MAE {n}" for n in NAMES], "detected",
                               "false positives"], rows)
