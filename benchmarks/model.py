@@ -66,8 +66,8 @@ LOOKED_AT = {42: FRESH_SEEDS, 43: NEWER_SEEDS, 44: BLIND_SEEDS}
 # The --parts name of the seeds nobody has looked at yet.
 UNLOOKED_PART = "unseen"
 # accuracy()'s counts of what the check flag marks, summed over a part's seeds.
-FLAG_COUNTS = ("flagged", "gross", "gross_flagged", "gross_alt_right", "ambiguous",
-               "ambiguous_gross")
+FLAG_COUNTS = ("flagged", "gross", "gross_flagged", "gross_alt_right", "gross_silent",
+               "ambiguous", "ambiguous_gross")
 # --parts name -> its section in the doc, its title and its seeds (None: --fresh-seeds).
 SEED_SECTIONS = {"fresh": ("model_fresh_seed", "CupNet on fresh seeds", None),
                  "newer": ("model_newer_seeds", "CupNet on newer fresh seeds", NEWER_SEEDS),
@@ -221,6 +221,8 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
     out.update(flagged=int(check.sum()), gross=int(gross.sum()),
                gross_flagged=int((gross & check).sum()),
                gross_alt_right=int((gross & alt_right).sum()),
+               # Gross failures nothing warns of: neither flagged nor a pair in the wrong order.
+               gross_silent=int((gross & ~check & ~alt_right).sum()),
                ambiguous=int(ambiguous.sum()), ambiguous_gross=int((ambiguous & gross).sum()),
                **{f"unflagged_mae_{n}": float(v) for n, v in zip(NAMES, rest.mean(0),
                                                                  strict=True)})
@@ -523,7 +525,7 @@ def flag_summary(res: dict[str, float], detected: int, model: CupNet) -> str:
             f"inclination off by more than {GROSS_DEG:g} deg) among them; "
             f"{res['gross_alt_right']} of those {res['gross']} are ambiguous pairs reported "
             "in the wrong order (status `ambiguous`, the second pose right), which no doubt "
-            "flags")
+            f"flags; {res['gross_silent']} of the {res['gross']} are neither, with no warning")
 
 
 def interval(values: np.ndarray, draws: int = 1000) -> np.ndarray:
