@@ -48,7 +48,9 @@ class CupDetection:
         metal_bright: the model took the image to show metal bright and turned it over
             before placing the rims (``CupNetConfig.metal`` ``"bright"``, or ``"auto"``
             judging it so); False: used as given (metal dark); None where not judged
-            (landmarks given).
+            (landmarks given). With ``"auto"`` each look judges the display from its own
+            locator blobs; :meth:`CupNet.detect` reports the one display the rims of the
+            image's cups show (:meth:`CupNet.with_image_displays`), for all its cups.
         pose_sd: ``(5,)`` standard errors of ``pose`` (deg, deg, mm, mm, mm) from the
             scatter of given landmarks about the solved rim
             (:func:`cupnet.pose.pose_standard_errors`), or None: not given for the network's

@@ -737,6 +737,7 @@ class CupNet(nn.Module):
                 for look in self.later_looks():
                     self._looked_again(found, image_list, geometry, diameter, return_masks,
                                        look, fields)
+            found = self.with_image_displays(found, image_list)
             found = [[self._as_reported(cup, noise, cleaned, float(size) / 2) for cup in cups]
                      for cups, (noise, cleaned), size in zip(found, noises, diameter.tolist(),
                                                              strict=True)]
@@ -745,6 +746,27 @@ class CupNet(nn.Module):
                      for cups, factor, side in zip(found, factors, sides, strict=True)]
             return [cups if crop is None else [moved(cup, crop[:2], shape) for cup in cups]
                     for cups, crop, shape in zip(found, crops, shapes, strict=True)]
+
+    def with_image_displays(self, found: list[list[CupDetection]], images: list[Tensor]
+                            ) -> list[list[CupDetection]]:
+        """``found`` (per image of ``images`` ``(1, H, W)``, in their pixels), with ``metal``
+        auto, each image's cups reporting one display (``metal_bright``), judged from the
+        rims of the cups it reports; as found where those give none to judge by, and with
+        ``metal`` dark or bright (the display taken as given). No pose changes.
+
+        Each look judged the display from its own locator blobs, and an image's cups may come
+        from several looks: a stray blob beside a bright cup had tipped one look to dark, and
+        a look that found a cup the first had missed had judged the display the first look
+        got wrong (docs/training.md, item 65)."""
+        if self.config.metal != "auto":
+            return found
+        out = []
+        for cups, image in zip(found, images, strict=True):
+            bright = metal_shows_bright(image, torch.from_numpy(
+                np.stack([cup.ellipse for cup in cups]))) if cups else None
+            out.append(cups if bright is None else
+                       [replace(cup, metal_bright=bright) for cup in cups])
+        return out
 
     def image_noises(self, images: list[Tensor]) -> list[tuple[float | None, bool | None]]:
         """Whether each image's noise exceeds ``denoise_above``, so that :meth:`detect`

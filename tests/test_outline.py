@@ -5,7 +5,9 @@ outline landmarks on a DRR."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 from cup_cases import detection, paper_poses, rim_landmarks
@@ -401,7 +403,7 @@ def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = Tru
     (False, True, 0.7, True, ["first"]), (True, False, 0.7, False, ["first", "gamma"]),
     (True, False, None, True, ["first", "turned"])])
 @pytest.mark.parametrize("shown_bright", [False, True])
-def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, request, turned,
+def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, turned,
                                           second_look, third_look_gamma, fourth_look_turned,
                                           expected, shown_bright):
     """The DRR's cup made to come out 20 deg off in inclination on the first look (the
@@ -411,17 +413,8 @@ def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, request, 
     to that power, and with ``fourth_look_turned`` on the image turned over; that look's
     pose (not turned) is believed and replaces the flagged one. Without any the flagged pose
     stays; an unflagged cup is not looked at again. The DRR shows its metal dark; shown
-    bright (turned over), each look, the turned one too, says so."""
-    if shown_bright and expected == ["first", "mirrored"]:
-        # A known defect of the weights shipped since the fiftieth session (docs/training.md,
-        # item 64): each look judges the display anew from its own blobs, and the mirrored
-        # look's locator adds a 9 x 4 px blob beside this bright DRR's cup, which tips the
-        # judgement to dark (the pose still comes out right). Looks judge afresh so that a
-        # later one can mend a first look's wrong judgement (CupNet._looked_again); whether
-        # one should keep the first look's where it had cups is to be measured on bright
-        # images. Strict, so that a mend fails here until this goes.
-        request.applymarker(pytest.mark.xfail(strict=True, reason="a later look re-judges "
-                                              "the display from its own blobs"))
+    bright (turned over), the cup says so whichever look found it (the mirrored look's own
+    blobs, a 9 x 4 px one beside the cup, had judged it dark: docs/training.md, item 65)."""
     model, sample = shipped_on_drr
     looks = _first_look_turned(model, monkeypatch, second_look, turned, third_look_gamma,
                                fourth_look_turned)
@@ -436,6 +429,32 @@ def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, request, 
     assert float(error[1]) == pytest.approx(20.0 if wrong else 0.0, abs=1.0)
     assert found[0].check == wrong
     assert found[0].metal_bright == shown_bright
+
+
+@pytest.mark.parametrize("metal", ["auto", "dark"])
+def test_an_images_cups_report_the_display_their_rims_show(shipped_on_drr, monkeypatch, metal):
+    """Two cups of an image whose looks judged its display differently, on a hand-drawn
+    image of bright discs on a dark ground and on its turned-over twin: with ``metal`` auto
+    both report the display the discs show, their poses untouched; a cup without a rim to
+    judge by (NaN ellipse) and an image without cups keep what they had; with ``metal``
+    dark, as given, nothing changes."""
+    model, _ = shipped_on_drr
+    monkeypatch.setattr(model.config, "metal", metal)
+    ground = torch.full((1, 256, 256), 0.2)
+    yy, xx = torch.meshgrid(torch.arange(256.0), torch.arange(256.0), indexing="ij")
+    rims = [[70.0, 128.0, 30.0, 20.0, 0.0], [180.0, 128.0, 30.0, 20.0, 0.0]]
+    for u, v, a, b, _ in rims:
+        ground[0][((xx - u) / a) ** 2 + ((yy - v) / b) ** 2 <= 1] = 0.9
+    cups = [replace(detection(rim), metal_bright=bright) for rim, bright in
+            zip(rims, [True, False], strict=True)]
+    unjudged = [replace(detection([math.nan] * 5), metal_bright=False)]
+    found = model.with_image_displays([cups, cups, unjudged, []],
+                                      [ground, 1 - ground, ground, ground])
+    expected = ([[True, True], [False, False], [False], []] if metal == "auto" else
+                [[True, False], [True, False], [False], []])
+    assert [[cup.metal_bright for cup in image] for image in found] == expected
+    assert all(np.array_equal(cup.pose, before.pose)
+               for cup, before in zip(found[0], cups, strict=True))
 
 
 @pytest.mark.parametrize(("check_below", "look_below", "looked_again", "flagged"), [
