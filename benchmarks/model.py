@@ -525,7 +525,7 @@ def flag_summary(res: dict[str, float], detected: int, model: CupNet) -> str:
             f"inclination off by more than {GROSS_DEG:g} deg) among them; "
             f"{res['gross_alt_right']} of those {res['gross']} are ambiguous pairs reported "
             "in the wrong order (status `ambiguous`, the second pose right), which no doubt "
-            f"flags; {res['gross_silent']} of the {res['gross']} are neither, with no warning")
+            f"flags; nothing warns of {res['gross_silent']} of the {res['gross']}")
 
 
 def interval(values: np.ndarray, draws: int = 1000) -> np.ndarray:
@@ -608,9 +608,9 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
         unflagged = errors[~np.array(checked, dtype=bool)].mean(0)
         flags.append(f"Pooled, {name} {flag_summary(counts, len(errors), model)}; the cups "
                      f"not flagged have MAE theta {unflagged[0]:.3g} deg, phi "
-                     f"{unflagged[1]:.3g} deg, h {unflagged[4]:.3g} mm. "
-                     f"{counts['ambiguous']} of the found cups are `ambiguous`: the pose "
-                     f"reported first lies within {GROSS_DEG:g} deg for "
+                     f"{unflagged[1]:.3g} deg, h {unflagged[4]:.3g} mm. Found cups "
+                     f"`ambiguous`: {counts['ambiguous']}; the pose reported first lies "
+                     f"within {GROSS_DEG:g} deg for "
                      f"{counts['ambiguous'] - counts['ambiguous_gross']} of them, the second "
                      f"for {counts['gross_alt_right']} of the other {counts['ambiguous_gross']}.")
     return (fresh_seed_intro(args, args.runtimes, part)
