@@ -65,7 +65,8 @@ UNSEEN_SEEDS = [20_274_123, 20_275_123, 20_276_123, 20_277_123]
 LOOKED_AT = {42: FRESH_SEEDS, 43: NEWER_SEEDS, 44: BLIND_SEEDS}
 # The --parts name of the seeds nobody has looked at yet.
 UNLOOKED_PART = "unseen"
-# accuracy()'s counts of what the check flag marks, summed over a part's seeds.
+# accuracy()'s counts of the flagged cups, the gross failures and the ambiguous cups: the
+# seed-set sections sum them over a part's seeds.
 FLAG_COUNTS = ("flagged", "gross", "gross_flagged", "gross_alt_right", "gross_silent",
                "ambiguous", "ambiguous_gross")
 # --parts name -> its section in the doc, its title and its seeds (None: --fresh-seeds).
@@ -182,8 +183,10 @@ def failure_gallery(cases: list[tuple[dict, int, CupDetection | None, np.ndarray
 
 
 def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict[str, float]:
-    """Pose MAE of matched cups and the fraction of true cups detected with a pose; appends
-    ``(sample, cup index, detection, errors)`` of each true cup to ``cases`` when given."""
+    """Pose MAE (and median, 90th percentile) of matched cups and the fraction of true
+    cups detected with a pose, the false positives (of them flagged), and the counts of
+    :data:`FLAG_COUNTS` with the cups not flagged's MAE; appends ``(sample, cup index,
+    detection, errors)`` of each true cup to ``cases`` when given."""
     errors, check, alt_right, ambiguous = [], [], [], []
     found, total, false_pos, false_flagged = 0, 0, 0, 0
     for s in data:
@@ -215,7 +218,6 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
     # The cups the model flags to check by eye, and what is left once they are set apart.
     check = np.array(check or [False] * len(errors), dtype=bool)
     gross = errors[:, :2].max(1) > GROSS_DEG
-    rest = errors[~check] if (~check).any() else np.full((1, 5), np.nan)
     alt_right = np.array(alt_right or [False] * len(errors), dtype=bool)
     ambiguous = np.array(ambiguous or [False] * len(errors), dtype=bool)
     out.update(flagged=int(check.sum()), gross=int(gross.sum()),
@@ -224,8 +226,8 @@ def accuracy(model: CupNet, data: list[dict], cases: list | None = None) -> dict
                # Gross failures nothing warns of: neither flagged nor a pair in the wrong order.
                gross_silent=int((gross & ~check & ~alt_right).sum()),
                ambiguous=int(ambiguous.sum()), ambiguous_gross=int((ambiguous & gross).sum()),
-               **{f"unflagged_mae_{n}": float(v) for n, v in zip(NAMES, rest.mean(0),
-                                                                 strict=True)})
+               **{f"unflagged_mae_{n}": float(v) for n, v in zip(
+                   NAMES, unflagged_mae(errors, check), strict=True)})
     return out
 
 
@@ -515,6 +517,12 @@ def oblong_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
                              rows))
 
 
+def unflagged_mae(errors: np.ndarray, check: np.ndarray) -> np.ndarray:
+    """MAE ``(5,)`` (deg, deg, mm, mm, mm) of the cups of ``errors`` ``(N, 5)`` whose
+    ``check`` ``(N,)`` is False; NaN where every cup is flagged."""
+    return errors[~check].mean(0) if (~check).any() else np.full(5, np.nan)
+
+
 def flag_summary(res: dict[str, float], detected: int, model: CupNet) -> str:
     """What ``model``'s ``check`` flag marks among its ``detected`` cups (``res``:
     :func:`accuracy`'s counts, or their sums over sets), as a clause."""
@@ -524,8 +532,9 @@ def flag_summary(res: dict[str, float], detected: int, model: CupNet) -> str:
             f"{res['gross_flagged']} of the {res['gross']} gross failures (anteversion or "
             f"inclination off by more than {GROSS_DEG:g} deg) among them; "
             f"{res['gross_alt_right']} of those {res['gross']} are ambiguous pairs reported "
-            "in the wrong order (status `ambiguous`, the second pose right), which no doubt "
-            f"flags; nothing warns of {res['gross_silent']} of the {res['gross']}")
+            "in the wrong order (status `ambiguous`, the second pose right), whose two poses "
+            f"the doubt can rarely tell apart; with no warning at all: {res['gross_silent']} "
+            f"of the {res['gross']}")
 
 
 def interval(values: np.ndarray, draws: int = 1000) -> np.ndarray:
@@ -576,7 +585,8 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
     "fresh", by default seeds no setting was chosen on, "newer", "blind" or "unseen"), each
     and pooled (with 95 % bootstrap intervals over the cups), with the networks in each runtime
     and under each speed preset ``models`` holds (by name): that part's section
-    (:data:`SEED_SECTIONS`)."""
+    (:data:`SEED_SECTIONS`), with a line a model pooling over the seeds what its ``check``
+    flag marks and its ambiguous cups (:data:`FLAG_COUNTS`)."""
     rows, flags = [], []
     for name, model in models.items():
         per_cup: list[np.ndarray | None] = []  # each true cup's, None where missed
@@ -605,7 +615,7 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
                      f"{int(found.sum())} of {len(found)}, {100 * found.mean():.2f} % "
                      f"[{found_low:.1f}, {found_high:.1f}]", ""])
         # The README's advice to look at flagged cups rests on these pooled counts.
-        unflagged = errors[~np.array(checked, dtype=bool)].mean(0)
+        unflagged = unflagged_mae(errors, np.array(checked, dtype=bool))
         flags.append(f"Pooled, {name} {flag_summary(counts, len(errors), model)}; the cups "
                      f"not flagged have MAE theta {unflagged[0]:.3g} deg, phi "
                      f"{unflagged[1]:.3g} deg, h {unflagged[4]:.3g} mm. Found cups "

@@ -45,12 +45,12 @@ class CupDetection:
             cup's overlay before trusting it (most gross failures are flagged; see README).
             None where not measured (a model without a rim stage or its dome-outline
             refinement).
-        metal_bright: the model took the image to show metal bright and turned it over
-            before placing the rims (``CupNetConfig.metal`` ``"bright"``, or ``"auto"``
-            judging it so); False: used as given (metal dark); None where not judged
-            (landmarks given). With ``"auto"`` each look judges the display from its own
-            locator blobs; :meth:`CupNet.detect` reports the one display the rims of the
-            image's cups show (:meth:`CupNet.with_image_displays`), for all its cups.
+        metal_bright: the image shows metal bright, as ``CupNetConfig.metal`` declares it
+            (``"bright"``) or, with ``"auto"``, as judged from the rims of the image's
+            cups (:meth:`CupNet.with_image_displays`: one display for all of them); False:
+            metal dark; None where not judged (landmarks given). Each look of
+            :meth:`CupNet.detect` judged the display from its own locator blobs and turned
+            the image over by that before placing the rims.
         pose_sd: ``(5,)`` standard errors of ``pose`` (deg, deg, mm, mm, mm) from the
             scatter of given landmarks about the solved rim
             (:func:`cupnet.pose.pose_standard_errors`), or None: not given for the network's

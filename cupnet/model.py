@@ -749,21 +749,23 @@ class CupNet(nn.Module):
 
     def with_image_displays(self, found: list[list[CupDetection]], images: list[Tensor]
                             ) -> list[list[CupDetection]]:
-        """``found`` (per image of ``images`` ``(1, H, W)``, in their pixels), with ``metal``
-        auto, each image's cups reporting one display (``metal_bright``), judged from the
-        rims of the cups it reports; as found where those give none to judge by, and with
-        ``metal`` dark or bright (the display taken as given). No pose changes.
+        """``found`` (per image of ``images`` ``(1, H, W)``, in their pixels) with each
+        image's cups reporting one display (``metal_bright``): with ``metal`` auto, the one
+        the rims of the cups it reports show (:func:`cupnet.polarity.metal_shows_bright` on
+        their ellipses; as found where those give none to judge by); with ``metal`` dark or
+        bright, that one, as the user declared it (the turned look's cups too). No pose
+        changes.
 
-        Each look judged the display from its own locator blobs, and an image's cups may come
-        from several looks: a stray blob beside a bright cup had tipped one look to dark, and
-        a look that found a cup the first had missed had judged the display the first look
-        got wrong (docs/training.md, item 65)."""
-        if self.config.metal != "auto":
-            return found
+        Each look judges the display from its own locator blobs and turns the image over
+        by it, and an image's cups may come from several looks: a stray blob beside a bright
+        cup had tipped one look to dark, and a look that found a cup the first had missed
+        had judged rightly the display the first look got wrong (docs/training.md, item
+        65)."""
         out = []
         for cups, image in zip(found, images, strict=True):
-            bright = metal_shows_bright(image, torch.from_numpy(
-                np.stack([cup.ellipse for cup in cups]))) if cups else None
+            bright = (self.config.metal == "bright" if self.config.metal != "auto" else
+                      metal_shows_bright(image, torch.from_numpy(
+                          np.stack([cup.ellipse for cup in cups]))) if cups else None)
             out.append(cups if bright is None else
                        [replace(cup, metal_bright=bright) for cup in cups])
         return out

@@ -690,7 +690,7 @@ class Predictor:
             if self.args.rotate:
                 title += f", turned {self.args.rotate} deg clockwise (--rotate)"
             if cups and cups[0].metal_bright:
-                title += ", metal shown bright (turned over)"
+                title += ", metal shown bright"
             if cups and cups[0].denoised:
                 title += f", denoised (noise {cups[0].noise:.3f})"
             if cups and cups[0].enlarged:
@@ -818,8 +818,8 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
                      "standard the patient's spacing: h then comes out small by it); check, "
                      "or give --pixel-spacing")
     if summary["metal_bright"]:
-        lines.append(f"  {summary['metal_bright']} image(s) taken to show metal bright and "
-                     "turned over for the networks: metal=bright in results.csv")
+        lines.append(f"  {summary['metal_bright']} image(s) taken to show metal bright "
+                     "(metal=bright in results.csv)")
     if summary.get("denoised"):
         lines.append(f"  {summary['denoised']} image(s) noisier than the networks' training, "
                      "denoised first: denoised=1 and their noise in results.csv")

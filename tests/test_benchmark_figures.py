@@ -96,17 +96,19 @@ def test_the_pooled_oblong_mae_weights_each_shape_by_its_found_cups(monkeypatch)
 
 def test_a_seed_section_pools_what_the_check_flag_marks_over_its_seeds(stub_detect,
                                                                         monkeypatch):
-    """Two seeds, each the images below: per seed 5 cups found, 2 flagged, both gross (one an
-    ambiguous pair whose second pose is right), a gross failure nothing warns of, 1 missed,
-    and an ambiguous pair whose first pose is right. Pooled: 4 of 10 flagged, 4 of 6 gross
-    flagged, 2 of 4 pairs in the wrong order, 2 gross silent; the unflagged cups' errors
-    (twice): theta 1, 3, 0, phi 0, 0, 7, h 4, 0, 0."""
+    """Two seeds, each the images below: per seed 6 cups found, 2 flagged, both gross (one an
+    ambiguous pair whose second pose is right), an unflagged ambiguous pair in the wrong
+    order, a gross failure nothing warns of, 1 missed, and an ambiguous pair whose first
+    pose is right. Pooled: 4 of 12 flagged, 4 of 8 gross flagged, 4 of 6 pairs in the wrong
+    order, 2 gross with no warning; the unflagged cups' errors (twice): theta 1, 3, 0, 6,
+    phi 0, 0, 7, 0, h 4, 0, 0, 0."""
     data = [
         image(3, [detection(100, [1, 0, 2, 0, 4], alt_error=[20, 0, 0, 0, 0]),
                   detection(200, [2, 6, 0, 2, 8], check=True, alt_error=[0, 0, 0, 0, 0])]),
         image(2, [detection(100, [3, 0, 4, 0, 0]),
                   detection(200, [10, 0, 0, 4, 12], check=True)]),
         image(1, [detection(100, [0, 7, 0, 0, 0])]),
+        image(1, [detection(100, [6, 0, 0, 0, 0], alt_error=[0, 0, 0, 0, 0])]),
     ]
     monkeypatch.setattr(bench_model, "samples", lambda *_: data)
     args = argparse.Namespace(fresh_seeds=[1, 2], fresh_images=2, sizes=[512], seed=0,
@@ -114,13 +116,13 @@ def test_a_seed_section_pools_what_the_check_flag_marks_over_its_seeds(stub_dete
                               checkpoint=str(bench_model.DEFAULT_CHECKPOINT), seed_presets=[])
     model = SimpleNamespace(config=SimpleNamespace(check_doubt=1.4))
     pooled = bench_model.fresh_seed_section({"onnx": model}, args).splitlines()[-1]
-    assert pooled.startswith("Pooled, onnx flags 4 of the 10 detected cups (40.0 %) `check` "
-                             "(its doubt >= `check_doubt` 1.4), 4 of the 6 gross failures")
-    assert "; 2 of those 6 are ambiguous pairs" in pooled
-    assert "; nothing warns of 2 of the 6;" in pooled
-    assert pooled.endswith("the cups not flagged have MAE theta 1.33 deg, phi 2.33 deg, h 1.33 "
-                           "mm. Found cups `ambiguous`: 4; the pose reported first lies "
-                           "within 5 deg for 2 of them, the second for 2 of the other 2.")
+    assert pooled.startswith("Pooled, onnx flags 4 of the 12 detected cups (33.3 %) `check` "
+                             "(its doubt >= `check_doubt` 1.4), 4 of the 8 gross failures")
+    assert "; 4 of those 8 are ambiguous pairs" in pooled
+    assert "; with no warning at all: 2 of the 8;" in pooled
+    assert pooled.endswith("the cups not flagged have MAE theta 2.5 deg, phi 1.75 deg, h 1 mm. "
+                           "Found cups `ambiguous`: 6; the pose reported first lies within 5 "
+                           "deg for 2 of them, the second for 4 of the other 4.")
 
 
 def test_a_bootstrap_interval_of_a_constant_is_the_constant():
