@@ -67,7 +67,9 @@ hour-merged: hour-locator hour-coarse
 # locator and fine rim network shipped before it fine-tuned side by side, about 30 min, on
 # images with screws and the cup's inserter, merged into runs/hardware/cupnet.safetensors with
 # the shipped settings beside it (the weights now in cupnet/assets/). The weights it starts
-# from are taken out of git, as shipped at d89edca (a shallow clone lacks them).
+# from are taken out of git, as shipped at d89edca (a shallow clone lacks them), with their
+# settings beside them: without those, load_model builds the default architecture, which
+# refuses the rim networks' weights.
 PRE_HARDWARE := runs/pre_hardware/cupnet.safetensors
 train-hardware: $(STAMP) $(PRE_HARDWARE)
 	$(MAKE) -j2 -O hardware-locator hardware-rim
@@ -77,6 +79,7 @@ train-hardware: $(STAMP) $(PRE_HARDWARE)
 
 $(PRE_HARDWARE):
 	mkdir -p $(@D)
+	git show d89edca:cupnet/assets/cupnet_default.json > $(basename $@).json
 	git show d89edca:cupnet/assets/cupnet_default.safetensors > $@.part
 	mv $@.part $@
 

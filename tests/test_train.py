@@ -6,6 +6,7 @@ import argparse
 import csv
 import itertools
 import math
+import subprocess
 import warnings
 from pathlib import Path
 
@@ -813,7 +814,6 @@ def test_two_process_ddp_runs_from_lightnings_flags_alone(tmp_path):
     averaged their gradients), and one export is written that loads."""
     import json
     import os
-    import subprocess
     import sys
 
     (tmp_path / "record_batches.py").write_text(_RECORDER)
@@ -858,3 +858,21 @@ def test_hardware_recipe_starts_from_the_weights_shipped_before_it(capsys, monke
     recipe = rules["$(PRE_HARDWARE)"][1]
     assert ["git", "show", "d89edca:cupnet/assets/cupnet_default.safetensors", ">",
             "$@.part"] in recipe
+
+
+def test_the_hardware_recipes_starting_weights_load_as_shipped_before_it(tmp_path):
+    """The Makefile's rule for the hardware stages' starting weights, run into a fresh
+    folder, gives d89edca's weights with their settings beside them, so that they load with
+    every network: without the JSON, ``load_model`` built the default architecture and
+    refused the rim networks' weights, and both stages failed at once."""
+    if subprocess.run(["git", "cat-file", "-e", "d89edca^{commit}"], cwd=ROOT,
+                      capture_output=True).returncode:
+        pytest.skip("a shallow clone lacks d89edca")
+    target = tmp_path / "pre" / "cupnet.safetensors"
+    subprocess.run(["make", "-s", f"PRE_HARDWARE={target}", str(target)], cwd=ROOT,
+                   check=True, capture_output=True)
+    shipped = subprocess.run(["git", "show", "d89edca:cupnet/assets/cupnet_default.safetensors"],
+                             cwd=ROOT, check=True, capture_output=True).stdout
+    assert target.read_bytes() == shipped
+    model = load_model(target)
+    assert model.rim is not None and model.coarse_rim is not None
