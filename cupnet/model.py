@@ -753,19 +753,19 @@ class CupNet(nn.Module):
         image's cups reporting one display (``metal_bright``): with ``metal`` auto, the one
         the rims of the cups it reports show (:func:`cupnet.polarity.metal_shows_bright` on
         their ellipses; as found where those give none to judge by); with ``metal`` dark or
-        bright, that one, as the user declared it (the turned look's cups too). No pose
-        changes.
+        bright every look reported the declared one already. No pose changes.
 
         Each look judges the display from its own locator blobs and turns the image over
         by it, and an image's cups may come from several looks: a stray blob beside a bright
         cup had tipped one look to dark, and a look that found a cup the first had missed
         had judged rightly the display the first look got wrong (docs/training.md, item
         65)."""
+        if self.config.metal != "auto":
+            return found
         out = []
         for cups, image in zip(found, images, strict=True):
-            bright = (self.config.metal == "bright" if self.config.metal != "auto" else
-                      metal_shows_bright(image, torch.from_numpy(
-                          np.stack([cup.ellipse for cup in cups]))) if cups else None)
+            bright = metal_shows_bright(image, torch.from_numpy(
+                np.stack([cup.ellipse for cup in cups]))) if cups else None
             out.append(cups if bright is None else
                        [replace(cup, metal_bright=bright) for cup in cups])
         return out
@@ -906,7 +906,9 @@ class CupNet(nn.Module):
         if look.mirrored:
             widths = torch.tensor([image.shape[-1] for image in image_list]).to(rough)
             rough = mirrored_ellipses(rough, widths[:, None])
-        bright = [turned] * batch  # each image's display, as judged
+        # Each image's display as given (a turned look's image was turned over above), as
+        # declared or, with metal auto, as judged.
+        bright = [self.config.metal == "bright"] * batch
         if self.config.metal == "auto":  # the cups found, not found again: none lost
             judged = [bool(metal_shows_bright(image, found))
                       for image, found in zip(image_list, rough, strict=True)]

@@ -435,8 +435,8 @@ def test_an_images_cups_report_one_display(shipped_on_drr, monkeypatch, metal):
     """Two cups of an image whose looks judged its display differently, on a hand-drawn
     image of bright discs on a dark ground and on its turned-over twin: with ``metal`` auto
     both report the display the discs show, a cup without a rim to judge by (NaN ellipse)
-    keeps what it had; with ``metal`` dark or bright every cup reports the declared display
-    (a turned look's cup had reported the other). Poses, ellipses and order untouched."""
+    keeps what it had; with ``metal`` dark or bright, where every look reports the declared
+    display itself, nothing changes. Poses, ellipses and order untouched."""
     model, _ = shipped_on_drr
     monkeypatch.setattr(model.config, "metal", metal)
     ground = torch.full((1, 256, 256), 0.2)
@@ -449,13 +449,27 @@ def test_an_images_cups_report_one_display(shipped_on_drr, monkeypatch, metal):
     unjudged = [replace(detection([math.nan] * 5), metal_bright=True)]
     found = model.with_image_displays([cups, cups, unjudged, []],
                                       [ground, 1 - ground, ground, ground])
-    declared = metal == "bright"
     expected = ([[True, True], [False, False], [True], []] if metal == "auto" else
-                [[declared] * 2, [declared] * 2, [declared], []])
+                [[True, False], [True, False], [True], []])
     assert [[cup.metal_bright for cup in image] for image in found] == expected
     for image in found[:2]:
         assert [(cup.pose.tolist(), cup.ellipse.tolist()) for cup in image] == [
             (cup.pose.tolist(), cup.ellipse.tolist()) for cup in cups]
+
+
+@pytest.mark.parametrize("turned", [False, True])
+def test_a_declared_display_is_reported_by_every_look(shipped_on_drr, monkeypatch, turned):
+    """With ``metal`` bright the DRR (metal dark) is taken as bright: the first look turns it
+    over, the turned look turns it back, so it finds the cup there; both report the declared
+    display (the turned look had reported its own, dark)."""
+    model, sample = shipped_on_drr
+    monkeypatch.setattr(model.config, "metal", "bright")
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    look = Look(turned=True, verified=False, searched=False) if turned else FIRST_LOOK
+    with torch.inference_mode():
+        found = model._detect([sample["image"]], geometry, sample["cup_diameter"][:1].double(),
+                              False, look)[0]
+    assert found and all(cup.metal_bright for cup in found)
 
 
 @pytest.mark.parametrize(("check_below", "look_below", "looked_again", "flagged"), [
