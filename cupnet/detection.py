@@ -47,10 +47,10 @@ class CupDetection:
             refinement).
         metal_bright: the image shows metal bright, as ``CupNetConfig.metal`` declares it
             (``"bright"``) or, with ``"auto"``, as judged from the rims of the image's
-            cups (:meth:`CupNet.with_image_displays`: one display for all of them); False:
-            metal dark; None where not judged (landmarks given). Each look of
-            :meth:`CupNet.detect` judged the display from its own locator blobs and turned
-            the image over by that before placing the rims.
+            cups (:meth:`CupNet.with_image_displays`: one display for all of them, a
+            near-tie by its sign); False: metal dark; None where not judged (landmarks
+            given). Each look of :meth:`CupNet.detect` judged the display from its own
+            locator blobs and turned the image over by that before placing the rims.
         pose_sd: ``(5,)`` standard errors of ``pose`` (deg, deg, mm, mm, mm) from the
             scatter of given landmarks about the solved rim
             (:func:`cupnet.pose.pose_standard_errors`), or None: not given for the network's

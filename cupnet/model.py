@@ -71,7 +71,7 @@ from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import component_moments, ray_landmarks
 from cupnet.outline import outline_distances, over_dome, sphere_outline
 from cupnet.parallel import map_on_cores
-from cupnet.polarity import metal_shows_bright
+from cupnet.polarity import REPORT_MARGIN, metal_shows_bright
 from cupnet.pose import (
     PoseSolution,
     canonical_pose,
@@ -752,8 +752,10 @@ class CupNet(nn.Module):
         """``found`` (per image of ``images`` ``(1, H, W)``, in their pixels) with each
         image's cups reporting one display (``metal_bright``): with ``metal`` auto, the one
         the rims of the cups it reports show (:func:`cupnet.polarity.metal_shows_bright` on
-        their ellipses; as found where those give none to judge by); with ``metal`` dark or
-        bright every look reported the declared one already. No pose changes.
+        their ellipses, a near-tie going by its sign: no image is turned over by this
+        judgement, so the looks' margin against turning one over needlessly does not apply;
+        as found where those give none to judge by); with ``metal`` dark or bright every
+        look reported the declared one already. No pose changes.
 
         Each look judges the display from its own locator blobs and turns the image over
         by it, and an image's cups may come from several looks: a stray blob beside a bright
@@ -765,7 +767,7 @@ class CupNet(nn.Module):
         out = []
         for cups, image in zip(found, images, strict=True):
             bright = metal_shows_bright(image, torch.from_numpy(
-                np.stack([cup.ellipse for cup in cups]))) if cups else None
+                np.stack([cup.ellipse for cup in cups])), REPORT_MARGIN) if cups else None
             out.append(cups if bright is None else
                        [replace(cup, metal_bright=bright) for cup in cups])
         return out

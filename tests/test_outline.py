@@ -18,6 +18,7 @@ from cupnet.geometry import Geometry, cup_axis, pose_to_radians, project, projec
 from cupnet.io.results import cup_row
 from cupnet.model import FIRST_LOOK, Look, _doubtful, geometry_rows, load_model
 from cupnet.outline import outline_distances, over_dome, sphere_outline
+from cupnet.polarity import metal_shows_bright
 from cupnet.pose import PoseSolution, ellipse_of_pose, refine_pose, refine_pose_with_outline
 from data_synth import SynthConfig, synthesize
 
@@ -433,10 +434,12 @@ def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, turned,
 @pytest.mark.parametrize("metal", ["auto", "dark", "bright"])
 def test_an_images_cups_report_one_display(shipped_on_drr, monkeypatch, metal):
     """Two cups of an image whose looks judged its display differently, on a hand-drawn
-    image of bright discs on a dark ground and on its turned-over twin: with ``metal`` auto
-    both report the display the discs show, a cup without a rim to judge by (NaN ellipse)
-    keeps what it had; with ``metal`` dark or bright, where every look reports the declared
-    display itself, nothing changes. Poses, ellipses and order untouched."""
+    image of bright discs on a dark ground, on its turned-over twin, and on a twin whose
+    discs are brighter by 0.05 of its intensity range (a near-tie the looks keep dark, but
+    which is reported by its sign): with ``metal`` auto all report the display the discs
+    show, a cup without a rim to judge by (NaN ellipse) keeps what it had; with ``metal``
+    dark or bright, where every look reports the declared display itself, nothing changes.
+    Poses, ellipses and order untouched."""
     model, _ = shipped_on_drr
     monkeypatch.setattr(model.config, "metal", metal)
     ground = torch.full((1, 256, 256), 0.2)
@@ -444,15 +447,18 @@ def test_an_images_cups_report_one_display(shipped_on_drr, monkeypatch, metal):
     rims = [[70.0, 128.0, 30.0, 20.0, 0.0], [180.0, 128.0, 30.0, 20.0, 0.0]]
     for u, v, a, b, _ in rims:
         ground[0][((xx - u) / a) ** 2 + ((yy - v) / b) ** 2 <= 1] = 0.9
+    faint = 0.5 + (ground - 0.2) / 0.7 * 0.05
+    faint[0, :16], faint[0, 16:32] = 0.0, 1.0  # stripes far from the cups: a 0-1 range
+    assert metal_shows_bright(faint, torch.tensor(rims, dtype=torch.float64)) is False
     cups = [replace(detection(rim), metal_bright=bright) for rim, bright in
             zip(rims, [True, False], strict=True)]
     unjudged = [replace(detection([math.nan] * 5), metal_bright=True)]
-    found = model.with_image_displays([cups, cups, unjudged, []],
-                                      [ground, 1 - ground, ground, ground])
-    expected = ([[True, True], [False, False], [True], []] if metal == "auto" else
-                [[True, False], [True, False], [True], []])
+    found = model.with_image_displays([cups, cups, cups, unjudged, []],
+                                      [ground, 1 - ground, faint, ground, ground])
+    expected = ([[True, True], [False, False], [True, True], [True], []] if metal == "auto"
+                else [[True, False], [True, False], [True, False], [True], []])
     assert [[cup.metal_bright for cup in image] for image in found] == expected
-    for image in found[:2]:
+    for image in found[:3]:
         assert [(cup.pose.tolist(), cup.ellipse.tolist()) for cup in image] == [
             (cup.pose.tolist(), cup.ellipse.tolist()) for cup in cups]
 

@@ -11,7 +11,7 @@ import torch
 from cupnet.config import TARGET_ACCURACY, CupNetConfig
 from cupnet.geometry import Geometry
 from cupnet.model import load_model
-from cupnet.polarity import metal_shows_bright, metals_show_bright
+from cupnet.polarity import REPORT_MARGIN, metal_shows_bright, metals_show_bright
 from data_synth import SynthConfig, synthesize
 
 ELLIPSE = torch.tensor([[60.0, 50.0, 20.0, 12.0, 30.0]], dtype=torch.float64)
@@ -34,6 +34,9 @@ def test_a_dark_cup_is_metal_dark_and_a_bright_one_metal_bright():
     # Brighter, but within the margin (0.15 of the 5-95 % range): kept as given.
     assert metal_shows_bright(disc_image(0.6, 0.5), ELLIPSE) is False
     assert metal_shows_bright(disc_image(0.7, 0.5), ELLIPSE) is True
+    # The margin detect reports the display by, once no image is turned over by it: the sign.
+    assert metal_shows_bright(disc_image(0.6, 0.5), ELLIPSE, REPORT_MARGIN) is True
+    assert metal_shows_bright(disc_image(0.45, 0.5), ELLIPSE, REPORT_MARGIN) is False
 
 
 @pytest.mark.parametrize("transposed", [False, True])
