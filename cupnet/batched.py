@@ -190,7 +190,8 @@ def outlined(model: CupNet, images: Tensor, index: Tensor, picks: _Picks, geomet
              cup_diameter: Tensor) -> None:
     """``detect``'s outline stage on every solved cup at once, in place in ``picks``: each
     pose, and an ambiguous cup's second pose, refined with the dome's outline
-    (:meth:`CupNet.outline_refined`); with ``ambiguous_by_doubt``, each pair ordered by
+    (:meth:`CupNet.outline_refined`, back at its start where the network doubts it more:
+    :meth:`CupNet.unless_more_doubted`); with ``ambiguous_by_doubt``, each pair ordered by
     :meth:`CupNet.pose_doubt`; each solved cup's ellipse the rim of its refined pose.
 
     Args:
@@ -207,10 +208,13 @@ def outlined(model: CupNet, images: Tensor, index: Tensor, picks: _Picks, geomet
     paired = solved[picks.ambiguous[solved]]
     cups = torch.cat([solved, paired])
     points, weights = picks.padded_landmarks()
-    refined = model.outline_refined(
-        images, index[cups], torch.cat([picks.pose[solved], picks.alt_pose[paired]]),
-        points[cups], weights[cups], picks.residual[cups], rows[index[cups]],
-        diameter[index[cups]])
+    start = torch.cat([picks.pose[solved], picks.alt_pose[paired]])
+    image = index[cups]
+    refined, _ = model.unless_more_doubted(
+        images, image, start,
+        model.outline_refined(images, image, start, points[cups], weights[cups],
+                              picks.residual[cups], rows[image], diameter[image]),
+        rows[image], diameter[image])
     picks.pose[solved], picks.alt_pose[paired] = refined[:len(solved)], refined[len(solved):]
     pairs = paired[torch.isfinite(picks.alt_pose[paired]).all(-1)]
     if model.config.ambiguous_by_doubt and len(pairs):

@@ -121,6 +121,12 @@ class CupNetConfig:
         outline_min_side: outline points nearer the rim plane than this many radii are left
             out: there the dome's outline meets the rim's tips, and a wrong pose's side of
             the plane may not be the dome's.
+        outline_doubt_margin: a solved pose the dome-outline refinement leaves more doubted
+            (:meth:`CupNet.pose_doubt`, its two parts summed) than its start by more than
+            this keeps its start; None: the refined pose stands whatever its doubt. Where the
+            rim runs close inside the dome's outline (a small or wide-open cup), the rim
+            network finds the outline between the two edges, and the refinement pulls a
+            right rim off (docs/training.md, item 67).
         outline_weight: the outline landmarks' weights are this over their ``sigma^2`` (the
             rim landmarks' are their residual's inverse variance).
         outline_settled: a cup's dome-outline refinement stops once a pass moves its pose by
@@ -283,6 +289,7 @@ class CupNetConfig:
     reframe_min_scale: float | None = None
     outline_passes: int = 0
     outline_min_side: float = 0.3
+    outline_doubt_margin: float | None = None
     outline_weight: float = 0.5
     outline_settled: float = 0.05
     outline_inner_rim_weight: float = 1.0

@@ -979,16 +979,15 @@ class CupNet(nn.Module):
             rows = geometry_rows(geometry, batch)
             parts = torch.empty(0, 2, dtype=torch.float64)
             if solved:
-                self._outline_refine_picks(image_list, index, picks, solved, poses, alt_poses,
-                                           rows, diameter)
+                known = self._outline_refine_picks(image_list, index, picks, solved, poses,
+                                                   alt_poses, rows, diameter)
                 # Ordered before the verification, which then doubts an ambiguous cup by its
                 # better pose and keeps both where that one is believed.
-                ordered: dict[int, Tensor] = {}
                 if self.config.ambiguous_by_doubt:
-                    ordered = self._order_ambiguous(image_list, index, picks, solved, poses,
-                                                    alt_poses, rows, diameter)
+                    known.update(self._order_ambiguous(image_list, index, picks, solved, poses,
+                                                       alt_poses, rows, diameter))
                 parts = self._solved_doubts(image_list, index, solved, poses, rows, diameter,
-                                            ordered)
+                                            known)
             if self.config.verify_gate is not None and look.verified:
                 solved, parts = self.reconsidered(image_list, index, picks, solved, poses,
                                                   alt_poses, parts, every_source, start,
@@ -1076,23 +1075,58 @@ class CupNet(nn.Module):
 
     def _outline_refine_picks(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                               solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
-                              rows: Tensor, diameter: Tensor) -> None:
+                              rows: Tensor, diameter: Tensor) -> dict[int, Tensor]:
         """:meth:`outline_refined` on the ``solved`` cups' poses and their ambiguous pairs'
-        second poses, in place in ``poses`` and ``alt_poses``.
+        second poses, in place in ``poses`` and ``alt_poses``; with ``outline_doubt_margin``,
+        a pose the refinement leaves more doubted than it found it (:meth:`pose_doubt`, its
+        parts summed) by more than that keeps its start.
 
         Args:
             index: ``(K,)`` image of each cup; picks: each cup's landmarks and solution.
             rows: ``(B, 4)`` each image's geometry; diameter: ``(B,)`` mm.
+        Returns:
+            ``cup -> (2,)`` the doubt (rim, outline) of each solved cup's pose as kept, where
+            ``outline_doubt_margin`` had it measured (else empty).
         """
         paired = [k for k in solved if picks[k][2].ambiguous[picks[k][3]]]
         cups = solved + paired
-        refined = self._refined_picks(images, index[cups], [picks[k] for k in cups],
-                                      [poses[k] for k in solved] + [alt_poses[k] for k in paired],
-                                      rows, diameter)
+        start = [poses[k] for k in solved] + [alt_poses[k] for k in paired]
+        image = index[cups]
+        refined, doubt = self.unless_more_doubted(
+            images, image, torch.stack(start),
+            self._refined_picks(images, image, [picks[k] for k in cups], start, rows, diameter),
+            rows[image], diameter[image])
+        kept = {} if doubt is None else dict(zip(solved, doubt[:len(solved)], strict=True))
         for k, pose in zip(solved, refined[:len(solved)], strict=True):
             poses[k] = pose
         for k, pose in zip(paired, refined[len(solved):], strict=True):
             alt_poses[k] = pose
+        return kept
+
+    def unless_more_doubted(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor,
+                            refined: Tensor, geometry: Tensor, diameter: Tensor
+                            ) -> tuple[Tensor, Tensor | None]:
+        """``refined`` ``(K, 5)`` deg / mm, each row back at its ``start`` ``(K, 5)`` where
+        :meth:`pose_doubt` (its parts summed) doubts it more than the start by more than
+        ``outline_doubt_margin``; and the kept poses' doubts ``(K, 2)`` (rim, outline), or
+        None where the config has no margin (``refined`` as it is, nothing measured).
+
+        The rim network finds the dome's outline off it where the rim runs close inside (a
+        strip across the outline shows both edges): the outline's landmarks then pull a
+        right rim's pose off, which the network doubts more than before (docs/training.md,
+        item 67).
+
+        Args:
+            images: the batch's images; index ``(K,)`` image of each pose.
+            geometry: ``(K, 4)`` rows (sdd, spacing, u0, v0); diameter ``(K,)`` mm.
+        """
+        margin = self.config.outline_doubt_margin
+        if margin is None or len(start) == 0:
+            return refined, None
+        doubt = self.pose_doubt(images, index.repeat(2), torch.cat([start, refined]),
+                                geometry.repeat(2, 1), diameter.repeat(2)).reshape(2, -1, 2)
+        worse = (doubt[1].sum(-1) > doubt[0].sum(-1) + margin)[:, None]
+        return torch.where(worse, start, refined), torch.where(worse, doubt[0], doubt[1])
 
     def _refined_picks(self, images: list[Tensor], image: Tensor, picks: list[_Pick],
                        poses: list[Tensor], rows: Tensor, diameter: Tensor) -> Tensor:

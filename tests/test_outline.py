@@ -326,6 +326,7 @@ def test_detect_reports_its_doubt_and_flags_a_doubted_pose(shipped_on_drr, monke
     assert model.config.check_doubt is not None
     if turned:
         monkeypatch.setattr(model.config, "verify_gate", None)
+        monkeypatch.setattr(model.config, "outline_doubt_margin", None)
         refine = model.outline_refined
         turn = torch.tensor([0.0, 20.0, 0.0, 0.0, 0.0], dtype=torch.float64)
         monkeypatch.setattr(model, "outline_refined", lambda *args: refine(*args) + turn)
@@ -340,6 +341,29 @@ def test_detect_reports_its_doubt_and_flags_a_doubted_pose(shipped_on_drr, monke
     assert found[0].doubt == pytest.approx(recomputed, abs=1e-4)
     assert found[0].check == turned
     assert (found[0].doubt >= model.config.check_doubt) == turned
+
+
+@pytest.mark.parametrize("margin", [None, 0.0, 1.0])
+def test_a_refinement_the_network_doubts_more_keeps_its_start(shipped_on_drr, monkeypatch,
+                                                              margin):
+    """The outline refinement made to return a pose 20 deg off in inclination (no
+    verification, no later look to undo it): with ``outline_doubt_margin`` the network
+    doubts it more than the pose it started from by more than the margin, so the cup keeps
+    its start, right and not flagged, and reports that pose's doubt; with None the turned
+    pose stands, flagged. Its ambiguous twin (none here) aside, nothing else changes."""
+    model, sample = shipped_on_drr
+    assert model.config.outline_doubt_margin == 0.0  # shipped
+    looks = _first_look_turned(model, monkeypatch, second_look=False)
+    monkeypatch.setattr(model.config, "outline_doubt_margin", margin)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
+                         return_masks=False)[0]
+    assert looks == [("first", 1)] and len(found) == 1
+    error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
+    assert float(error[1]) == pytest.approx(20.0 if margin is None else 0.0, abs=1.0)
+    assert found[0].check == (margin is None)
+    recomputed = float(_doubt(model, sample, torch.from_numpy(found[0].pose)[None]).amax())
+    assert found[0].doubt == pytest.approx(recomputed, abs=1e-4)
 
 
 @pytest.mark.parametrize("preset", ["fast", "fastest"])
@@ -368,13 +392,15 @@ def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = Tru
                        third_look_gamma: float | None = None,
                        fourth_look_turned: bool = False, partner_look: bool = False
                        ) -> list[tuple[str, int]]:
-    """``model`` without verification, with or without ``second_look``, with
+    """``model`` without verification nor a check of its outline refinement's doubt, with or
+    without ``second_look``, with
     ``third_look_gamma``, with or without ``fourth_look_turned`` and ``partner_look`` (the
     mirrored look at images with a single believed cup), its outline refinement
     made to return poses 20 deg off in inclination (where ``turned``) on the first look
     only. Returns the record of its looks: per :meth:`CupNet._detect` call, ``("first" |
     "mirrored" | "gamma" | "turned", images)``."""
     monkeypatch.setattr(model.config, "verify_gate", None)
+    monkeypatch.setattr(model.config, "outline_doubt_margin", None)
     monkeypatch.setattr(model.config, "second_look", second_look)
     monkeypatch.setattr(model.config, "third_look_gamma", third_look_gamma)
     monkeypatch.setattr(model.config, "high_gamma_look", None)

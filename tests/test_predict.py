@@ -683,9 +683,11 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
         difference = np.abs([float(row[c]) - float(dark[c]) for c in POSE_COLUMNS])
         assert (difference < [1.5, 1.5, 1.0, 1.0, 5.0]).all()
     # The noisy image is measured as such and denoised first; its poses stay near the truth
-    # (the clean image's are off by up to 0.9 deg and 3.4 mm in h, the noisy one's by 3.2
-    # deg and 9.4 mm). The others carry no noise: under the model's denoise_above only the
-    # decision is taken.
+    # (the clean image's are off by up to 0.9 deg and 3.4 mm in h, the noisy one's by up to
+    # 2.1 deg, 1.8 mm in k and 12.4 mm in h: the outline refinement, which had brought h
+    # within 9.4 mm, left one cup's pose more doubted, so it keeps its rim's pose;
+    # docs/training.md, item 67).
+    # The others carry no noise: under the model's denoise_above only the decision is taken.
     noisy = by_image["bilateral_noisy.png"]
     assert [r["denoised"] for r in noisy] == ["1", "1"]
     assert all(abs(float(r["noise"]) - 0.03) < 0.003 for r in noisy)
@@ -693,7 +695,7 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
     truth = sorted(sample["pose"].tolist(), key=lambda pose: pose[2])  # left to right
     for row, pose in zip(noisy, truth, strict=True):
         error = np.abs([float(row[c]) for c in POSE_COLUMNS] - np.array(pose))
-        assert (error < [3.5, 3.5, 2.0, 2.0, 10.0]).all()
+        assert (error < [3.5, 3.5, 2.0, 2.0, 15.0]).all()
     printed = capsys.readouterr().out
     assert "1 image(s) taken to show metal bright" in printed
     assert "1 image(s) noisier than the networks' training, denoised first" in printed
