@@ -350,7 +350,7 @@ def test_a_refinement_the_network_doubts_more_keeps_its_start(shipped_on_drr, mo
     verification, no later look to undo it): with ``outline_doubt_margin`` the network
     doubts it more than the pose it started from by more than the margin, so the cup keeps
     its start, right and not flagged, and reports that pose's doubt; with None the turned
-    pose stands, flagged. Its ambiguous twin (none here) aside, nothing else changes."""
+    pose stands, flagged."""
     model, sample = shipped_on_drr
     assert model.config.outline_doubt_margin == 0.0  # shipped
     looks = _first_look_turned(model, monkeypatch, second_look=False)
@@ -392,13 +392,12 @@ def _first_look_turned(model, monkeypatch, second_look: bool, turned: bool = Tru
                        third_look_gamma: float | None = None,
                        fourth_look_turned: bool = False, partner_look: bool = False
                        ) -> list[tuple[str, int]]:
-    """``model`` without verification nor a check of its outline refinement's doubt, with or
-    without ``second_look``, with
-    ``third_look_gamma``, with or without ``fourth_look_turned`` and ``partner_look`` (the
-    mirrored look at images with a single believed cup), its outline refinement
-    made to return poses 20 deg off in inclination (where ``turned``) on the first look
-    only. Returns the record of its looks: per :meth:`CupNet._detect` call, ``("first" |
-    "mirrored" | "gamma" | "turned", images)``."""
+    """``model`` without verification nor ``outline_doubt_margin``, with or without
+    ``second_look``, with ``third_look_gamma``, with or without ``fourth_look_turned`` and
+    ``partner_look`` (the mirrored look at images with a single believed cup), its outline
+    refinement made to return poses 20 deg off in inclination (where ``turned``) on the
+    first look only. Returns the record of its looks: per :meth:`CupNet._detect` call,
+    ``("first" | "mirrored" | "gamma" | "turned", images)``."""
     monkeypatch.setattr(model.config, "verify_gate", None)
     monkeypatch.setattr(model.config, "outline_doubt_margin", None)
     monkeypatch.setattr(model.config, "second_look", second_look)
