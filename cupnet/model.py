@@ -978,9 +978,10 @@ class CupNet(nn.Module):
         if self.config.outline_passes and self.rim is not None:
             rows = geometry_rows(geometry, batch)
             parts = torch.empty(0, 2, dtype=torch.float64)
+            refused: dict[int, Tensor] = {}
             if solved:
-                known = self._outline_refine_picks(image_list, index, picks, solved, poses,
-                                                   alt_poses, rows, diameter)
+                known, refused = self._outline_refine_picks(image_list, index, picks, solved,
+                                                            poses, alt_poses, rows, diameter)
                 # Ordered before the verification, which then doubts an ambiguous cup by its
                 # better pose and keeps both where that one is believed.
                 if self.config.ambiguous_by_doubt:
@@ -992,7 +993,7 @@ class CupNet(nn.Module):
                 solved, parts = self.reconsidered(image_list, index, picks, solved, poses,
                                                   alt_poses, parts, every_source, start,
                                                   geometry, diameter, cup_index, batch,
-                                                  look.searched)
+                                                  look.searched, refused)
             if solved:
                 doubts = dict(zip(solved, parts.amax(-1).tolist(), strict=True))
                 # The rim the refined pose projects to, not the landmarks' fit: the two differ
@@ -1075,7 +1076,8 @@ class CupNet(nn.Module):
 
     def _outline_refine_picks(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                               solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
-                              rows: Tensor, diameter: Tensor) -> dict[int, Tensor]:
+                              rows: Tensor, diameter: Tensor
+                              ) -> tuple[dict[int, Tensor], dict[int, Tensor]]:
         """:meth:`outline_refined` on the ``solved`` cups' poses and their ambiguous pairs'
         second poses, in place in ``poses`` and ``alt_poses``; with ``outline_doubt_margin``,
         a pose the refinement leaves more doubted than it found it (:meth:`pose_doubt`, its
@@ -1086,22 +1088,28 @@ class CupNet(nn.Module):
             rows: ``(B, 4)`` each image's geometry; diameter: ``(B,)`` mm.
         Returns:
             ``cup -> (2,)`` the doubt (rim, outline) of each solved cup's pose as kept, where
-            ``outline_doubt_margin`` had it measured (else empty).
+            ``outline_doubt_margin`` had it measured (else empty); and ``cup -> (5,)`` deg /
+            mm the refined pose of each solved cup that kept its start instead.
         """
         paired = [k for k in solved if picks[k][2].ambiguous[picks[k][3]]]
         cups = solved + paired
         start = [poses[k] for k in solved] + [alt_poses[k] for k in paired]
         image = index[cups]
-        refined, doubt = self.unless_more_doubted(
-            images, image, torch.stack(start),
-            self._refined_picks(images, image, [picks[k] for k in cups], start, rows, diameter),
-            rows[image], diameter[image])
-        kept = {} if doubt is None else dict(zip(solved, doubt[:len(solved)], strict=True))
-        for k, pose in zip(solved, refined[:len(solved)], strict=True):
+        refinements = self._refined_picks(images, image, [picks[k] for k in cups], start, rows,
+                                          diameter)
+        refined, doubt = self.unless_more_doubted(images, image, torch.stack(start),
+                                                  refinements, rows[image], diameter[image])
+        own = len(solved)  # the solved cups' poses, then their pairs' second poses
+        kept = {} if doubt is None else dict(zip(solved, doubt[:own], strict=True))
+        refused = {k: refinement for k, pose, begun, refinement in zip(
+            solved, refined[:own], start[:own], refinements[:own], strict=True)
+            if torch.equal(pose, begun) and not torch.equal(refinement, begun)
+            and bool(torch.isfinite(refinement).all())}
+        for k, pose in zip(solved, refined[:own], strict=True):
             poses[k] = pose
-        for k, pose in zip(paired, refined[len(solved):], strict=True):
+        for k, pose in zip(paired, refined[own:], strict=True):
             alt_poses[k] = pose
-        return kept
+        return kept, refused
 
     def unless_more_doubted(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor,
                             refined: Tensor, geometry: Tensor, diameter: Tensor
@@ -1145,10 +1153,11 @@ class CupNet(nn.Module):
                      solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
                      parts: Tensor, sources: list[_Source], start: Tensor | None,
                      geometry: Geometry, diameter: Tensor, cup_index: Tensor,
-                     batch: int, search: bool = True) -> tuple[list[int], Tensor]:
+                     batch: int, search: bool = True,
+                     refused: dict[int, Tensor] | None = None) -> tuple[list[int], Tensor]:
         """Doubtful cups :meth:`verified`, then those still doubtful :meth:`searched` (where
-        ``search`` and the config has a ``search_gate``), in place; the other arguments as
-        :meth:`verified`'s.
+        ``search`` and the config has a ``search_gate``), in place; the other arguments
+        (``refused`` among them) as :meth:`verified`'s.
 
         A pose beyond ``max_theta_deg`` (no source gave one within it) is one the networks
         were never shown, however well the rim and the dome's outline they find agree with
@@ -1182,7 +1191,7 @@ class CupNet(nn.Module):
         measured = parts.clone()
         parts[~self.in_theta_range(torch.stack([poses[k] for k in solved]))] = math.inf
         self.verified(images, index, picks, solved, poses, alt_poses, parts, sources, start,
-                      geometry, diameter, cup_index, batch)
+                      geometry, diameter, cup_index, batch, refused)
         if search and self.config.search_gate is not None:
             self.searched(images, index, picks, solved, poses, alt_poses, parts, geometry,
                           diameter, cup_index, batch)
@@ -1214,7 +1223,8 @@ class CupNet(nn.Module):
     def verified(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                  solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
                  parts: Tensor, sources: list[_Source], start: Tensor | None,
-                 geometry: Geometry, diameter: Tensor, cup_index: Tensor, batch: int) -> None:
+                 geometry: Geometry, diameter: Tensor, cup_index: Tensor, batch: int,
+                 refused: dict[int, Tensor] | None = None) -> None:
         """Doubtful cups solved again from every landmark source, in place.
 
         A solved cup whose outline-refined pose's doubt ``parts`` sums to ``verify_gate`` or
@@ -1234,6 +1244,9 @@ class CupNet(nn.Module):
             sources: as :meth:`detect`'s, cups -> landmarks.
             start: ``(K, 5)`` the refiner's ellipses (None: no thin-rim hypotheses).
             geometry, diameter: per image; cup_index: ``(K, 2)``; batch: images.
+            refused: ``cup -> (5,)`` deg / mm, the outline refinement each cup's pose kept
+                its start against (:meth:`unless_more_doubted`): its rims turned to each of
+                ``verify_anteversions`` as well.
         """
         cfg = self.config
         rows = geometry_rows(geometry, batch)
@@ -1247,19 +1260,39 @@ class CupNet(nn.Module):
         if start is not None and cfg.verify_thin_rims > 0:
             found += self.ranked_thin_rim_landmarks(images, index[todo], start[todo],
                                                     cfg.verify_thin_rims)
-        if cfg.verify_anteversions:
-            turned = torch.stack([poses[k] for k in todo.tolist()]).repeat(
-                len(cfg.verify_anteversions), 1, 1)
-            turned[..., 0] = torch.tensor(cfg.verify_anteversions).to(turned)[:, None]
-            found += self._pose_rim_found(images, index[todo], turned, rows, diameter)
+        found += self._turned_rims_found(images, index, todo, poses, rows, diameter)
         candidates = self._source_candidates(
             [*sources, *_found_sources(found, todo, len(index))], todo, picks, geometry,
             diameter, cup_index, batch)
+        # A refinement unless_more_doubted turned down can hold the rim's inclination where
+        # its start lost it (the start then a rim on the inserter's tip, its anteversions
+        # turned at the wrong inclination): its rims turned too (docs/training.md, item 68).
+        again = torch.tensor([k for k in todo.tolist() if k in (refused or {})],
+                             dtype=torch.long)
+        if len(again):
+            turned = self._turned_rims_found(images, index, again, refused, rows, diameter)
+            candidates += self._source_candidates(
+                _found_sources(turned, again, len(index)), again, picks, geometry, diameter,
+                cup_index, batch)
         winners = self._least_doubted(images, index, solved, poses, parts, candidates,
                                       geometry, diameter, batch)
         for k, (pick, pose, doubt) in winners.items():
             picks[k], poses[k], alt_poses[k] = pick, pose, pick[2].alt_pose[pick[3]]
             parts[solved.index(k)] = doubt
+
+    def _turned_rims_found(self, images: list[Tensor], index: Tensor, todo: Tensor,
+                           poses: list[Tensor] | dict[int, Tensor], rows: Tensor,
+                           diameter: Tensor) -> list[RimLandmarks]:
+        """The fine rim network's landmarks across the rims of the cups ``todo`` ``(T,)``
+        with ``poses`` (indexed by cup, each ``(5,)`` deg / mm) turned to each of
+        ``verify_anteversions``, one set per anteversion (none without them); index
+        ``(K,)`` image of each cup, rows ``(B, 4)`` and diameter ``(B,)`` per image."""
+        anteversions = self.config.verify_anteversions
+        if not anteversions:
+            return []
+        turned = torch.stack([poses[k] for k in todo.tolist()]).repeat(len(anteversions), 1, 1)
+        turned[..., 0] = torch.tensor(anteversions).to(turned)[:, None]
+        return self._pose_rim_found(images, index[todo], turned, rows, diameter)
 
     def _solved_doubts(self, images: list[Tensor], index: Tensor, solved: list[int],
                        poses: list[Tensor], rows: Tensor, diameter: Tensor,

@@ -349,18 +349,27 @@ def test_a_refinement_the_network_doubts_more_keeps_its_start(shipped_on_drr, mo
     """The outline refinement made to return a pose 20 deg off in inclination (no
     verification, no later look to undo it): with ``outline_doubt_margin`` the network
     doubts it more than the pose it started from by more than the margin, so the cup keeps
-    its start, right and not flagged, and reports that pose's doubt; with None the turned
-    pose stands, flagged."""
+    its start, right and not flagged, and reports that pose's doubt, the refinement it
+    turned down handed on (for the verification); with None the turned pose stands,
+    flagged."""
     model, sample = shipped_on_drr
     assert model.config.outline_doubt_margin == 0.0  # shipped
     looks = _first_look_turned(model, monkeypatch, second_look=False)
     monkeypatch.setattr(model.config, "outline_doubt_margin", margin)
+    refusals: list[dict] = []
+    refine_picks = model._outline_refine_picks
+    monkeypatch.setattr(model, "_outline_refine_picks", lambda *args: (
+        result := refine_picks(*args), refusals.append(result[1]))[0])
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
     assert looks == [("first", 1)] and len(found) == 1
-    error = (torch.from_numpy(found[0].pose) - sample["pose"][0].double()).abs()
+    truth = sample["pose"][0].double()
+    error = (torch.from_numpy(found[0].pose) - truth).abs()
     assert float(error[1]) == pytest.approx(20.0 if margin is None else 0.0, abs=1.0)
+    assert len(refusals) == 1 and len(refusals[0]) == (margin is not None)
+    for refused in refusals[0].values():  # the pose turned down, 20 deg off
+        assert float((refused - truth)[1].abs()) == pytest.approx(20.0, abs=1.0)
     assert found[0].check == (margin is None)
     recomputed = float(_doubt(model, sample, torch.from_numpy(found[0].pose)[None]).amax())
     assert found[0].doubt == pytest.approx(recomputed, abs=1e-4)
@@ -733,10 +742,12 @@ def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_
         calls.clear()
 
 
-def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
+def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor],
+            refused: torch.Tensor | None = None):
     """:meth:`CupNet.reconsidered` (:meth:`CupNet.verified`, and :meth:`CupNet.searched`
     where the config has a ``search_gate``) on one cup solved from exact rim landmarks of the
-    pose ``first`` ``(1, 5)``, the sources giving those of ``others``; its pose and pick
+    pose ``first`` ``(1, 5)``, the sources giving those of ``others``, its outline
+    refinement turned down from ``refused`` ``(1, 5)`` where given; its pose and pick
     after."""
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     diameter = sample["cup_diameter"][:1].double()
@@ -753,7 +764,8 @@ def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor]):
         parts = model._solved_doubts(images, index, [0], poses, geometry_rows(geometry, 1),
                                      diameter)  # as detect does
         model.reconsidered(images, index, picks, [0], poses, alt_poses, parts, sources, None,
-                           geometry, diameter, cup_index, 1)
+                           geometry, diameter, cup_index, 1,
+                           refused=None if refused is None else {0: refused[0]})
     return poses[0], picks[0], landmarks
 
 
@@ -972,6 +984,31 @@ def test_verification_turns_the_rim_to_find_it(shipped_on_drr, monkeypatch, turn
         expected[..., 0] = torch.tensor(turns, dtype=torch.float64)[:, None] + truth[0, 0]
         torch.testing.assert_close(sets, expected, atol=1e-4, rtol=0)  # (a float32 list)
     assert len(turned) == (1 if turns else 0)
+
+
+@pytest.mark.parametrize("refused", [False, True])
+def test_verification_turns_the_rim_of_a_refused_refinement(shipped_on_drr, monkeypatch,
+                                                            refused):
+    """A cup solved from a rim turned 25 deg in anteversion and 40 deg in inclination, with
+    no other source and no search: its rims turned to each of ``verify_anteversions`` (here
+    the true anteversion plus 4 deg) keep the wrong inclination, so it stays 30 deg or more
+    off in inclination. Where its outline refinement, turned down by
+    :meth:`CupNet.unless_more_doubted`, had found the inclination (25 deg off in anteversion
+    alone), that pose's rims are turned too, and one leads to the true pose (the inserter
+    row's lost cup, docs/training.md item 68)."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    anteversion = -25.0 if float(truth[0, 0]) > 25.0 else 25.0
+    turned = truth + torch.tensor([[anteversion, -40.0 if float(truth[0, 1]) > 0.0 else 40.0,
+                                    0.0, 0.0, 0.0]], dtype=torch.float64)
+    inclined = truth + torch.tensor([[anteversion, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    monkeypatch.setattr(model.config, "verify_gate", 0.0)
+    monkeypatch.setattr(model.config, "search_gate", None)
+    monkeypatch.setattr(model.config, "verify_anteversions", (float(truth[0, 0]) + 4.0,))
+    pose, _, _ = _verify(model, sample, turned, [], inclined if refused else None)
+    assert bool((pose[:2] - truth[0, :2]).abs().max() < 1.0) == refused
+    if not refused:  # its rims turned at the first pose's inclination
+        assert abs(float(pose[1] - truth[0, 1])) > 30.0  # deg
 
 
 def _searched_turned_cup(model, sample, monkeypatch, turned: bool, **search):
