@@ -1265,8 +1265,9 @@ class CupNet(nn.Module):
             [*sources, *_found_sources(found, todo, len(index))], todo, picks, geometry,
             diameter, cup_index, batch)
         # A refinement unless_more_doubted turned down can hold the rim's inclination where
-        # its start lost it (the start then a rim on the inserter's tip, its anteversions
-        # turned at the wrong inclination): its rims turned too (docs/training.md, item 68).
+        # its start lost it (a start on the dome's outline and an inserter's edge, whose
+        # turned rims keep its wrong inclination): its rims turned too (docs/training.md,
+        # item 68).
         again = torch.tensor([k for k in todo.tolist() if k in (refused or {})],
                              dtype=torch.long)
         if len(again):
