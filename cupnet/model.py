@@ -1230,7 +1230,8 @@ class CupNet(nn.Module):
         A solved cup whose outline-refined pose's doubt ``parts`` sums to ``verify_gate`` or
         more is solved from each of ``sources``, from the ``verify_thin_rims`` thin-rim
         hypotheses around ``start`` the fine rim stage trusts most and from the rims of its
-        pose turned to each of ``verify_anteversions``; the least doubted candidate replaces
+        pose (and of the refinement it kept its start against, where ``refused`` holds one)
+        turned to each of ``verify_anteversions``; the least doubted candidate replaces
         the cup's pose where it is doubted less by the margin (:meth:`_least_doubted`).
         The gross failures left after the outline are rims taken from the wrong contour (a
         femoral head's, a thin rim at the wrong angle); the source that finds the right one
@@ -1245,8 +1246,7 @@ class CupNet(nn.Module):
             start: ``(K, 5)`` the refiner's ellipses (None: no thin-rim hypotheses).
             geometry, diameter: per image; cup_index: ``(K, 2)``; batch: images.
             refused: ``cup -> (5,)`` deg / mm, the outline refinement each cup's pose kept
-                its start against (:meth:`unless_more_doubted`): its rims turned to each of
-                ``verify_anteversions`` as well.
+                its start against (:meth:`unless_more_doubted`).
         """
         cfg = self.config
         rows = geometry_rows(geometry, batch)
@@ -1268,8 +1268,8 @@ class CupNet(nn.Module):
         # its start lost it (a start on the dome's outline and an inserter's edge, whose
         # turned rims keep its wrong inclination): its rims turned too (docs/training.md,
         # item 68).
-        again = torch.tensor([k for k in todo.tolist() if k in (refused or {})],
-                             dtype=torch.long)
+        refused = refused or {}
+        again = torch.tensor([k for k in todo.tolist() if k in refused], dtype=torch.long)
         if len(again):
             turned = self._turned_rims_found(images, index, again, refused, rows, diameter)
             candidates += self._source_candidates(
