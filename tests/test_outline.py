@@ -356,10 +356,15 @@ def test_a_refinement_the_network_doubts_more_keeps_its_start(shipped_on_drr, mo
     assert model.config.outline_doubt_margin == 0.0  # shipped
     looks = _first_look_turned(model, monkeypatch, second_look=False)
     monkeypatch.setattr(model.config, "outline_doubt_margin", margin)
-    refusals: list[dict] = []
+    refusals: list[dict] = []  # each call's refinements turned down, cup -> pose
     refine_picks = model._outline_refine_picks
-    monkeypatch.setattr(model, "_outline_refine_picks", lambda *args: (
-        result := refine_picks(*args), refusals.append(result[1]))[0])
+
+    def recorded(*args):
+        known, refused = refine_picks(*args)
+        refusals.append(refused)
+        return known, refused
+
+    monkeypatch.setattr(model, "_outline_refine_picks", recorded)
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
