@@ -1101,10 +1101,11 @@ class CupNet(nn.Module):
                                                   refinements, rows[image], diameter[image])
         own = len(solved)  # the solved cups' poses, then their pairs' second poses
         kept = {} if doubt is None else dict(zip(solved, doubt[:own], strict=True))
-        refused = {k: refinement for k, pose, begun, refinement in zip(
-            solved, refined[:own], start[:own], refinements[:own], strict=True)
-            if torch.equal(pose, begun) and not torch.equal(refinement, begun)
-            and bool(torch.isfinite(refinement).all())}
+        # Each pose kept is its start or its refinement: where it is not the refinement, the
+        # start was kept against it.
+        refused = {k: refinement for k, pose, refinement in zip(
+            solved, refined[:own], refinements[:own], strict=True)
+            if bool(torch.isfinite(refinement).all()) and not torch.equal(pose, refinement)}
         for k, pose in zip(solved, refined[:own], strict=True):
             poses[k] = pose
         for k, pose in zip(paired, refined[own:], strict=True):
