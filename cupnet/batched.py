@@ -210,18 +210,24 @@ def outlined(model: CupNet, images: Tensor, index: Tensor, picks: _Picks, geomet
     points, weights = picks.padded_landmarks()
     start = torch.cat([picks.pose[solved], picks.alt_pose[paired]])
     image = index[cups]
-    refined, _ = model.unless_more_doubted(
+    refined, doubt = model.unless_more_doubted(
         images, image, start,
         model.outline_refined(images, image, start, points[cups], weights[cups],
                               picks.residual[cups], rows[image], diameter[image]),
         rows[image], diameter[image])
     picks.pose[solved], picks.alt_pose[paired] = refined[:len(solved)], refined[len(solved):]
-    pairs = paired[torch.isfinite(picks.alt_pose[paired]).all(-1)]
+    finite = torch.isfinite(picks.alt_pose[paired]).all(-1)
+    pairs = paired[finite]
     if model.config.ambiguous_by_doubt and len(pairs):
-        both = torch.stack([picks.pose[pairs], picks.alt_pose[pairs]], 1).flatten(0, 1)
-        image = index[pairs].repeat_interleave(2)
-        doubt = model.pose_doubt(images, image, both, rows[image], diameter[image])
-        swap = pairs[doubt.reshape(-1, 2, 2).sum(-1).diff(dim=-1)[:, 0] < 0]
+        if doubt is None:
+            both = torch.stack([picks.pose[pairs], picks.alt_pose[pairs]], 1).flatten(0, 1)
+            image = index[pairs].repeat_interleave(2)
+            pair_doubt = model.pose_doubt(images, image, both, rows[image],
+                                          diameter[image]).reshape(-1, 2, 2)
+        else:  # as kept: the solved cups' poses, then their pairs' second poses
+            pair_doubt = torch.stack([doubt[:len(solved)][picks.ambiguous[solved]],
+                                      doubt[len(solved):]], 1)[finite]
+        swap = pairs[pair_doubt.sum(-1).diff(dim=-1)[:, 0] < 0]
         picks.pose[swap], picks.alt_pose[swap] = picks.alt_pose[swap], picks.pose[swap]
     picks.ellipse[solved] = ellipse_of_pose(picks.pose[solved], diameter[index[solved]],
                                             Geometry.from_rows(rows[index[solved]]))

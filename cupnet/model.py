@@ -980,13 +980,15 @@ class CupNet(nn.Module):
             parts = torch.empty(0, 2, dtype=torch.float64)
             refused: dict[int, Tensor] = {}
             if solved:
-                known, refused = self._outline_refine_picks(image_list, index, picks, solved,
-                                                            poses, alt_poses, rows, diameter)
+                known, refused, seconds = self._outline_refine_picks(
+                    image_list, index, picks, solved, poses, alt_poses, rows, diameter)
                 # Ordered before the verification, which then doubts an ambiguous cup by its
                 # better pose and keeps both where that one is believed.
                 if self.config.ambiguous_by_doubt:
                     known.update(self._order_ambiguous(image_list, index, picks, solved, poses,
-                                                       alt_poses, rows, diameter))
+                                                       alt_poses, rows, diameter,
+                                                       {k: torch.stack([known[k], second])
+                                                        for k, second in seconds.items()}))
                 parts = self._solved_doubts(image_list, index, solved, poses, rows, diameter,
                                             known)
             if self.config.verify_gate is not None and look.verified:
@@ -1077,7 +1079,7 @@ class CupNet(nn.Module):
     def _outline_refine_picks(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                               solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
                               rows: Tensor, diameter: Tensor
-                              ) -> tuple[dict[int, Tensor], dict[int, Tensor]]:
+                              ) -> tuple[dict[int, Tensor], dict[int, Tensor], dict[int, Tensor]]:
         """:meth:`outline_refined` on the ``solved`` cups' poses and their ambiguous pairs'
         second poses, in place in ``poses`` and ``alt_poses``; with ``outline_doubt_margin``,
         a pose the refinement leaves more doubted than it found it (:meth:`pose_doubt`, its
@@ -1088,8 +1090,10 @@ class CupNet(nn.Module):
             rows: ``(B, 4)`` each image's geometry; diameter: ``(B,)`` mm.
         Returns:
             ``cup -> (2,)`` the doubt (rim, outline) of each solved cup's pose as kept, where
-            ``outline_doubt_margin`` had it measured (else empty); and ``cup -> (5,)`` deg /
-            mm the refined pose of each solved cup that kept its start instead.
+            ``outline_doubt_margin`` had it measured (else empty); ``cup -> (5,)`` deg /
+            mm the refined pose of each solved cup that kept its start instead; and
+            ``cup -> (2,)`` the doubt of each ambiguous cup's second pose as kept, where
+            measured (else empty).
         """
         paired = [k for k in solved if picks[k][2].ambiguous[picks[k][3]]]
         cups = solved + paired
@@ -1101,6 +1105,7 @@ class CupNet(nn.Module):
                                                   refinements, rows[image], diameter[image])
         own = len(solved)  # the solved cups' poses, then their pairs' second poses
         kept = {} if doubt is None else dict(zip(solved, doubt[:own], strict=True))
+        seconds = {} if doubt is None else dict(zip(paired, doubt[own:], strict=True))
         # Each pose kept is its start or its refinement: where it is not the refinement, the
         # start was kept against it.
         refused = {k: refinement for k, pose, refinement in zip(
@@ -1110,7 +1115,7 @@ class CupNet(nn.Module):
             poses[k] = pose
         for k, pose in zip(paired, refined[own:], strict=True):
             alt_poses[k] = pose
-        return kept, refused
+        return kept, refused, seconds
 
     def unless_more_doubted(self, images: list[Tensor] | Tensor, index: Tensor, start: Tensor,
                             refined: Tensor, geometry: Tensor, diameter: Tensor
@@ -1492,7 +1497,8 @@ class CupNet(nn.Module):
 
     def _order_ambiguous(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                          solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],
-                         rows: Tensor, diameter: Tensor) -> dict[int, Tensor]:
+                         rows: Tensor, diameter: Tensor,
+                         measured: dict[int, Tensor] | None = None) -> dict[int, Tensor]:
         """Each ambiguous cup's two poses, the one :meth:`pose_doubt` doubts less first (in
         place in ``poses`` and ``alt_poses``). Both give the cup's rim; they differ in the
         sphere's centre, so in where the dome's outline lies and in the rim's fine shape.
@@ -1500,18 +1506,23 @@ class CupNet(nn.Module):
         Args:
             index: ``(K,)`` image of each cup; rows: ``(B, 4)`` each image's geometry;
             diameter: ``(B,)`` mm.
+            measured: ``cup -> (2, 2)`` the doubts of a cup's two poses as they stand
+                (:meth:`_outline_refine_picks` measured them), taken as they are.
         Returns:
             ``cup -> (2,)`` the doubt (rim, outline) of each ordered cup's first pose.
         """
+        measured = measured or {}
         pairs = [k for k in solved if picks[k][2].ambiguous[picks[k][3]]
                  and bool(torch.isfinite(alt_poses[k]).all())]
-        if not pairs:
-            return {}
-        cups = index[pairs].repeat_interleave(2)
-        both = torch.stack([pose for k in pairs for pose in (poses[k], alt_poses[k])])
-        doubt = self.pose_doubt(images, cups, both, rows[cups], diameter[cups]).reshape(-1, 2, 2)
+        fresh = [k for k in pairs if k not in measured]
+        if fresh:
+            cups = index[fresh].repeat_interleave(2)
+            both = torch.stack([pose for k in fresh for pose in (poses[k], alt_poses[k])])
+            doubt = self.pose_doubt(images, cups, both, rows[cups], diameter[cups])
+            measured = {**measured, **dict(zip(fresh, doubt.reshape(-1, 2, 2), strict=True))}
         firsts = {}
-        for k, (first, second) in zip(pairs, doubt, strict=True):
+        for k in pairs:
+            first, second = measured[k]
             if second.sum() < first.sum():
                 poses[k], alt_poses[k] = alt_poses[k], poses[k]
                 first = second

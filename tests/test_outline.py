@@ -360,9 +360,9 @@ def test_a_refinement_the_network_doubts_more_keeps_its_start(shipped_on_drr, mo
     refine_picks = model._outline_refine_picks
 
     def recorded(*args):
-        known, refused = refine_picks(*args)
+        known, refused, seconds = refine_picks(*args)
         refusals.append(refused)
-        return known, refused
+        return known, refused, seconds
 
     monkeypatch.setattr(model, "_outline_refine_picks", recorded)
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
@@ -903,11 +903,13 @@ def test_verification_turning_the_rim_needs_the_rims_own_evidence(shipped_on_drr
     assert torch.equal(pick[0], landmarks[1][0]) == (turn_deg is None)
 
 
+@pytest.mark.parametrize("measured", [False, True])
 @pytest.mark.parametrize("alt_doubted_less", [True, False])
 def test_ambiguous_pair_reports_the_pose_doubted_less_first(shipped_on_drr, monkeypatch,
-                                                            alt_doubted_less):
+                                                            alt_doubted_less, measured):
     """Of an ambiguous cup's two poses the one with the lower doubt comes first; a cup that
-    is not ambiguous keeps its pose whatever the doubts."""
+    is not ambiguous keeps its pose whatever the doubts. Doubts already ``measured`` are
+    taken as they are, the network not asked again."""
     model, sample = shipped_on_drr
     first = sample["pose"][0].double()
     second = first + torch.tensor([6.0, 0.0, 1.0, 0.5, 9.0], dtype=torch.float64)
@@ -918,7 +920,13 @@ def test_ambiguous_pair_reports_the_pose_doubted_less_first(shipped_on_drr, monk
         low = is_second if alt_doubted_less else ~is_second
         return torch.stack([low.double() * -1.0 + 2.0, torch.ones(len(poses))], -1)
 
-    monkeypatch.setattr(model, "pose_doubt", doubt)
+    given = {0: doubt(None, None, torch.stack([first, second]), None, None)} if measured else {}
+
+    def asked(images, index, poses, geometry, diameter):
+        assert not measured, "a measured pair's doubts asked for again"
+        return doubt(images, index, poses, geometry, diameter)
+
+    monkeypatch.setattr(model, "pose_doubt", asked)
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     rows = geometry_rows(geometry, 1)
     diameter = sample["cup_diameter"][:1].double()
@@ -930,12 +938,41 @@ def test_ambiguous_pair_reports_the_pose_doubted_less_first(shipped_on_drr, monk
         picks.append((torch.zeros(4, 2), torch.ones(4), solution, 0))
     poses, alt_poses = [first, first], [second, second]
     firsts = model._order_ambiguous([sample["image"]], torch.tensor([0, 0]), picks, [0, 1],
-                                    poses, alt_poses, rows, diameter)
+                                    poses, alt_poses, rows, diameter, given)
     assert torch.equal(poses[0], second if alt_doubted_less else first)
     # The doubt reported (and flagged by) is the pose's put first: the lower one.
     assert list(firsts) == [0] and firsts[0].tolist() == [1.0, 1.0]
     assert torch.equal(alt_poses[0], first if alt_doubted_less else second)
     assert torch.equal(poses[1], first) and torch.equal(alt_poses[1], second)
+
+
+def test_outline_refine_picks_hands_on_the_doubts_of_both_poses_as_kept(shipped_on_drr):
+    """The doubts the outline stage hands on for an ambiguous cup (its pose's, and its
+    second pose's, which :meth:`CupNet._order_ambiguous` then takes as they are) are
+    :meth:`CupNet.pose_doubt`'s of the two poses as kept, measured again on their own."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][0].double()
+    second = truth + torch.tensor([8.0, -3.0, 1.0, 0.5, 9.0], dtype=torch.float64)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    rows = geometry_rows(geometry, 1)
+    diameter = sample["cup_diameter"][:1].double()
+    solution = PoseSolution(truth[None], second[None], torch.tensor([True]), torch.zeros(1, 5),
+                            torch.full((1,), 0.5, dtype=torch.float64), torch.tensor([True]),
+                            ["ambiguous"])
+    picks = [(rim_landmarks(truth[None], geometry, float(diameter), 128)[0],
+              torch.ones(128, dtype=torch.float64), solution, 0)]
+    poses, alt_poses = [truth.clone()], [second.clone()]
+    with torch.no_grad():
+        kept, _, seconds = model._outline_refine_picks([sample["image"]], torch.tensor([0]),
+                                                       picks, [0], poses, alt_poses, rows,
+                                                       diameter)
+        again = model.pose_doubt([sample["image"]], torch.tensor([0, 0]),
+                                 torch.stack([poses[0], alt_poses[0]]), rows.repeat(2, 1),
+                                 diameter.repeat(2))
+    assert not torch.equal(poses[0], alt_poses[0])
+    assert list(kept) == [0] and list(seconds) == [0]
+    assert torch.allclose(kept[0], again[0], atol=1e-4)
+    assert torch.allclose(seconds[0], again[1], atol=1e-4)
 
 
 def test_outline_refinement_resamples_the_rim(shipped_on_drr, monkeypatch):
