@@ -1278,9 +1278,9 @@ class CupNet(nn.Module):
         again = torch.tensor([k for k in todo.tolist() if k in refused], dtype=torch.long)
         if len(again):
             turned = self._turned_rims_found(images, index, again, refused, rows, diameter)
-            candidates += self._source_candidates(
+            candidates = self._source_candidates(
                 _found_sources(turned, again, len(index)), again, picks, geometry, diameter,
-                cup_index, batch)
+                cup_index, batch, candidates)
         winners = self._least_doubted(images, index, solved, poses, parts, candidates,
                                       geometry, diameter, batch)
         for k, (pick, pose, doubt) in winners.items():
@@ -1483,9 +1483,11 @@ class CupNet(nn.Module):
 
     def _source_candidates(self, sources: list[_Source], todo: Tensor, picks: list[_Pick],
                            geometry: Geometry, diameter: Tensor, cup_index: Tensor,
-                           batch: int) -> list[tuple[int, _Pick, Tensor]]:
+                           batch: int, known: list[tuple[int, _Pick, Tensor]] | None = None
+                           ) -> list[tuple[int, _Pick, Tensor]]:
         """``(cup, pick, pose)`` of each distinct pose within ``max_theta_deg`` that
-        ``sources`` solve for the cups ``todo`` ``(T,)``, less the cups' own landmarks."""
+        ``sources`` solve for the cups ``todo`` ``(T,)``, less the cups' own landmarks:
+        after the ``known`` candidates, less those that repeat one of them."""
         candidates = [(k, pick) for source in sources
                       for k, pick in self._solved_picks(source, todo, geometry, diameter,
                                                         cup_index, batch)
@@ -1493,7 +1495,9 @@ class CupNet(nn.Module):
                           pick[2].pose[pick[3]]))
                       # the cup's own landmarks again (its source rerun) would give its pose
                       and not _same_landmarks(pick, picks[k])]
-        return [(k, pick, pick[2].pose[pick[3]]) for k, pick in _distinct(candidates)]
+        earlier = [(k, pick) for k, pick, _ in known or []]
+        return [(k, pick, pick[2].pose[pick[3]])
+                for k, pick in _distinct(earlier + candidates)]
 
     def _order_ambiguous(self, images: list[Tensor], index: Tensor, picks: list[_Pick],
                          solved: list[int], poses: list[Tensor], alt_poses: list[Tensor],

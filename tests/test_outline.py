@@ -1053,6 +1053,34 @@ def test_verification_turns_the_rim_of_a_refused_refinement(shipped_on_drr, monk
         assert abs(float(pose[1] - truth[0, 1])) > 30.0  # deg
 
 
+def test_source_candidates_after_known_ones_leave_out_their_repeats(shipped_on_drr):
+    """Candidates solved after ``known`` ones (the verification's refused rims after its
+    other sources): one that repeats a known candidate's pose (other landmarks on the same
+    rim) is left out, one with a pose of its own kept, the known ones first as they were."""
+    model, sample = shipped_on_drr
+    truth = sample["pose"][:1].double()
+    turned = truth + torch.tensor([[8.0, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    diameter = sample["cup_diameter"][:1].double()
+    cup_index, todo = torch.zeros(1, 2, dtype=torch.long), torch.tensor([0])
+
+    def rim_of(pose: torch.Tensor, count: int):
+        points = rim_landmarks(pose, geometry, float(diameter), count)
+        return lambda cups: (points[cups], torch.ones(len(cups), count, dtype=torch.float64))
+
+    own = rim_of(truth, 32)(todo)  # the cup's own landmarks, never a candidate
+    with torch.no_grad():
+        solution = model.solve(*own, geometry, diameter, cup_index, 1, refine=True)
+        picks = [(own[0][0], own[1][0], solution, 0)]
+        known = model._source_candidates([rim_of(truth, 128)], todo, picks, geometry,
+                                         diameter, cup_index, 1)
+        after = model._source_candidates([rim_of(truth, 96), rim_of(turned, 128)], todo,
+                                         picks, geometry, diameter, cup_index, 1, known)
+    assert len(known) == 1 and len(after) == 2
+    assert after[0][1] is known[0][1]
+    assert float((after[1][2] - turned[0])[:2].abs().max()) < 0.5  # deg
+
+
 def _searched_turned_cup(model, sample, monkeypatch, turned: bool, **search):
     """:func:`_verify` of a cup solved from its rim turned 25 deg in anteversion and 40 deg in
     inclination (or from the true rim), with no other source and no turned rims, so the
