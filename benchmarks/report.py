@@ -10,10 +10,11 @@ import os
 import platform
 import re
 import tempfile
-from importlib import metadata
 from pathlib import Path
 
 import torch
+
+from cupnet.environment import library_versions, processor
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "benchmarks.md"
 HEADER = ("# Benchmarks\n\nWritten by the scripts in `benchmarks/`; each section says how to "
@@ -33,40 +34,11 @@ def markdown_table(header: list[str], rows: list[list[object]]) -> str:
     return "\n".join(lines)
 
 
-# The libraries whose arithmetic the figures rest on besides torch: ONNX Runtime runs the
-# networks, OpenCV and NumPy take part in synthesis and detection.
-NUMERIC_LIBRARIES = ("onnxruntime", "opencv-python-headless", "numpy")
-
-
-def processor(cpuinfo: str | None = None) -> str:
-    """The CPU's model and its widest vector instructions, e.g. ``"AMD EPYC, AVX2"``, from
-    ``/proc/cpuinfo``'s text (read where not given; the platform's name where it has
-    none). The networks' float sums round with the kernels these choose, and the
-    pipeline's discrete choices turn on such differences for the hard cups
-    (docs/training.md, item 19): two machines' figures differ by that."""
-    if cpuinfo is None:
-        try:
-            cpuinfo = Path("/proc/cpuinfo").read_text()
-        except OSError:
-            cpuinfo = ""
-    fields = dict(line.split(":", 1) for line in cpuinfo.splitlines() if ":" in line)
-    fields = {key.strip(): value.strip() for key, value in fields.items()}
-    name = fields.get("model name") or platform.processor() or platform.machine()
-    flags = set(fields.get("flags", "").split())
-    widest = next((label for flag, label in (("avx512f", "AVX-512"), ("avx2", "AVX2"),
-                                             ("avx", "AVX")) if flag in flags), None)
-    return f"{name}, {widest}" if widest else name
-
-
 def machine() -> str:
     """One line naming the machine and the libraries the figures come from."""
     parts = [f"{platform.machine()} ({processor()})", f"{os.cpu_count()} CPU cores",
              f"torch {torch.__version__}"]
-    for name in NUMERIC_LIBRARIES:
-        try:
-            parts.append(f"{name} {metadata.version(name)}")
-        except metadata.PackageNotFoundError:
-            continue
+    parts += [f"{name} {version}" for name, version in library_versions().items()]
     return ", ".join([*parts, f"{torch.get_num_threads()} threads"])
 
 

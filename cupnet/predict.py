@@ -5,7 +5,7 @@ Per image (a DICOM multi-frame run gives one per frame): read it, resolve its ge
 ``--assume-defaults``; the principal point defaults to the image centre), detect the cups
 with the network (or take manual landmarks with ``--landmarks``), solve each pose, and write
 one ``results.csv`` row per cup (a status row for images without one). ``results.json`` adds
-the geometry used, the assumptions made and the software and model versions.
+the geometry used, the assumptions made, the model and the software versions and CPU.
 
 Robustness: a file that cannot be read gets its error row and the run goes on; outputs are
 rewritten atomically every few seconds, so an interrupted run (Ctrl-C included) leaves a
@@ -41,6 +41,7 @@ import torch
 from tqdm import tqdm
 
 from cupnet import __version__
+from cupnet.environment import library_versions, processor
 from cupnet.errors import error_reason, named_error
 from cupnet.geometry import Geometry
 from cupnet.io.images import (
@@ -795,8 +796,11 @@ def renamed_moved(records: dict[str, dict], sources: list[ImageSource]) -> None:
 
 
 def _software() -> dict:
+    """The versions and CPU the poses rest on: the same weights find a few hard cups
+    otherwise with another CPU or release of the numeric libraries (:mod:`cupnet.environment`)."""
     return {"cupnet": __version__, "python": platform.python_version(),
-            "torch": torch.__version__, "numpy": np.__version__, "platform": platform.platform()}
+            "torch": torch.__version__, **library_versions(), "platform": platform.platform(),
+            "cpu": processor()}
 
 
 def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,

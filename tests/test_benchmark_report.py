@@ -13,9 +13,9 @@ from benchmarks.report import (
     machine,
     markdown_row,
     markdown_table,
-    processor,
     write_section,
 )
+from cupnet.environment import processor
 from cupnet.model import DEFAULT_CHECKPOINT
 
 
@@ -83,13 +83,10 @@ def test_the_fresh_seed_prose_gives_its_command_and_says_when_its_seeds_chose_se
         in fast
 
 
-def test_the_machine_line_names_the_cpu_its_vector_width_and_the_numeric_libraries():
+def test_the_machine_line_names_the_cpu_and_the_numeric_libraries():
     """Figures of the same code differ from one CPU to another (item 19): the line says which
     CPU and library versions gave them."""
-    epyc = "processor\t: 0\nmodel name\t: AMD EPYC 7B13\nflags\t\t: fpu sse2 avx avx2 fma\n"
-    assert processor(epyc) == "AMD EPYC 7B13, AVX2"
-    assert processor(epyc.replace("avx2", "avx2 avx512f")) == "AMD EPYC 7B13, AVX-512"
-    assert processor("model name : Some CPU\n") == "Some CPU"
     line = machine()
+    assert f"({processor()})" in line
     assert f"onnxruntime {metadata.version('onnxruntime')}" in line
     assert f"numpy {metadata.version('numpy')}" in line and line.endswith(" threads")

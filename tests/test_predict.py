@@ -12,6 +12,7 @@ import subprocess
 import sys
 from collections.abc import Callable
 from dataclasses import replace
+from importlib import metadata
 from pathlib import Path
 
 import cv2
@@ -23,6 +24,7 @@ from dicom_factory import write_dicom
 import cupnet.predict as predict
 from cupnet.cli import main
 from cupnet.config import CupNetConfig
+from cupnet.environment import processor
 from cupnet.geometry import Geometry, pose_to_radians, project_rim
 from cupnet.io.images import PATIENT_SPACING_SOURCE, Frame, ImageSource
 from cupnet.io.meta import ASSUMED_DETECTOR_WIDTH_MM, resolve_geometry
@@ -112,7 +114,11 @@ def test_every_image_gets_a_row_and_geometry_is_recorded(tmp_path: Path,
     assert geometry["principal_u_px"] == {"value": 127.5, "source": "image centre"}
     assert records["a16.png"]["geometry"]["sdd_mm"]["source"] == "meta.csv"
     assert document["model"]["checkpoint"] == str(checkpoint)
-    assert document["software"]["cupnet"]
+    software = document["software"]
+    assert software["cupnet"] and software["cpu"] == processor()
+    # The libraries whose kernels decide a few hard cups (docs/training.md, item 69).
+    for library in ("onnxruntime", "opencv-python-headless", "numpy"):
+        assert software[library] == metadata.version(library)
     assert document["summary"]["images"] == 7
     assert document["summary"]["errors"] == sum(
         row["status"].startswith("error: ") for rows in by_image.values() for row in rows)
