@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import copy
 import hashlib
-import importlib.metadata
 import importlib.util
 import inspect
 import os
@@ -33,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor, nn
 
+from cupnet.environment import library_versions
 from cupnet.errors import error_reason
 from cupnet.offload import NETWORKS, PassThrough
 from cupnet.rim import RimNet, strips_one_by_one
@@ -78,12 +78,11 @@ def export_key(module: nn.Module) -> str:
     (constants included; PyTorch's own are covered by its version), and the versions of
     the libraries that build and run the graph."""
     digest = hashlib.sha256(str(_EXPORT_VERSION).encode())
-    for library in ("torch", "onnxruntime", "onnxscript", "segmentation-models-pytorch",
-                    "timm", "cupnet"):
-        try:
-            digest.update(f"{library} {importlib.metadata.version(library)}".encode())
-        except importlib.metadata.PackageNotFoundError:
-            digest.update(f"{library} absent".encode())
+    libraries = ("torch", "onnxruntime", "onnxscript", "segmentation-models-pytorch", "timm",
+                 "cupnet")
+    versions = library_versions(libraries)
+    for library in libraries:
+        digest.update(f"{library} {versions.get(library, 'absent')}".encode())
     sources = {inspect.getmodule(base) for layer in module.modules()
                for base in type(layer).__mro__}
     files = sorted({Path(source.__file__) for source in sources
