@@ -247,6 +247,12 @@ class CupNetConfig:
         partner_doubt: a cup a partner look adds beside the cups found must be doubted
             less than this, too (None: any cup not flagged): a blob elsewhere on the
             anatomy, believed only just, is a made-up cup (item 44).
+        rod_look: ... and, last, an image with a cup still flagged or failed where
+            :func:`cupnet.rod.find_rod` finds a straight rod (the cup's inserter, during
+            impaction) is detected again with the rod painted over, every stage seeing it
+            so, verified but not searched, the same rule taking its detections: the rod
+            cuts the opening in two, and such a cup's rim was mostly fitted to one half
+            (docs/training.md, item 70).
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -317,6 +323,7 @@ class CupNetConfig:
     turned_look_doubt: float | None = None
     partner_look: bool = False
     partner_doubt: float | None = None
+    rod_look: bool = False
 
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:
@@ -387,7 +394,7 @@ SPEED_PRESETS: dict[str, dict[str, object]] = {
     # nor the later looks: segmentation, the rim stages and the solver alone
     "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
                 "second_look": False, "third_look_gamma": None, "high_gamma_look": None,
-                "fourth_look_turned": False},
+                "fourth_look_turned": False, "rod_look": False},
 }
 
 

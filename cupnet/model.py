@@ -94,6 +94,7 @@ from cupnet.rim import (
     strip_offsets,
     thin_rim_starts,
 )
+from cupnet.rod import without_rod
 
 ASSETS = Path(__file__).resolve().parent / "assets"
 DEFAULT_CHECKPOINT = ASSETS / "cupnet_default.safetensors"
@@ -143,6 +144,9 @@ class Look(NamedTuple):
             alone.
         verified: the verification of doubtful cups runs in this look ...
         searched: ... and the search of those it leaves doubtful.
+        rod_removed: every stage sees the images with the straight rod (a cup's inserter)
+            :func:`cupnet.rod.without_rod` finds painted over; an image where it finds none
+            is not looked at again.
     """
 
     mirrored: bool = False
@@ -155,6 +159,7 @@ class Look(NamedTuple):
     partners_verified: bool = True
     verified: bool = True
     searched: bool = True
+    rod_removed: bool = False
 
 
 FIRST_LOOK = Look()
@@ -840,6 +845,8 @@ class CupNet(nn.Module):
         if self.config.fourth_look_turned:
             looks.append(Look(turned=True, below=self.config.turned_look_doubt,
                               empty_images=True, verified=False, searched=False))
+        if self.config.rod_look:
+            looks.append(Look(rod_removed=True, searched=False))
         return looks
 
     def _looked_again(self, found: list[list[CupDetection]], images: list[Tensor],
@@ -868,6 +875,13 @@ class CupNet(nn.Module):
         partners = self.config.max_cups if look.partners else 0
         wanted = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))
                   or (look.empty_images and not cups)]
+        if look.rod_removed:
+            images = list(images)
+            for i in wanted:
+                painted = without_rod(images[i][0].cpu().numpy())
+                images[i] = None if painted is None else torch.from_numpy(painted).to(
+                    images[i])[None]
+            wanted = [i for i in wanted if images[i] is not None]
         paired = [i for i, cups in enumerate(found) if len(cups) < partners and i not in wanted]
         rows = geometry_rows(geometry, len(images))
         paired_look = look._replace(verified=look.verified and look.partners_verified)
