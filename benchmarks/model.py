@@ -420,7 +420,9 @@ def hardware_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
             "impaction, a steel rod 8-16 mm across along the cup's axis, out through the "
             "opening and the field (the cup on it without liner, head or stem yet). The "
             "shipped weights' last stage trained on images with both (docs/training.md, "
-            "item 64; other seeds). Columns as in the degraded table.\n\n"
+            "item 64; other seeds), and a cup still doubted after the other looks is looked "
+            "at once more with a rod found across the image painted over (`rod_look`, item "
+            "70). Columns as in the degraded table.\n\n"
             + markdown_table(ROBUSTNESS_COLUMNS, rows))
 
 

@@ -18,7 +18,7 @@ PROMISED = {
     "fast": {"verify_gate": None},
     "fastest": {"verify_gate": None, "outline_passes": 0, "thin_rim_gate": None,
                 "second_look": False, "third_look_gamma": None, "high_gamma_look": None,
-                "fourth_look_turned": False},
+                "fourth_look_turned": False, "rod_look": False},
 }
 
 

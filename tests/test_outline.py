@@ -606,7 +606,7 @@ def test_images_looked_at_for_a_pairs_cup_alone_are_verified_as_the_look_says(
                      if empty_images else
                      [([1], True, [[]]), ([0, 2], partners_verified, [[100.0], []])])
     assert [look.partners_verified for look in model.later_looks()] == [True, True, False,
-                                                                         True]
+                                                                         True, True]
 
 
 @pytest.mark.parametrize("later", ["turned", "high gamma", None])
@@ -708,28 +708,30 @@ def test_the_mirrored_look_finds_a_pairs_other_cup(monkeypatch, partner_look, hi
 def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_drr,
                                                                       monkeypatch):
     """The shipped model's first look verifies its cups and searches those left doubtful;
-    the mirrored and the two gamma looks verify but do not search, and the turned look does
-    neither (its bar keeps only cups doubted less than any it would verify). The high gamma
-    and the turned looks look at images with no cup found too; the mirrored and the high
-    gamma looks at images with one cup (``partner_look``)."""
+    the mirrored, the two gamma and the rod looks verify but do not search, and the turned
+    look does neither (its bar keeps only cups doubted less than any it would verify). The
+    high gamma and the turned looks look at images with no cup found too; the mirrored and
+    the high gamma looks at images with one cup (``partner_look``). The rod look, last, is
+    the only one to paint over a rod."""
     model, sample = shipped_on_drr
     looks = model.later_looks()
     assert model.config.partner_look
-    assert [(look.mirrored, look.gamma, look.turned, look.empty_images, look.partners)
-            for look in looks] == [
-        (True, None, False, False, True), (False, model.config.third_look_gamma, False, False,
-                                           False),
-        (False, model.config.high_gamma_look, False, True, True),
-        (False, None, True, True, False)]
+    assert [(look.mirrored, look.gamma, look.turned, look.empty_images, look.partners,
+             look.rod_removed) for look in looks] == [
+        (True, None, False, False, True, False),
+        (False, model.config.third_look_gamma, False, False, False, False),
+        (False, model.config.high_gamma_look, False, True, True, False),
+        (False, None, True, True, False, False),
+        (False, None, False, False, False, True)]
     # A cup a partner look adds must be doubted less than partner_doubt.
     assert [look.partners_below for look in looks] == [
-        model.config.partner_doubt, None, model.config.partner_doubt, None]
+        model.config.partner_doubt, None, model.config.partner_doubt, None, None]
     assert model.config.partner_doubt < model.look_again_doubt
     assert model.config.high_gamma_look > 1 > model.config.third_look_gamma
     # Only the turned look has a bar of its own for the cups it lets replace one.
     assert [look.below for look in looks] == [None, None, None,
-                                              model.config.turned_look_doubt]
-    assert looks[-1].below < model.config.verify_gate
+                                              model.config.turned_look_doubt, None]
+    assert looks[3].below < model.config.verify_gate
     calls: list[str] = []
     for name in ("reconsidered", "searched"):
         method = getattr(model, name)
@@ -739,7 +741,7 @@ def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_
     diameter = sample["cup_diameter"][:1].double()
     for look, expected in zip([FIRST_LOOK, *looks], [["reconsidered", "searched"],
                                                      ["reconsidered"], ["reconsidered"],
-                                                     ["reconsidered"], []],
+                                                     ["reconsidered"], [], ["reconsidered"]],
                               strict=True):
         with torch.inference_mode():
             found = model._detect([sample["image"]], geometry, diameter, False, look)[0]
