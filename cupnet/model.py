@@ -861,7 +861,8 @@ class CupNet(nn.Module):
         flagged and is doubted less (and less than ``look.below`` where given); an image with
         no cup takes the new cups that pass those bars; with ``look.partners`` one with fewer
         cups adds such cups found elsewhere, doubted less than ``look.partners_below``
-        (:func:`cupnet.detection.later_look_cups`).
+        (:func:`cupnet.detection.later_look_cups`). With ``look.rod_removed`` it sees only
+        the images where :func:`cupnet.rod.without_rod` finds a rod, painted over.
         In place.
 
         The locator is neither mirror-symmetric nor blind to contrast, so its blob, and
@@ -875,13 +876,12 @@ class CupNet(nn.Module):
         partners = self.config.max_cups if look.partners else 0
         wanted = [i for i, cups in enumerate(found) if any(map(wants_another_look, cups))
                   or (look.empty_images and not cups)]
-        if look.rod_removed:
-            images = list(images)
-            for i in wanted:
-                painted = without_rod(images[i][0].cpu().numpy())
-                images[i] = None if painted is None else torch.from_numpy(painted).to(
-                    images[i])[None]
-            wanted = [i for i in wanted if images[i] is not None]
+        if look.rod_removed:  # the images with a rod alone, seen with it painted over
+            painted = {i: without_rod(images[i][0].cpu().numpy()) for i in wanted}
+            wanted = [i for i in wanted if painted[i] is not None]
+            images = [image if painted.get(i) is None
+                      else torch.from_numpy(painted[i]).to(image)[None]
+                      for i, image in enumerate(images)]
         paired = [i for i, cups in enumerate(found) if len(cups) < partners and i not in wanted]
         rows = geometry_rows(geometry, len(images))
         paired_look = look._replace(verified=look.verified and look.partners_verified)
