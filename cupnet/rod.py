@@ -71,6 +71,21 @@ def _side_means(display: np.ndarray, start: np.ndarray, along: np.ndarray,
     return means
 
 
+def _band_contrast(display: np.ndarray, start: np.ndarray, along: np.ndarray,
+                   normal: np.ndarray, width: float, length: float) -> float:
+    """How much both sides of the band ``start + s along + w normal`` (``s`` in ``[0,
+    length]``, ``w`` in ``[0, width]`` px) differ from its inside, in the same direction:
+    the smaller difference (side less inside; negative where the band is brighter), 0
+    where the two sides differ in opposite directions (the edge between two regions, not
+    a rod), NaN where a line leaves the image."""
+    inner, side_a, side_b = _side_means(display, start, along, normal, length,
+                                        (width / 2, -2 * MARGIN_PX - 2, width + 2 * MARGIN_PX + 2))
+    a, b = side_a - inner, side_b - inner
+    if not np.isfinite([a, b]).all():
+        return math.nan
+    return min(a, b, key=abs) if np.sign(a) == np.sign(b) else 0.0
+
+
 def find_rod(image: np.ndarray) -> np.ndarray | None:
     """The band of a straight rod across ``image``, or None where it shows none.
 
@@ -102,14 +117,10 @@ def find_rod(image: np.ndarray) -> np.ndarray | None:
             low, high = max(0.0, s_j[0]), min(lengths[i], s_j[1])
             if high - low < MIN_LENGTH * side / 2:
                 continue
-            start = starts[i] + along * low
-            edge = math.copysign(1.0, width)
-            inner, outer_a, outer_b = _side_means(
-                display, start, along, normal * edge, high - low,
-                (abs(width) / 2, -2 * MARGIN_PX - 2, abs(width) + 2 * MARGIN_PX + 2))
-            contrast = min(outer_a - inner, outer_b - inner, key=abs)
-            if not (np.sign(outer_a - inner) == np.sign(outer_b - inner)
-                    and abs(contrast) >= CONTRAST):
+            contrast = _band_contrast(display, starts[i] + along * low, along,
+                                      normal * math.copysign(1.0, width), abs(width),
+                                      high - low)
+            if not abs(contrast) >= CONTRAST:  # NaN too
                 continue
             if best is None or high - low > best[0]:
                 best = (high - low, starts[i], along, normal * width, low, high, contrast)
@@ -129,17 +140,13 @@ def _extended(display: np.ndarray, origin: np.ndarray, along: np.ndarray, across
     or nears the field's edge, and a piece of rod left there cuts the opening as before."""
     width = float(np.linalg.norm(across))
     normal = across / width
-    offsets = (width / 2, -2 * MARGIN_PX - 2, width + 2 * MARGIN_PX + 2)
     ends = list(stretch)
     for end, step in ((0, -EXTEND_STEP_PX), (1, EXTEND_STEP_PX)):
         while True:
             s = ends[end] + step
-            start = origin + along * min(s, s - step)
-            inner, side_a, side_b = _side_means(display, start, along, normal,
-                                                EXTEND_STEP_PX, offsets)
-            if not (np.isfinite([inner, side_a, side_b]).all()
-                    and min((side_a - inner) * np.sign(contrast),
-                            (side_b - inner) * np.sign(contrast)) >= abs(contrast) / 2):
+            here = _band_contrast(display, origin + along * min(s, s - step), along, normal,
+                                  width, EXTEND_STEP_PX)
+            if not here * np.sign(contrast) >= abs(contrast) / 2:  # NaN too
                 break
             ends[end] = s
         # At the image's border its sides leave the image first: the rod goes on to it.
