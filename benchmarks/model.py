@@ -37,7 +37,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import cupnet.field  # noqa: E402
 from benchmarks.report import DOC, HEADER, machine, markdown_table, write_section  # noqa: E402
 from cupnet.config import SPEED_PRESETS, apply_speed_preset  # noqa: E402
-from cupnet.crops import enlargement  # noqa: E402
 from cupnet.detection import CupDetection  # noqa: E402
 from cupnet.evaluate import GROSS_DEG  # noqa: E402
 from cupnet.fold import fold_batchnorm  # noqa: E402
@@ -245,37 +244,66 @@ def scored(res: dict[str, float]) -> list:
             f"{res['false_positives']} ({res['false_positives_flagged']} flagged)"]
 
 
+def resized_rows(model: CupNet, sizes: list[int], seed: int, count: int,
+                 args: argparse.Namespace, setting: str, off: int | None, way: str,
+                 flag: str) -> list[list]:
+    """Rows of ``model`` on ``count`` fresh DRRs of each side in ``sizes`` (one ``seed``):
+    as ``model`` takes them, and where it resizes them (its config's ``setting``: enlarge or
+    reduce, said by ``way``), also as given (``setting`` set to ``off``, ``flag 0`` on
+    ``cupnet predict``'s command line)."""
+    shipped, rows = getattr(model.config, setting), []
+    for size in sizes:
+        data = samples(args.eval_config, seed, count, [size])
+        ways = ([("as given", shipped)] if model.resize_factor(size, size) == 1
+                else [(way, shipped), (f"as given (`{flag} 0`)", off)])
+        for name, value in ways:
+            setattr(model.config, setting, value)
+            res = accuracy(model, data)
+            print(size, name, res)
+            rows.append([size, count, name, *scored(res), f"{res['median_theta']:.2f}",
+                         f"{res['median_phi']:.2f}", res["gross"]])
+    setattr(model.config, setting, shipped)
+    return rows
+
+
+SIZE_COLUMNS = ["side (px)", "images", "image", *[f"MAE {n}" for n in NAMES], "detected",
+                "false positives", "median theta", "median phi", "gross failures"]
+
+
 def small_section(model: CupNet, args: argparse.Namespace) -> str:
     """The shipped model on images of ``args.small`` sides, each size's DRRs from one seed:
     where :data:`cupnet.model.MIN_IMAGE_SIDE` comes from; the ``model_small`` section."""
-    rows = []
-    below = model.config.enlarge_below
-    for size in args.small:
-        data = samples(args.eval_config, args.seed + 21, args.small_images, [size])
-        ways = ([("as given", below)] if enlargement(size, size, below,
-                                                    model.config.enlarge_to) == 1
-                else [("enlarged", below), ("as given (`--enlarge-below 0`)", 0)])
-        for way, enlarge_below in ways:
-            model.config.enlarge_below = enlarge_below
-            res = accuracy(model, data)
-            print("small", size, way, res)
-            rows.append([size, args.small_images, way, *scored(res),
-                         f"{res['median_theta']:.2f}", f"{res['median_phi']:.2f}"])
-    model.config.enlarge_below = below
+    rows = resized_rows(model, args.small, args.seed + 21, args.small_images, args,
+                        "enlarge_below", 0, "enlarged", "--enlarge-below")
     return ("## CupNet on small images\n\n"
             f"`python benchmarks/model.py --parts small --runtimes {args.runtimes[0]}`: "
             f"{args.small_images} fresh DRRs a size from `{args.eval_config}` (seed "
             f"{args.seed + 21}), the shipped model, MAE over detected true cups (deg, deg, mm, "
-            "mm, mm) and the angles' medians (deg), false positives as in the accuracy table. "
-            f"The model enlarges an image under {below} px to {model.config.enlarge_to} px "
-            "first (Lanczos; "
+            "mm, mm) and the angles' medians (deg), false positives as in the accuracy table, "
+            "gross failures (anteversion or inclination off by more than 5 deg). The model "
+            f"enlarges an image under {model.config.enlarge_below} px to "
+            f"{model.config.enlarge_to} px first (Lanczos; "
             "`enlarge_below`, docs/training.md, item 56); each such size is scored as given "
             "too. Below some side the poses are far off, not a little worse: `cupnet predict` "
             f"gives an image under {MIN_IMAGE_SIDE} px a side an error row "
-            "(`cupnet.model.MIN_IMAGE_SIDE`).\n\n"
-            + markdown_table(["side (px)", "images", "image", *[f"MAE {n}" for n in NAMES],
-                              "detected", "false positives", "median theta", "median phi"],
-                             rows))
+            "(`cupnet.model.MIN_IMAGE_SIDE`).\n\n" + markdown_table(SIZE_COLUMNS, rows))
+
+
+def large_section(model: CupNet, args: argparse.Namespace) -> str:
+    """The shipped model on images of ``args.large`` sides, reduced as it reduces them and
+    as given; the ``model_large`` section."""
+    rows = resized_rows(model, args.large, args.seed + 61, args.large_images, args,
+                        "reduce_above", None, "reduced", "--reduce-above")
+    return ("## CupNet on large images\n\n"
+            f"`python benchmarks/model.py --parts large --runtimes {args.runtimes[0]}`: "
+            f"{args.large_images} fresh DRRs a size from `{args.eval_config}` (seed "
+            f"{args.seed + 61}; the same scenes at each size, the detector's width drawn as "
+            "for every size, so the pixels are finer), the shipped model, columns as for small "
+            "images. Radiographs and many detectors give 1,500-3,000 px; the networks learnt "
+            f"512 and 768 px. The model reduces an image over {model.config.reduce_above} px "
+            f"to {model.config.reduce_to} px first (area averaging; `reduce_above`, "
+            "docs/training.md, item 71), and each such size is scored as given too.\n\n"
+            + markdown_table(SIZE_COLUMNS, rows))
 
 
 def as_8_bit(sample: dict) -> np.ndarray:
@@ -799,6 +827,9 @@ def main() -> None:
     parser.add_argument("--small", type=int, nargs="*", default=[512, 384, 256, 192, 128],
                         help="square sides (px) to score the shipped model on (--parts small)")
     parser.add_argument("--small-images", type=int, default=30, help="images a small side")
+    parser.add_argument("--large", type=int, nargs="*", default=[1536, 2048, 3072],
+                        help="square sides (px) to score the shipped model on (--parts large)")
+    parser.add_argument("--large-images", type=int, default=60, help="images a large side")
     parser.add_argument("--capture-images", type=int, default=60,
                         help="frames shown as screenshots (--parts captures)")
     parser.add_argument("--degraded-images", type=int, default=180,
@@ -830,7 +861,7 @@ def main() -> None:
                              "model of the first is the shipped one of the gallery")
     parser.add_argument("--parts", nargs="+", default=["speed", "accuracy", "oblong", "fresh"],
                         choices=["speed", "accuracy", "oblong", *SEED_SECTIONS, "against",
-                                 "small", "captures", "degraded", "hardware"],
+                                 "small", "large", "captures", "degraded", "hardware"],
                         help="the sections to measure; the others are left as they are "
                              "(speed alone: for a change that keeps every pose)")
     args = parser.parse_args()
@@ -874,6 +905,10 @@ def main() -> None:
         text = small_section(next(iter(shipped.values())), args)
         print(text)
         write("model_small", text, args)
+    if "large" in args.parts and args.large:
+        text = large_section(next(iter(shipped.values())), args)
+        print(text)
+        write("model_large", text, args)
     # By row name: the runtime, then ", --PRESET" where one applies (loaded above where
     # --presets timed it too).
     seed_models = dict(shipped)

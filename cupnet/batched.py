@@ -21,9 +21,9 @@ refined with the dome's outline, each ambiguous pair ordered by the rim network'
 The metal's display is judged per image as ``detect`` judges it (``metal: auto``,
 :func:`cupnet.polarity.metals_show_bright`). No verification, search, later looks, cut of a
 narrow round field to its square (the batch keeps one image size), enlargement of small
-images (``enlarge_below``) or non-local means for noisy images (``denoise_above``, on the
-CPU at 0.07-0.25 s an image), so it is less accurate
-than ``detect`` (docs/benchmarks.md, `CupNet throughput`); ``detect``'s
+images (``enlarge_below``) or reduction of large ones (``reduce_above``), or non-local
+means for noisy images (``denoise_above``, on the CPU at 0.07-0.25 s an image), so it is
+less accurate than ``detect`` (docs/benchmarks.md, `CupNet throughput`); ``detect``'s
 grown-rim source made it no better (64 DRRs, session 30: theta MAE 3.48 -> 3.51 deg) and is
 left out.
 """

@@ -93,6 +93,13 @@ class CupNetConfig:
             networks, its cups reported in its own pixels (None: none is): the networks
             learnt images of 512 px and more, and place a smaller image's rims worse.
         enlarge_to: the shorter side (px) ``enlarge_below`` enlarges an image to.
+        reduce_above: an image (or its field's square) whose shorter side is over this many
+            pixels is reduced so that it is ``reduce_to`` px (area averaging,
+            :func:`cupnet.crops.resized`) where ``enlarge_below`` would enlarge one, its
+            cups reported in its own pixels (None: none is): the networks learnt images of
+            512 and 768 px, and on 2048 px DRRs reduced to 1024 they failed grossly less
+            often than on the DRRs as rendered (docs/training.md, item 71).
+        reduce_to: the shorter side (px) ``reduce_above`` reduces an image to.
         max_theta_deg: a pose with a larger anteversion (deg) counts as a failure of its
             landmarks: the cup goes on to :meth:`CupNet.detect`'s next landmark source and
             keeps that pose only where none gives one within range (None: any anteversion).
@@ -290,6 +297,8 @@ class CupNetConfig:
     denoise_above: float | None = None
     enlarge_below: int | None = None
     enlarge_to: int = 512
+    reduce_above: int | None = None
+    reduce_to: int = 1024
     max_theta_deg: float | None = None
     grown_rim_scale: float | None = None
     reframe_min_scale: float | None = None
@@ -329,6 +338,11 @@ class CupNetConfig:
         if self.metal not in METAL_DISPLAYS:
             raise ValueError(f"unknown metal display {self.metal!r}; choose from "
                              f"{', '.join(METAL_DISPLAYS)}")
+        if (self.reduce_above is not None and self.enlarge_below is not None
+                and self.reduce_above < self.enlarge_below):
+            raise ValueError(f"reduce_above ({self.reduce_above}) must be at least "
+                             f"enlarge_below ({self.enlarge_below}): a side between them "
+                             "would be both enlarged and reduced")
         kept = self.search_keep + self.search_keep_settled
         if self.search_screen is not None and self.search_screen < kept:
             # The grid poses past the screen have no outline doubt to rank them by.

@@ -57,23 +57,35 @@ def enlargement(height: int, width: int, below: int | None, to: int) -> float:
     return max(1.0, to / short)
 
 
+def reduction(height: int, width: int, above: int | None, to: int) -> float:
+    """The factor (<= 1) that brings an ``height x width`` image's shorter side to ``to``
+    px where it is over ``above`` px: 1 where it is not, or ``above`` is None."""
+    short = min(height, width)
+    if above is None or short <= above:
+        return 1.0
+    return min(1.0, to / short)
+
+
 def rescaled_pixels(u: T, factor: float | Tensor) -> T:
     """Pixel positions ``u`` (px: an array, tensor or number) in the image resized ``factor``
     times, pixel centres at integers in both: ``(u + 0.5) * factor - 0.5``."""
     return (u + 0.5) * factor - 0.5
 
 
-def enlarged(image: Tensor, factor: float) -> Tensor:
-    """``image`` ``(C, H, W)`` in [0, 1] enlarged ``factor`` (> 1) times, Lanczos (OpenCV's
-    8 x 8 kernel), clipped to [0, 1]: ``(C, round(H f), round(W f))``.
+def resized(image: Tensor, factor: float) -> Tensor:
+    """``image`` ``(C, H, W)`` in [0, 1] resized ``factor`` times: enlarged (> 1) by Lanczos
+    (OpenCV's 8 x 8 kernel), reduced (< 1) by area averaging (each new pixel the mean of
+    the old ones it covers: no aliasing, and the noise averaged down as a detector's
+    larger pixels would), clipped to [0, 1]: ``(C, round(H f), round(W f))``.
 
     Pixel centres at integers in both: the image's ``u`` lies at ``(u + 0.5) f - 0.5``, with
     ``f`` the factor itself whatever the sizes' rounding (OpenCV scales so where it is given
     ``fx`` and no size), so a principal point and a pixel spacing map exactly.
     """
     dtype = np.float64 if image.dtype == torch.float64 else np.float32
+    how = cv2.INTER_LANCZOS4 if factor > 1 else cv2.INTER_AREA
     planes = [cv2.resize(plane.numpy().astype(dtype, copy=False), None, fx=factor, fy=factor,
-                         interpolation=cv2.INTER_LANCZOS4)
+                         interpolation=how)
               for plane in image.detach().cpu()]
     return torch.from_numpy(np.stack(planes).clip(0, 1)).to(image.device, image.dtype)
 

@@ -63,6 +63,9 @@ class CupDetection:
         enlarged: the factor the image (or its round field's square) was enlarged by before
             the networks, its shorter side under the model's ``enlarge_below``; None where
             it was not.
+        reduced: the factor (< 1) the image (or its round field's square) was reduced by
+            before the networks, its shorter side over the model's ``reduce_above``; None
+            where it was not.
     """
 
     pose: np.ndarray
@@ -83,6 +86,7 @@ class CupDetection:
     noise: float | None = None
     denoised: bool | None = None
     enlarged: float | None = None
+    reduced: float | None = None
 
 
 def moved(cup: CupDetection, offset: tuple[int, int], shape: tuple[int, int]
@@ -101,11 +105,12 @@ def moved(cup: CupDetection, offset: tuple[int, int], shape: tuple[int, int]
                    outline=None if cup.outline is None else cup.outline + (du, dv))
 
 
-def shrunk(cup: CupDetection, factor: float, shape: tuple[int, int]) -> CupDetection:
-    """``cup`` found in an image enlarged ``factor`` times (:func:`cupnet.crops.enlarged`),
-    in the pixels of that image before, of ``shape`` ``(H, W)``: a pixel ``u`` there lies at
+def unresized(cup: CupDetection, factor: float, shape: tuple[int, int]) -> CupDetection:
+    """``cup`` found in an image resized ``factor`` times (:func:`cupnet.crops.resized`), in
+    the pixels of that image before, of ``shape`` ``(H, W)``: a pixel ``u`` there lies at
     ``(u + 0.5) / factor - 0.5`` here, lengths divide by ``factor`` (the pose, in mm, is the
-    same in both), the mask is area-averaged to ``shape``; ``enlarged`` says ``factor``."""
+    same in both), the mask is resampled to ``shape`` (area-averaged where it shrinks);
+    ``enlarged`` (``factor > 1``) or ``reduced`` (``< 1``) says ``factor``."""
     def back(points: np.ndarray) -> np.ndarray:
         return (points + 0.5) / factor - 0.5
 
@@ -115,7 +120,8 @@ def shrunk(cup: CupDetection, factor: float, shape: tuple[int, int]) -> CupDetec
             else cv2.resize(cup.mask, shape[::-1], interpolation=cv2.INTER_AREA))
     return replace(cup, ellipse=ellipse, landmarks=back(cup.landmarks),
                    residual_px=cup.residual_px / factor, mask=mask,
-                   outline=None if cup.outline is None else back(cup.outline), enlarged=factor)
+                   outline=None if cup.outline is None else back(cup.outline),
+                   **({"enlarged": factor} if factor > 1 else {"reduced": factor}))
 
 
 def found_cup_status(status: str) -> str:

@@ -45,12 +45,13 @@ from cupnet.batchwise import atan2
 from cupnet.config import TARGET_ACCURACY, CupNetConfig
 from cupnet.crops import (
     ellipse_crop_affine,
-    enlarged,
     enlargement,
     frame_ellipse,
     letterbox_affine,
+    reduction,
     resample_batch,
     rescaled_pixels,
+    resized,
     square_windows,
     to_image,
 )
@@ -62,7 +63,7 @@ from cupnet.detection import (
     later_look_cups,
     moved,
     same_place,
-    shrunk,
+    unresized,
     wants_another_look,
 )
 from cupnet.ellipse import fit_ellipse
@@ -730,12 +731,12 @@ class CupNet(nn.Module):
                           else (field[0] - crop[0], field[1] - crop[1], field[2])
                           for field, crop in zip(fields, crops, strict=True)]
             # An image (or field) well under the networks' training sizes is enlarged to
-            # their smallest first (docs/training.md, item 56).
+            # their smallest first (docs/training.md, item 56), one far over them reduced
+            # (item 71).
             sides = [tuple(image.shape[-2:]) for image in image_list]
-            factors = [enlargement(*side, self.config.enlarge_below, self.config.enlarge_to)
-                       for side in sides]
-            if any(factor > 1 for factor in factors):
-                image_list, geometry, fields = _enlarged(image_list, geometry, fields, factors)
+            factors = [self.resize_factor(*side) for side in sides]
+            if any(factor != 1 for factor in factors):
+                image_list, geometry, fields = _resized(image_list, geometry, fields, factors)
             with memoised_strips():
                 found = self._detect(image_list, geometry, diameter, return_masks,
                                      fields=fields)
@@ -747,10 +748,18 @@ class CupNet(nn.Module):
                      for cups, (noise, cleaned), size in zip(found, noises, diameter.tolist(),
                                                              strict=True)]
             found = with_second_poses(found, geometry, diameter)
-            found = [cups if factor == 1 else [shrunk(cup, factor, side) for cup in cups]
+            found = [cups if factor == 1 else [unresized(cup, factor, side) for cup in cups]
                      for cups, factor, side in zip(found, factors, sides, strict=True)]
             return [cups if crop is None else [moved(cup, crop[:2], shape) for cup in cups]
                     for cups, crop, shape in zip(found, crops, shapes, strict=True)]
+
+    def resize_factor(self, height: int, width: int) -> float:
+        """The factor :meth:`detect` resizes an ``height x width`` image (or its round
+        field's square) by before the networks: up to ``enlarge_to`` where its shorter side
+        is under ``enlarge_below``, down to ``reduce_to`` where over ``reduce_above``, else 1."""
+        cfg = self.config
+        return (enlargement(height, width, cfg.enlarge_below, cfg.enlarge_to)
+                * reduction(height, width, cfg.reduce_above, cfg.reduce_to))
 
     def with_image_displays(self, found: list[list[CupDetection]], images: list[Tensor]
                             ) -> list[list[CupDetection]]:
@@ -1845,12 +1854,12 @@ def _cropped(images: list[Tensor], geometry: Geometry,
     return out, Geometry.from_rows(rows)
 
 
-def _enlarged(images: list[Tensor], geometry: Geometry,
-              fields: list[tuple[float, float, float] | None], factors: list[float]
-              ) -> tuple[list[Tensor], Geometry, list[tuple[float, float, float] | None]]:
-    """``images`` ``(1, H, W)`` enlarged by their ``factors`` (1: kept;
-    :func:`cupnet.crops.enlarged`), with ``geometry`` and the round ``fields`` ``(cx, cy, r)``
-    where the enlargement puts them: the pixel spacing divided by the factor, a point ``u``
+def _resized(images: list[Tensor], geometry: Geometry,
+             fields: list[tuple[float, float, float] | None], factors: list[float]
+             ) -> tuple[list[Tensor], Geometry, list[tuple[float, float, float] | None]]:
+    """``images`` ``(1, H, W)`` resized by their ``factors`` (1: kept;
+    :func:`cupnet.crops.resized`), with ``geometry`` and the round ``fields`` ``(cx, cy, r)``
+    where the resizing puts them: the pixel spacing divided by the factor, a point ``u``
     at ``(u + 0.5) f - 0.5`` (:func:`cupnet.crops.rescaled_pixels`)."""
     rows = geometry_rows(geometry, len(images))  # a new tensor: the caller's is kept
     scale = rows.new_tensor(factors)
@@ -1859,7 +1868,7 @@ def _enlarged(images: list[Tensor], geometry: Geometry,
     fields = [field if field is None else (rescaled_pixels(field[0], f),
                                            rescaled_pixels(field[1], f), field[2] * f)
               for field, f in zip(fields, factors, strict=True)]
-    return ([image if f == 1 else enlarged(image, f)
+    return ([image if f == 1 else resized(image, f)
              for image, f in zip(images, factors, strict=True)],
             Geometry.from_rows(rows), fields)
 

@@ -135,6 +135,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "px for the shipped one) before the networks (default: the "
                              "model's enlarge_below, 496 for the shipped one; 0: never); the "
                              "enlarged column says by how much; docs/training.md, item 56")
+    parser.add_argument("--reduce-above", type=int, metavar="PX",
+                        help="reduce an image (or its round field's square) whose shorter side "
+                             "is over this many pixels to the model's reduce_to (1024 px for "
+                             "the shipped one) before the networks, by area averaging "
+                             "(default: the model's reduce_above, 1024 for the shipped one; 0: "
+                             "never); the reduced column says by how much; docs/training.md, "
+                             "item 71")
     parser.add_argument("--min-score", type=float, metavar="PROBABILITY",
                         help="drop a cup whose locator blob's mean probability is below this "
                              "(default: the model's min_score, 0.8 for the shipped one; 0 "
@@ -438,7 +445,7 @@ def summarise(records: Iterable[dict]) -> dict:
     the mean of the images' ``seconds`` (each its share of its batch's time: batches run
     two at once, so it exceeds the run's wall time per image)."""
     statuses: Counter[str] = Counter()
-    images = cups = check = bright = cleaned = enlarged = patient_spacing = 0
+    images = cups = check = bright = cleaned = enlarged = reduced = patient_spacing = 0
     seconds = 0.0
     for record in records:
         images += 1
@@ -451,11 +458,13 @@ def summarise(records: Iterable[dict]) -> dict:
         bright += record["rows"][0].get("metal") == "bright"
         cleaned += str(record["rows"][0].get("denoised")) == "1"
         enlarged += record["rows"][0].get("enlarged") not in (None, "")
+        reduced += record["rows"][0].get("reduced") not in (None, "")
         seconds += float(record["rows"][0].get("seconds") or 0.0)
     errors = {k: v for k, v in statuses.items() if k.startswith("error")}
     return {"images": images, "cups": cups, "ok": statuses["ok"],
             "ambiguous": statuses["ambiguous"], "check": check, "no_cup": statuses["no_cup"],
             "metal_bright": bright, "denoised": cleaned, "enlarged": enlarged,
+            "reduced": reduced,
             "patient_spacing": patient_spacing,
             "errors": sum(errors.values()), "error_reasons": errors,
             "seconds_per_image": seconds / images if images else None}
@@ -528,6 +537,11 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
             for source in found]
 
 
+# The networks learnt images of 512 px and more: reducing one below that loses more than
+# it gains, and would undo the enlargement of small ones (CupNetConfig.enlarge_below).
+MIN_REDUCED_SIDE = 512
+
+
 def _check_args(args: argparse.Namespace) -> str | None:
     if args.resume and args.overwrite:
         return "--resume and --overwrite exclude each other"
@@ -535,6 +549,9 @@ def _check_args(args: argparse.Namespace) -> str | None:
         return "--batch-size must be >= 1"
     if args.threads < 1:
         return "--threads must be >= 1"
+    if args.reduce_above is not None and 0 < args.reduce_above < MIN_REDUCED_SIDE:
+        return (f"--reduce-above must be 0 (never) or at least {MIN_REDUCED_SIDE} px, the "
+                "networks' smallest training size")
     if args.rotate and args.landmarks is not None:
         return "--rotate turns the images for the network; --landmarks are solved as given"
     if args.landmarks is None:
@@ -696,6 +713,8 @@ class Predictor:
                 title += f", denoised (noise {cups[0].noise:.3f})"
             if cups and cups[0].enlarged:
                 title += f", enlarged {cups[0].enlarged:.2f} times"
+            if cups and cups[0].reduced:
+                title += f", reduced to {cups[0].reduced:.2f} of its size"
             record["overlay"] = self._written(f"overlays/{output_name(frame.name, '.png')}",
                                               draw_overlay(frame.image, drawings, title),
                                               frame.name)
@@ -830,6 +849,9 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     if summary.get("enlarged"):
         lines.append(f"  {summary['enlarged']} image(s) smaller than the networks' training, "
                      "enlarged first: the factor in results.csv's enlarged column")
+    if summary.get("reduced"):
+        lines.append(f"  {summary['reduced']} image(s) much larger than the networks' "
+                     "training, reduced first: the factor in results.csv's reduced column")
     lines += [f"  warning: {text}" for text in warnings.values()]
     lines.append(f"results: {out / 'results.csv'}, results.json and review.html"
                  + (f"; overlays: {out / 'overlays'}" if overlays else "")
@@ -855,9 +877,12 @@ def _model_settings(args: argparse.Namespace) -> dict[str, object]:
     """The model settings the command line overrides (flags not given keep the model's)."""
     given = {"check_doubt": args.check_doubt, "metal": args.metal,
              "min_score": args.min_score, "denoise_above": args.denoise_above,
-             "enlarge_below": args.enlarge_below,
+             "enlarge_below": args.enlarge_below, "reduce_above": args.reduce_above,
              "round_field": False if args.keep_outside_field else None}
-    return {name: value for name, value in given.items() if value is not None}
+    settings = {name: value for name, value in given.items() if value is not None}
+    if settings.get("reduce_above") == 0:  # 0: never, as for --enlarge-below
+        settings["reduce_above"] = None
+    return settings
 
 
 # The options that shape results.csv's rows (as argparse names them), with how to name each
@@ -866,6 +891,7 @@ def _model_settings(args: argparse.Namespace) -> dict[str, object]:
 RESULT_OPTIONS = {"preset": "--fast / --fastest", "rotate": "--rotate", "metal": "--metal",
                   "check_doubt": "--check-doubt", "min_score": "--min-score",
                   "denoise_above": "--denoise-above", "enlarge_below": "--enlarge-below",
+                  "reduce_above": "--reduce-above",
                   "keep_outside_field": "--keep-outside-field", "meta": "--meta",
                   "sdd": "--sdd", "pixel_spacing": "--pixel-spacing",
                   "cup_diameter": "--cup-diameter", "principal_point": "--principal-point",

@@ -1,5 +1,5 @@
 """benchmarks/model.py's degraded exports (what each does to a DRR, its geometry and truth)
-and its robustness tables (degraded images, surgical hardware)."""
+and its robustness tables (degraded images, surgical hardware, small and large images)."""
 
 from __future__ import annotations
 
@@ -22,10 +22,13 @@ from benchmarks.model import (
     halved,
     hardware_section,
     jpeg_exported,
+    large_section,
     noisier,
+    small_section,
 )
 from cupnet.ellipse import conic_to_params
 from cupnet.geometry import Geometry, pose_to_radians, project_rim, rim_conic
+from cupnet.model import CupNet
 from data_synth import SynthConfig, synthesize
 
 
@@ -139,3 +142,37 @@ def test_each_hardware_row_scores_the_same_scenes_with_its_hardware(monkeypatch)
     assert [config for config, *_ in drawn] == [{**eval_fields, **fields}
                                                  for fields in HARDWARE.values()]
     assert [rest for _, *rest in drawn] == [[51, 4, [512]]] * len(HARDWARE)
+
+
+def test_each_size_is_scored_as_the_model_resizes_it_and_as_given(monkeypatch):
+    """A side the model resizes (under ``enlarge_below``, over ``reduce_above``) gets a row
+    as it resizes it and a row with the setting off, as ``cupnet predict``'s flag at 0
+    sets it; any other side one row; the setting is the model's again after."""
+    config = SimpleNamespace(enlarge_below=496, enlarge_to=512, reduce_above=1024,
+                             reduce_to=1024)
+    stub = SimpleNamespace(config=config)
+    stub.resize_factor = lambda height, width: CupNet.resize_factor(stub, height, width)
+    settings = []
+    monkeypatch.setattr(bench_model, "samples", lambda *_: [])
+    monkeypatch.setattr(bench_model, "accuracy", lambda *_: settings.append(
+        (config.enlarge_below, config.reduce_above)) or STUB_SCORES)
+    args = argparse.Namespace(eval_config="configs/synth_eval.yaml", seed=0, runtimes=["onnx"],
+                              small=[512, 256], small_images=3, large=[1024, 2048],
+                              large_images=2)
+    cells = {"MAE theta": "1.5", "detected": "75.0 % of 8", "median phi": "0.50",
+             "gross failures": "4"}
+    for section, sizes, ways, tried in (
+            (small_section, ["512", "256", "256"],
+             ["as given", "enlarged", "as given (`--enlarge-below 0`)"],
+             [(496, 1024), (496, 1024), (0, 1024)]),
+            (large_section, ["1024", "2048", "2048"],
+             ["as given", "reduced", "as given (`--reduce-above 0`)"],
+             [(496, 1024), (496, 1024), (496, None)])):
+        settings.clear()
+        header, *rows = table_cells(section(stub, args), "side (px)")
+        assert [row[0] for row in rows] == sizes and [row[2] for row in rows] == ways
+        for row in rows:
+            assert {key: value for key, value in zip(header, row, strict=True)
+                    if key in cells} == cells
+        assert settings == tried
+        assert (config.enlarge_below, config.reduce_above) == (496, 1024)

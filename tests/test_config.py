@@ -56,3 +56,10 @@ def test_an_unknown_key_is_refused_by_name() -> None:
     """A misspelt key in a checkpoint's JSON had silently left its field at the default."""
     with pytest.raises(ValueError, match=r"^unknown CupNet config keys: \['verify_gat'\]$"):
         CupNetConfig.from_dict({"verify_gat": 1.0, "rim_channels": 8})
+
+
+def test_a_side_both_enlarged_and_reduced_is_refused() -> None:
+    # A bar to reduce under the bar to enlarge would leave sides between them both.
+    with pytest.raises(ValueError, match=r"reduce_above \(400\) must be at least enlarge_below"):
+        CupNetConfig(enlarge_below=496, reduce_above=400)
+    assert CupNetConfig(enlarge_below=496, reduce_above=496).reduce_above == 496

@@ -8,7 +8,13 @@ import pytest
 import torch
 from cup_cases import detection
 
-from cupnet.detection import CupDetection, distinct_cups, later_look_cups, same_place, shrunk
+from cupnet.detection import (
+    CupDetection,
+    distinct_cups,
+    later_look_cups,
+    same_place,
+    unresized,
+)
 from cupnet.ellipse import ellipse_points
 from cupnet.landmarks import ellipse_coverage
 
@@ -124,10 +130,11 @@ def test_a_later_looks_cup_replaces_a_flagged_piece_of_it_once():
     assert later_look_cups([aside], [cup]) == [aside]
 
 
-def test_a_cup_found_in_an_enlarged_image_shrinks_back_to_its_own_pixels():
-    # A rim of the 300 x 400 image, drawn into its enlargement by 512 / 300 (pixel centres
+@pytest.mark.parametrize("factor", [512 / 300, 0.5, 1024 / 1500])
+def test_a_cup_found_in_a_resized_image_comes_back_to_its_own_pixels(factor: float):
+    # A rim of the 300 x 400 image, drawn into its resizing by the factor (pixel centres
     # at integers: u -> (u + 0.5) f - 0.5), comes back as the image's own rim.
-    factor, shape = 512 / 300, (300, 400)
+    shape = (300, 400)
     rim = np.array([210.4, 140.7, 60.0, 35.0, 25.0])
     big_rim = np.concatenate([(rim[:2] + 0.5) * factor - 0.5, rim[2:4] * factor, rim[4:]])
     angles = torch.linspace(0, 6, 16, dtype=torch.float64)
@@ -137,12 +144,13 @@ def test_a_cup_found_in_an_enlarged_image_shrinks_back_to_its_own_pixels():
     coverage = ellipse_coverage(torch.from_numpy(big_rim)[None, None], *big_shape)[0, 0]
     cup = replace(detection(list(big_rim)), landmarks=big_points, outline=big_points[:5],
                   residual_px=0.5, mask=coverage.numpy())
-    back = shrunk(cup, factor, shape)
+    back = unresized(cup, factor, shape)
     np.testing.assert_allclose(back.ellipse, rim, atol=1e-12)
     np.testing.assert_allclose(back.landmarks, points, atol=1e-12)
     np.testing.assert_allclose(back.outline, points[:5], atol=1e-12)
     assert back.residual_px == pytest.approx(0.5 / factor)
-    assert back.enlarged == factor and back.pose is cup.pose
+    said = (back.enlarged, back.reduced) if factor > 1 else (back.reduced, back.enlarged)
+    assert said == (factor, None) and back.pose is cup.pose
     # The mask, area-averaged, covers the rim's area in the image's pixels.
     assert back.mask.shape == shape
     assert back.mask.sum() == pytest.approx(np.pi * rim[2] * rim[3], rel=0.01)

@@ -18,13 +18,14 @@ from cupnet.config import SPEED_PRESETS, CupNetConfig, apply_speed_preset
 from cupnet.crops import (
     ellipse_crop_affine,
     ellipse_to_view,
-    enlarged,
     enlargement,
     frame_ellipse,
     lattice_bilinear,
     letterbox_affine,
+    reduction,
     resample,
     resample_stacked,
+    resized,
     square_windows,
     to_image,
     to_view,
@@ -243,15 +244,16 @@ def test_letterbox_maps_back_exactly(height, width):
     assert torch.allclose(to_image(centre, affine)[0], truth[0, 0, :2], atol=0.05 * affine[0, 0])
 
 
-@pytest.mark.parametrize("factor", [4 / 3, 2.0, 512 / 300])
-def test_enlarged_puts_each_point_where_the_factor_says(factor: float) -> None:
+@pytest.mark.parametrize("factor", [4 / 3, 2.0, 512 / 300, 0.5, 1024 / 1536, 0.37])
+def test_resized_puts_each_point_where_the_factor_says(factor: float) -> None:
     # A Gaussian spot's centroid moves to (u + 0.5) f - 0.5 exactly, whatever the rounding
-    # of the enlarged size; Lanczos' overshoot is clipped to the display range.
+    # of the resized size, enlarged (Lanczos, its overshoot clipped to the display range)
+    # or reduced (area averaging).
     height, width, centre = 101, 131, np.array([60.3, 47.8])
     v, u = np.mgrid[0:height, 0:width]
     spot = np.exp(-((u - centre[0]) ** 2 + (v - centre[1]) ** 2) / (2 * 6.0 ** 2))
     image = torch.from_numpy(np.stack([spot, 1 - spot]))
-    big = enlarged(image, factor)
+    big = resized(image, factor)
     assert big.shape == (2, round(height * factor), round(width * factor))
     assert big.dtype == image.dtype and 0 <= big.min() and big.max() <= 1
     vv, uu = np.mgrid[0:big.shape[1], 0:big.shape[2]]
@@ -270,32 +272,50 @@ def test_enlargement_brings_a_short_side_under_the_bar_to_the_target(
     assert enlargement(height, width, below, 512) == pytest.approx(factor)
 
 
-@pytest.mark.parametrize(("height", "width"), [(300, 400), (420, 260)])
-def test_detect_enlarges_a_small_image_and_reports_its_cups_in_its_own_pixels(
-        height: int, width: int) -> None:
-    """An image under ``enlarge_below`` gives what its enlargement by hand (with the
-    geometry's spacing and principal point moved so) gives, in its own pixels."""
-    model = CupNet(replace(TINY, enlarge_below=512))
+@pytest.mark.parametrize(("height", "width", "above", "factor"),
+                         [(2048, 2048, 1024, 0.5), (1536, 3000, 1024, 1024 / 1536),
+                          (1025, 1025, 1024, 1024 / 1025), (1024, 4000, 1024, 1.0),
+                          (2048, 2048, None, 1.0), (2048, 2048, 1500, 0.5),
+                          (900, 900, 800, 1.0)])
+def test_reduction_brings_a_short_side_over_the_bar_to_the_target(
+        height: int, width: int, above: int | None, factor: float) -> None:
+    # Never an enlargement: a bar under the target leaves the sides between them as they are.
+    assert reduction(height, width, above, 1024) == pytest.approx(factor)
+
+
+@pytest.mark.parametrize(("height", "width", "settings", "side"),
+                         [(300, 400, {"enlarge_below": 512}, 512),
+                          (420, 260, {"enlarge_below": 512}, 512),
+                          (700, 900, {"reduce_above": 600, "reduce_to": 512}, 512),
+                          (1000, 760, {"reduce_above": 600, "reduce_to": 600}, 600)])
+def test_detect_resizes_an_image_off_its_training_sizes_and_reports_its_cups_in_its_pixels(
+        height: int, width: int, settings: dict, side: int) -> None:
+    """An image under ``enlarge_below`` (or over ``reduce_above``) gives what its resizing
+    by hand (with the geometry's spacing and principal point moved so) gives, in its own
+    pixels."""
+    model = CupNet(replace(TINY, **settings))
     model.locator, model.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
     truth = [[20.0, 40.0, 5.0, -8.0, 280.0]]
-    image, geometry, ellipse = scene(truth, height, width, spacing=0.7)
+    image, geometry, ellipse = scene(truth, height, width, spacing=0.7 * 400 / side)
     found = model.detect(image.float()[None], geometry, 52.0)[0]
-    factor = 512 / min(height, width)
+    factor = side / min(height, width)
     by_hand = replace(geometry, pixel_spacing=geometry.pixel_spacing / factor,
                       principal_u=(geometry.principal_u + 0.5) * factor - 0.5,
                       principal_v=(geometry.principal_v + 0.5) * factor - 0.5)
-    model.config.enlarge_below = None
-    big = model.detect(enlarged(image.float(), factor)[None], by_hand, 52.0)[0]
-    assert len(found) == len(big) == 1
-    cup, other = found[0], big[0]
-    assert cup.enlarged == pytest.approx(factor) and other.enlarged is None
+    model.config.enlarge_below = model.config.reduce_above = None
+    resized_cups = model.detect(resized(image.float(), factor)[None], by_hand, 52.0)[0]
+    assert len(found) == len(resized_cups) == 1
+    cup, other = found[0], resized_cups[0]
+    said = (cup.enlarged, cup.reduced) if factor > 1 else (cup.reduced, cup.enlarged)
+    assert said == (pytest.approx(factor), None)
+    assert other.enlarged is None and other.reduced is None
     np.testing.assert_array_equal(cup.pose, other.pose)
     np.testing.assert_allclose(cup.landmarks, (other.landmarks + 0.5) / factor - 0.5)
     np.testing.assert_allclose(cup.ellipse[2:4], other.ellipse[2:4] / factor)
     assert cup.residual_px == pytest.approx(other.residual_px / factor)
     assert cup.mask.shape == (height, width)
     # ... and near the true rim in the image's own pixels.
-    assert np.abs(cup.ellipse[:2] - ellipse.numpy()[0, :2]).max() < 0.5
+    assert np.abs(cup.ellipse[:2] - ellipse.numpy()[0, :2]).max() < 0.5 / min(factor, 1)
     assert abs(cup.pose[0] - truth[0][0]) < 2.0 and abs(cup.pose[1] - truth[0][1]) < 1.0
 
 

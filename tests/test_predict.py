@@ -282,6 +282,7 @@ REFUSED_CHANGES = [
     (["--principal-point", "100", "120"], "--principal-point: not given -> [100.0, 120.0]"),
     (["--assume-defaults"], "--assume-defaults: not given -> True"),
     (["--check-doubt", "0.5"], "--check-doubt: not given -> 0.5"),
+    (["--reduce-above", "0"], "--reduce-above: not given -> 0"),
 ]
 
 
@@ -512,6 +513,9 @@ def test_folder_without_images_and_bad_checkpoint(tmp_path: Path, capsys: pytest
     assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o3"),
                  "--sdd", "0"]) == 2
     assert "--sdd must be a positive number of mm, got 0.0" in capsys.readouterr().err
+    assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o5"),
+                 "--reduce-above", "300"]) == 2
+    assert "--reduce-above must be 0 (never) or at least 512 px" in capsys.readouterr().err
     assert not (tmp_path / "o3" / "results.csv").exists()
     # A --meta that cannot be read (here a folder) is named, not a traceback.
     assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o4"),
@@ -741,6 +745,36 @@ def test_a_small_image_is_enlarged_first_and_reported_in_its_own_pixels(
     assert "enlarged first" not in capsys.readouterr().out
 
 
+def test_a_large_image_is_reduced_first_and_reported_in_its_own_pixels(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A DRR rendered at 2048 px: the shipped model reduces it to half (area averaging) before
+    its networks, says so, and reports the cup in the image's own pixels near the truth;
+    ``--reduce-above 0`` runs it as it is."""
+    from data_synth.config import SynthConfig
+    from data_synth.dataset import synthesize
+
+    sample = synthesize(SynthConfig(p_no_cup=0.0, image_size=(2048, 2048)), 5, 2)
+    cv2.imwrite(str(tmp_path / "large.png"),
+                np.round(sample["image"][0].numpy() * 65535).astype(np.uint16))
+    sdd, spacing, u0, v0 = sample["geometry"].tolist()
+    args = ["predict", str(tmp_path / "large.png"), "--sdd", str(sdd), "--pixel-spacing",
+            str(spacing), "--principal-point", str(u0), str(v0), "--cup-diameter",
+            str(float(sample["cup_diameter"][0])), "--quiet", "--no-overlays"]
+    assert main([*args, "--out", str(tmp_path / "out")]) == 0
+    [row] = read_csv(tmp_path / "out" / "results.csv")
+    assert row["status"] == "ok" and float(row["reduced"]) == 0.5 and row["enlarged"] == ""
+    centre = sample["ellipse"][0, :2].numpy()
+    assert np.abs([float(row["ellipse_cx_px"]), float(row["ellipse_cy_px"])] - centre).max() < 1.0
+    error = np.abs([float(row[c]) for c in POSE_COLUMNS] - sample["pose"][0].numpy())
+    assert (error < [1.0, 1.0, 1.0, 1.0, 8.0]).all()
+    printed = capsys.readouterr().out
+    assert "1 image(s) much larger than the networks' training, reduced first" in printed
+    assert main([*args, "--out", str(tmp_path / "as_is"), "--reduce-above", "0"]) == 0
+    [row] = read_csv(tmp_path / "as_is" / "results.csv")
+    assert row["status"] == "ok" and row["reduced"] == ""
+    assert "reduced first" not in capsys.readouterr().out
+
+
 def test_spacing_from_patient_plane_pixel_spacing_is_recorded_and_reported(
         tmp_path: Path, blind_checkpoint: Path, capsys: pytest.CaptureFixture) -> None:
     stored = np.zeros((256, 320), np.uint16)
@@ -908,7 +942,9 @@ def test_overlay_text_gives_the_standard_errors_where_there_are_any() -> None:
                           (["--denoise-above", "0.02"], None, {"denoise_above": 0.02}),
                           # Never denoise: standard JSON has no Infinity, so null.
                           (["--denoise-above", "inf"], None, {"denoise_above": None}),
-                          (["--enlarge-below", "0"], None, {"enlarge_below": 0})])
+                          (["--enlarge-below", "0"], None, {"enlarge_below": 0}),
+                          (["--reduce-above", "1500"], None, {"reduce_above": 1500}),
+                          (["--reduce-above", "0"], None, {"reduce_above": None})])
 def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
         tmp_path: Path, flags: list[str], preset: str | None, changed: dict) -> None:
     """``--fast`` turns the model's verification off, ``--fastest`` also its outline
@@ -917,8 +953,8 @@ def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
     checkpoint's, which was the flag's), ``--metal`` how the images
     show metal, ``--keep-outside-field`` keeps cups outside a round field, ``--min-score``
     sets the weakest locator blob kept, ``--denoise-above`` the noise from which images are
-    denoised, ``--enlarge-below`` the side under which they are enlarged; every other setting
-    is the checkpoint's."""
+    denoised, ``--enlarge-below`` the side under which they are enlarged, ``--reduce-above``
+    that over which they are reduced (0: never); every other setting is the checkpoint's."""
     stored = {"detect_threshold": 2.0, "verify_gate": 1.0, "check_doubt": 1.8,
               "outline_passes": 3, "thin_rim_gate": 0.3, "ambiguous_by_doubt": True,
               "round_field": True, "min_score": 0.8}

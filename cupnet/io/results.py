@@ -38,10 +38,11 @@ SD_COLUMNS = ("anteversion_sd_deg", "inclination_sd_deg", "k_sd_mm", "l_sd_mm", 
 # did (blank where not judged: the model's denoise_above is None or infinite, or landmarks
 # given; the noise blank too under the bar).
 NOISE_COLUMNS = ("noise", "denoised")
-# Last, the factor the model enlarged a small image by first (blank where it did not).
+# Last, the factor the model enlarged a small image by first, or reduced a large one by
+# (blank where it did not).
 RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px",
                   "seconds", *ALT_COLUMNS, *CHECK_COLUMNS, "metal", *MURRAY_COLUMNS,
-                  *SD_COLUMNS, *NOISE_COLUMNS, "enlarged")
+                  *SD_COLUMNS, *NOISE_COLUMNS, "enlarged", "reduced")
 
 
 def _finite(values: Iterable[Any]) -> list[float | None]:
@@ -76,6 +77,8 @@ def cup_row(name: str, index: int, cup: Any, seconds: float) -> dict:
         row["denoised"] = int(cup.denoised)
     if cup.enlarged is not None:
         row["enlarged"] = float(cup.enlarged)
+    if cup.reduced is not None:
+        row["reduced"] = float(cup.reduced)
     return row
 
 
