@@ -253,6 +253,7 @@ def resized_rows(model: CupNet, sizes: list[int], seed: int, count: int,
     ``cupnet predict``'s command line)."""
     shipped, rows = getattr(model.config, setting), []
     for size in sizes:
+        setattr(model.config, setting, shipped)  # the row before may have turned it off
         data = samples(args.eval_config, seed, count, [size])
         ways = ([("as given", shipped)] if model.resize_factor(size, size) == 1
                 else [(way, shipped), (f"as given (`{flag} 0`)", off)])

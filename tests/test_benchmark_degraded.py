@@ -157,17 +157,17 @@ def test_each_size_is_scored_as_the_model_resizes_it_and_as_given(monkeypatch):
     monkeypatch.setattr(bench_model, "accuracy", lambda *_: settings.append(
         (config.enlarge_below, config.reduce_above)) or STUB_SCORES)
     args = argparse.Namespace(eval_config="configs/synth_eval.yaml", seed=0, runtimes=["onnx"],
-                              small=[512, 256], small_images=3, large=[1024, 2048],
+                              small=[256, 384, 512], small_images=3, large=[2048, 1536, 1024],
                               large_images=2)
     cells = {"MAE theta": "1.5", "detected": "75.0 % of 8", "median phi": "0.50",
              "gross failures": "4"}
     for section, sizes, ways, tried in (
-            (small_section, ["512", "256", "256"],
-             ["as given", "enlarged", "as given (`--enlarge-below 0`)"],
-             [(496, 1024), (496, 1024), (0, 1024)]),
-            (large_section, ["1024", "2048", "2048"],
-             ["as given", "reduced", "as given (`--reduce-above 0`)"],
-             [(496, 1024), (496, 1024), (496, None)])):
+            (small_section, ["256", "256", "384", "384", "512"],
+             ["enlarged", "as given (`--enlarge-below 0`)"] * 2 + ["as given"],
+             [(496, 1024), (0, 1024)] * 2 + [(496, 1024)]),
+            (large_section, ["2048", "2048", "1536", "1536", "1024"],
+             ["reduced", "as given (`--reduce-above 0`)"] * 2 + ["as given"],
+             [(496, 1024), (496, None)] * 2 + [(496, 1024)])):
         settings.clear()
         header, *rows = table_cells(section(stub, args), "side (px)")
         assert [row[0] for row in rows] == sizes and [row[2] for row in rows] == ways
