@@ -95,10 +95,11 @@ class CupNetConfig:
         enlarge_to: the shorter side (px) ``enlarge_below`` enlarges an image to.
         reduce_above: an image (or its field's square) whose shorter side is over this many
             pixels is reduced so that it is ``reduce_to`` px (area averaging,
-            :func:`cupnet.crops.resized`) where ``enlarge_below`` would enlarge one, its
-            cups reported in its own pixels (None: none is): the networks learnt images of
-            512 and 768 px, and on 2048 px DRRs reduced to 1024 they failed grossly less
-            often than on the DRRs as rendered (docs/training.md, item 71).
+            :func:`cupnet.crops.resized`) at the step where ``enlarge_below`` enlarges a
+            small one, its cups reported in its own pixels (None: none is): the networks
+            learnt images of 512 and 768 px, and on 2048 px DRRs reduced to 1024 they
+            failed grossly less often than on the DRRs as rendered (docs/training.md,
+            item 71).
         reduce_to: the shorter side (px) ``reduce_above`` reduces an image to.
         max_theta_deg: a pose with a larger anteversion (deg) counts as a failure of its
             landmarks: the cup goes on to :meth:`CupNet.detect`'s next landmark source and

@@ -537,8 +537,8 @@ def gather_images(specs: list[str], recursive: bool, out: Path) -> list[ImageSou
             for source in found]
 
 
-# The networks learnt images of 512 px and more: reducing one below that loses more than
-# it gains, and would undo the enlargement of small ones (CupNetConfig.enlarge_below).
+# The networks learnt images of 512 px and more, and a small image is enlarged to 512
+# (CupNetConfig.enlarge_below): a bar under that would reduce sides the model enlarges.
 MIN_REDUCED_SIDE = 512
 
 
