@@ -711,68 +711,51 @@ def test_shipped_model_bilateral_two_rows_blank_no_cup(tmp_path: Path,
     assert "1 image(s) noisier than the networks' training, denoised first" in printed
 
 
-def test_a_small_image_is_enlarged_first_and_reported_in_its_own_pixels(
-        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """A 512 px DRR exported at half its size (area-averaged; spacing doubled, principal
-    point moved): the shipped model enlarges it twice to its smallest training side, says
-    so, and reports the cup in the small image's pixels near the truth; ``--enlarge-below
-    0`` runs it as it is."""
+@pytest.mark.parametrize(
+    ("render", "export", "photons", "column", "factor", "said", "near_px", "bound"),
+    [(512, 0.5, (5000.0, 20000.0), "enlarged", 2.0,
+      "smaller than the networks' training, enlarged first", 0.5, [1.5, 1.0, 1.0, 1.0, 8.0]),
+     (2048, 1.0, None, "reduced", 0.5,
+      "much larger than the networks' training, reduced first", 1.0, [1.0, 1.0, 1.0, 1.0, 8.0])])
+def test_an_image_off_the_training_sizes_is_resized_first_and_reported_in_its_pixels(
+        tmp_path: Path, capsys: pytest.CaptureFixture, render: int, export: float,
+        photons: tuple[float, float] | None, column: str, factor: float, said: str,
+        near_px: float, bound: list[float]) -> None:
+    """A DRR of ``render`` px, exported at ``export`` of its size (area-averaged; spacing
+    and principal point moved with it): a 512 px DRR at half its size, which the shipped
+    model enlarges twice to its smallest training side, and a 2048 px one as rendered,
+    which it reduces to half. Each says so, and reports the cup in the image's own pixels
+    near the truth; the flag at 0 runs the image as it is."""
     from data_synth.config import SynthConfig
     from data_synth.dataset import synthesize
 
-    sample = synthesize(SynthConfig(p_no_cup=0.0, photons=(5000.0, 20000.0),
-                                    image_size=(512, 512)), 5, 2)
+    config = SynthConfig(p_no_cup=0.0, image_size=(render, render),
+                         **({} if photons is None else {"photons": photons}))
+    sample = synthesize(config, 5, 2)
     pixels = np.round(sample["image"][0].numpy() * 65535).astype(np.uint16)
-    cv2.imwrite(str(tmp_path / "small.png"),
-                cv2.resize(pixels, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA))
+    if export != 1:
+        pixels = cv2.resize(pixels, None, fx=export, fy=export, interpolation=cv2.INTER_AREA)
+    cv2.imwrite(str(tmp_path / "image.png"), pixels)
     sdd, spacing, u0, v0 = sample["geometry"].tolist()
-    args = ["predict", str(tmp_path / "small.png"), "--sdd", str(sdd), "--pixel-spacing",
-            str(2 * spacing), "--principal-point", str((u0 + 0.5) / 2 - 0.5),
-            str((v0 + 0.5) / 2 - 0.5), "--cup-diameter", str(float(sample["cup_diameter"][0])),
-            "--quiet", "--no-overlays"]
-    assert main([*args, "--out", str(tmp_path / "out")]) == 0
-    [row] = read_csv(tmp_path / "out" / "results.csv")
-    assert row["status"] == "ok" and float(row["enlarged"]) == 2.0
-    centre = (sample["ellipse"][0, :2].numpy() + 0.5) / 2 - 0.5
-    assert np.abs([float(row["ellipse_cx_px"]), float(row["ellipse_cy_px"])] - centre).max() < 0.5
-    error = np.abs([float(row[c]) for c in POSE_COLUMNS] - sample["pose"][0].numpy())
-    assert (error < [1.5, 1.0, 1.0, 1.0, 8.0]).all()
-    printed = capsys.readouterr().out
-    assert "1 image(s) smaller than the networks' training, enlarged first" in printed
-    assert main([*args, "--out", str(tmp_path / "as_is"), "--enlarge-below", "0"]) == 0
-    [row] = read_csv(tmp_path / "as_is" / "results.csv")
-    assert row["status"] == "ok" and row["enlarged"] == ""
-    assert "enlarged first" not in capsys.readouterr().out
-
-
-def test_a_large_image_is_reduced_first_and_reported_in_its_own_pixels(
-        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    """A DRR rendered at 2048 px: the shipped model reduces it to half (area averaging) before
-    its networks, says so, and reports the cup in the image's own pixels near the truth;
-    ``--reduce-above 0`` runs it as it is."""
-    from data_synth.config import SynthConfig
-    from data_synth.dataset import synthesize
-
-    sample = synthesize(SynthConfig(p_no_cup=0.0, image_size=(2048, 2048)), 5, 2)
-    cv2.imwrite(str(tmp_path / "large.png"),
-                np.round(sample["image"][0].numpy() * 65535).astype(np.uint16))
-    sdd, spacing, u0, v0 = sample["geometry"].tolist()
-    args = ["predict", str(tmp_path / "large.png"), "--sdd", str(sdd), "--pixel-spacing",
-            str(spacing), "--principal-point", str(u0), str(v0), "--cup-diameter",
+    args = ["predict", str(tmp_path / "image.png"), "--sdd", str(sdd), "--pixel-spacing",
+            str(spacing / export), "--principal-point", str((u0 + 0.5) * export - 0.5),
+            str((v0 + 0.5) * export - 0.5), "--cup-diameter",
             str(float(sample["cup_diameter"][0])), "--quiet", "--no-overlays"]
+    flag = {"enlarged": "--enlarge-below", "reduced": "--reduce-above"}[column]
+    other = {"enlarged": "reduced", "reduced": "enlarged"}[column]
     assert main([*args, "--out", str(tmp_path / "out")]) == 0
     [row] = read_csv(tmp_path / "out" / "results.csv")
-    assert row["status"] == "ok" and float(row["reduced"]) == 0.5 and row["enlarged"] == ""
-    centre = sample["ellipse"][0, :2].numpy()
-    assert np.abs([float(row["ellipse_cx_px"]), float(row["ellipse_cy_px"])] - centre).max() < 1.0
+    assert row["status"] == "ok" and float(row[column]) == factor and row[other] == ""
+    centre = (sample["ellipse"][0, :2].numpy() + 0.5) * export - 0.5
+    found = np.array([float(row["ellipse_cx_px"]), float(row["ellipse_cy_px"])])
+    assert np.abs(found - centre).max() < near_px
     error = np.abs([float(row[c]) for c in POSE_COLUMNS] - sample["pose"][0].numpy())
-    assert (error < [1.0, 1.0, 1.0, 1.0, 8.0]).all()
-    printed = capsys.readouterr().out
-    assert "1 image(s) much larger than the networks' training, reduced first" in printed
-    assert main([*args, "--out", str(tmp_path / "as_is"), "--reduce-above", "0"]) == 0
+    assert (error < bound).all()
+    assert f"1 image(s) {said}" in capsys.readouterr().out
+    assert main([*args, "--out", str(tmp_path / "as_is"), flag, "0"]) == 0
     [row] = read_csv(tmp_path / "as_is" / "results.csv")
-    assert row["status"] == "ok" and row["reduced"] == ""
-    assert "reduced first" not in capsys.readouterr().out
+    assert row["status"] == "ok" and row[column] == ""
+    assert said.split(", ")[-1] not in capsys.readouterr().out  # "enlarged first" and so on
 
 
 def test_spacing_from_patient_plane_pixel_spacing_is_recorded_and_reported(
