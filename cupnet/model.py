@@ -714,9 +714,14 @@ class CupNet(nn.Module):
             diameter = cup_diameters(cup_diameter, len(image_list))
             # A field of other than one value or one per image had failed deep, in a reshape.
             check_geometry_batch(geometry, len(image_list))
-            noises = self.image_noises(image_list)
-            image_list = [image if not cleaned else denoised(image, noise)
-                          for image, (noise, cleaned) in zip(image_list, noises, strict=True)]
+            # An image over reduce_above is checked for noise once resized, as the networks
+            # see it: the averaging lowers its noise, and non-local means at full size
+            # tripled a noisy 2048 px DRR's time (docs/training.md, item 71).
+            large = [self.config.reduce_above is not None
+                     and min(image.shape[-2:]) > self.config.reduce_above
+                     for image in image_list]
+            noises: list[tuple[float | None, bool | None]] = [(None, None)] * len(image_list)
+            self._denoised_where_noisy(image_list, noises, [not big for big in large])
             shapes = [tuple(image.shape[-2:]) for image in image_list]
             # Found once: the crops come from them, and the later looks keep them (mirrored
             # where the look is; a turned look's locator finds its field afresh).
@@ -737,6 +742,7 @@ class CupNet(nn.Module):
             factors = [self.resize_factor(*side) for side in sides]
             if any(factor != 1 for factor in factors):
                 image_list, geometry, fields = _resized(image_list, geometry, fields, factors)
+            self._denoised_where_noisy(image_list, noises, large)
             with memoised_strips():
                 found = self._detect(image_list, geometry, diameter, return_masks,
                                      fields=fields)
@@ -785,6 +791,19 @@ class CupNet(nn.Module):
             out.append(cups if bright is None else
                        [replace(cup, metal_bright=bright) for cup in cups])
         return out
+
+    def _denoised_where_noisy(self, images: list[Tensor],
+                              noises: list[tuple[float | None, bool | None]],
+                              which: list[bool]) -> None:
+        """The ``images`` ``(1, H, W)`` that ``which`` marks checked for noise
+        (:meth:`image_noises`, into ``noises``) and taken through non-local means where
+        noisy, in place."""
+        chosen = [i for i, take in enumerate(which) if take]
+        for i, (noise, cleaned) in zip(chosen, self.image_noises([images[i] for i in chosen]),
+                                       strict=True):
+            noises[i] = (noise, cleaned)
+            if cleaned:
+                images[i] = denoised(images[i], noise)
 
     def image_noises(self, images: list[Tensor]) -> list[tuple[float | None, bool | None]]:
         """Whether each image's noise exceeds ``denoise_above``, so that :meth:`detect`

@@ -30,6 +30,7 @@ from cupnet.crops import (
     to_image,
     to_view,
 )
+from cupnet.denoise import noise_above
 from cupnet.ellipse import ellipse_points, fit_ellipse
 from cupnet.fold import fold_batchnorm
 from cupnet.geometry import Geometry, pose_to_radians, project_rim
@@ -317,6 +318,31 @@ def test_detect_resizes_an_image_off_its_training_sizes_and_reports_its_cups_in_
     # ... and near the true rim in the image's own pixels.
     assert np.abs(cup.ellipse[:2] - ellipse.numpy()[0, :2]).max() < 0.5 / min(factor, 1)
     assert abs(cup.pose[0] - truth[0][0]) < 2.0 and abs(cup.pose[1] - truth[0][1]) < 1.0
+
+
+def test_a_large_image_is_checked_for_noise_once_reduced_as_the_networks_see_it() -> None:
+    """White noise over ``denoise_above`` at full size, under it once area-averaged: a large
+    image is not denoised, and gives what the image reduced by hand gives; the same image
+    with the reduction off is denoised at full size."""
+    model = CupNet(replace(TINY, reduce_above=600, reduce_to=300, denoise_above=0.008))
+    model.locator, model.refiner = EdgeNet(gain=20.0), EdgeNet(gain=20.0)
+    image, geometry, _ = scene([[20.0, 40.0, 5.0, -8.0, 280.0]], 800, 800, spacing=0.26)
+    generator = torch.Generator().manual_seed(0)
+    noisy = (image + 0.012 * torch.randn(image.shape, generator=generator,
+                                         dtype=image.dtype)).clamp(0, 1).float()
+    factor = 300 / 800
+    assert noise_above(noisy, 0.008) is not None
+    assert noise_above(resized(noisy, factor), 0.008) is None
+    (cup,) = model.detect(noisy[None], geometry, 52.0)[0]
+    assert cup.reduced == pytest.approx(factor) and cup.denoised is False and cup.noise is None
+    by_hand = replace(geometry, pixel_spacing=geometry.pixel_spacing / factor,
+                      principal_u=(geometry.principal_u + 0.5) * factor - 0.5,
+                      principal_v=(geometry.principal_v + 0.5) * factor - 0.5)
+    model.config.reduce_above = None
+    (small,) = model.detect(resized(noisy, factor)[None], by_hand, 52.0)[0]
+    np.testing.assert_array_equal(cup.pose, small.pose)
+    (full,) = model.detect(noisy[None], geometry, 52.0)[0]
+    assert full.denoised is True and full.noise > 0.008
 
 
 @pytest.mark.parametrize(("height", "width", "count"),
