@@ -714,9 +714,10 @@ class CupNet(nn.Module):
             diameter = cup_diameters(cup_diameter, len(image_list))
             # A field of other than one value or one per image had failed deep, in a reshape.
             check_geometry_batch(geometry, len(image_list))
-            # An image over reduce_above is checked for noise once resized, as the networks
-            # see it: the averaging lowers its noise, and non-local means at full size
-            # tripled a noisy 2048 px DRR's time (docs/training.md, item 71).
+            # An image over reduce_above is checked for noise as the networks see it (cut to
+            # its round field and resized): the averaging lowers its noise, and non-local
+            # means at full size tripled a noisy 2048 px DRR's time (docs/training.md,
+            # item 71).
             large = [self.config.reduce_above is not None
                      and min(image.shape[-2:]) > self.config.reduce_above
                      for image in image_list]
