@@ -718,9 +718,7 @@ class CupNet(nn.Module):
             # its round field and resized): the averaging lowers its noise, and non-local
             # means at full size tripled a noisy 2048 px DRR's time (docs/training.md,
             # item 71).
-            large = [self.config.reduce_above is not None
-                     and min(image.shape[-2:]) > self.config.reduce_above
-                     for image in image_list]
+            large = [self.resize_factor(*image.shape[-2:]) < 1 for image in image_list]
             noises: list[tuple[float | None, bool | None]] = [(None, None)] * len(image_list)
             self._denoised_where_noisy(image_list, noises, [not big for big in large])
             shapes = [tuple(image.shape[-2:]) for image in image_list]
