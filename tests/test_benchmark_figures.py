@@ -78,20 +78,25 @@ def test_accuracy_scores_hand_made_detections(stub_detect):
 
 def test_the_pooled_oblong_mae_weights_each_shape_by_its_found_cups(monkeypatch):
     """Shape one: theta MAE 1 over 4 of 4 cups found; shape two: 4 over 2 of 4. Pooled over
-    the cups found: (4 * 1 + 2 * 4) / 6 = 2 deg (by true cups it had read 2.5)."""
+    the cups found: (4 * 1 + 2 * 4) / 6 = 2 deg (by true cups it had read 2.5); the gross
+    failures (none, then 2 with 1 flagged) summed."""
     results = iter([
         {"mae_theta": 1.0, "mae_phi": 2.0, "mae_k": 3.0, "mae_l": 4.0, "mae_h": 6.0,
-         "detected": 1.0, "cups": 4, "false_positives": 1, "false_positives_flagged": 0},
+         "detected": 1.0, "cups": 4, "false_positives": 1, "false_positives_flagged": 0,
+         "gross": 0, "gross_flagged": 0},
         {"mae_theta": 4.0, "mae_phi": 5.0, "mae_k": 0.0, "mae_l": 1.0, "mae_h": 3.0,
-         "detected": 0.5, "cups": 4, "false_positives": 2, "false_positives_flagged": 1},
+         "detected": 0.5, "cups": 4, "false_positives": 2, "false_positives_flagged": 1,
+         "gross": 2, "gross_flagged": 1},
     ])
     monkeypatch.setattr(bench_model, "samples", lambda *_: [])
     monkeypatch.setattr(bench_model, "accuracy", lambda *_: next(results))
     args = argparse.Namespace(oblong=[(768, 512), (512, 768)], oblong_images=10,
                               eval_config="configs/synth_eval.yaml", seed=0)
     text = oblong_section({"onnx": None}, args)
-    pooled = text.splitlines()[-1]
-    assert pooled == "| onnx | all | 10 | 2 | 3 | 2 | 3 | 5 | 75.0 % of 8 | 3 (1 flagged) |"
+    *_, second, pooled = text.splitlines()
+    assert second.endswith("| 50.0 % of 4 | 2 (1 flagged) | 2 (1 flagged) |")
+    assert pooled == ("| onnx | all | 10 | 2 | 3 | 2 | 3 | 5 | 75.0 % of 8 | 3 (1 flagged) "
+                      "| 2 (1 flagged) |")
 
 
 def test_a_seed_section_pools_what_the_check_flag_marks_over_its_seeds(stub_detect,
