@@ -149,11 +149,17 @@ def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1
 
     kept: list[CupDetection] = []
     for det in sorted(detections, key=rank):
-        shape = np.asarray(det.ellipse, np.float64)[:4]
-        if not any(_same_ellipse(shape, np.asarray(other.ellipse, np.float64)[:4], tolerance)
-                   for other in kept):
+        if not any(repeats(det, other, tolerance) for other in kept):
             kept.append(det)
     return [det for det in detections if any(det is k for k in kept)]
+
+
+def repeats(one: CupDetection, other: CupDetection, tolerance: float = 0.1) -> bool:
+    """Whether detections ``one`` and ``other`` are one cup found twice: their ellipses'
+    centres and semi-axes agree within ``tolerance`` of the larger major semi-axis (False
+    where either ellipse is NaN)."""
+    return _same_ellipse(np.asarray(one.ellipse, np.float64)[:4],
+                         np.asarray(other.ellipse, np.float64)[:4], tolerance)
 
 
 def wants_another_look(cup: CupDetection) -> bool:
@@ -177,11 +183,15 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
     Reaching, not :func:`same_place`: a flagged or failed cup's ellipse is often a piece of
     its rim or of the anatomy beside it, short and off centre, so its major semi-axis may
     not reach the cup's centre though the cup's reaches its own (docs/training.md, item
-    44)."""
+    44). Where the replacement repeats a cup of ``first`` that wants no other look (the
+    later look found that believed cup again, as :func:`distinct_cups` tells repeats), the
+    flagged cup was a piece of it and is dropped: replaced, it had reported one cup twice
+    (item 72)."""
     believed = [other for other in second if other.doubt is not None and not other.check
                 and (below is None or other.doubt < below)]
     if not first:
         return believed
+    settled = [cup for cup in first if not wants_another_look(cup)]
     out: list[CupDetection] = []
     for cup in first:
         if wants_another_look(cup):
@@ -190,6 +200,8 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
                       and reaches(other.ellipse, cup.ellipse)
                       and not any(other is taken for taken in out)]
             cup = min(better, key=lambda other: other.doubt, default=cup)
+            if any(repeats(cup, kept) for kept in settled):
+                continue
         out.append(cup)
     for other in sorted(believed, key=lambda other: other.doubt) if up_to else []:
         if added_below is not None and other.doubt >= added_below:

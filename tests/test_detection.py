@@ -154,3 +154,21 @@ def test_a_cup_found_in_a_resized_image_comes_back_to_its_own_pixels(factor: flo
     # The mask, area-averaged, covers the rim's area in the image's pixels.
     assert back.mask.shape == shape
     assert back.mask.sum() == pytest.approx(np.pi * rim[2] * rim[3], rel=0.01)
+
+
+def test_a_flagged_piece_of_a_believed_cup_found_again_is_dropped_not_replaced_by_a_repeat():
+    """An oblong DRR (seed 20,261,134 at 768 x 512 px, image 31): the first look believed
+    the cup and flagged a piece of it; a later look found the cup again, doubted a little
+    less, and its major semi-axis (152 px) reaches the piece's centre. It had replaced the
+    piece, reporting the cup twice; the piece is now dropped. A later look's cup at a
+    place of its own still replaces a piece that it reaches."""
+    cup = detection([540.6, 277.1, 152.1, 30.6, 123.1], doubt=0.482)
+    piece = detection([552.2, 209.4, 113.9, 20.0, 100.0], doubt=3.18, check=True)
+    again = detection([540.6, 277.1, 152.1, 30.5, 123.1], status="ambiguous", doubt=0.480)
+    assert later_look_cups([cup, piece], [again]) == [cup]
+    assert later_look_cups([piece, cup], [again], up_to=2) == [cup]
+    # A cup 140 px off the believed one's centre (beyond its own 120 px reach) that reaches
+    # the piece: no repeat, so it replaces the piece as before.
+    elsewhere = detection([600.0, 150.0, 120.0, 40.0, 10.0], doubt=0.480)
+    assert not same_place(elsewhere.ellipse, cup.ellipse)
+    assert later_look_cups([cup, piece], [elsewhere]) == [cup, elsewhere]
