@@ -156,10 +156,13 @@ def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1
 
 def repeats(one: CupDetection, other: CupDetection, tolerance: float = 0.1) -> bool:
     """Whether detections ``one`` and ``other`` are one cup found twice: their ellipses'
-    centres and semi-axes agree within ``tolerance`` of the larger major semi-axis (False
-    where either ellipse is NaN)."""
-    return _same_ellipse(np.asarray(one.ellipse, np.float64)[:4],
-                         np.asarray(other.ellipse, np.float64)[:4], tolerance)
+    centres and semi-axes (cx, cy, a, b px) agree within ``tolerance`` of the larger major
+    semi-axis (False where either ellipse is NaN)."""
+    first = np.asarray(one.ellipse, np.float64)[:4]
+    second = np.asarray(other.ellipse, np.float64)[:4]
+    scale = tolerance * max(first[2], second[2])
+    return bool(np.hypot(*(first[:2] - second[:2])) <= scale
+                and (np.abs(first[2:] - second[2:]) <= scale).all())
 
 
 def wants_another_look(cup: CupDetection) -> bool:
@@ -191,7 +194,7 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
                 and (below is None or other.doubt < below)]
     if not first:
         return believed
-    settled = [cup for cup in first if not wants_another_look(cup)]
+    first_believed = [cup for cup in first if not wants_another_look(cup)]
     out: list[CupDetection] = []
     for cup in first:
         if wants_another_look(cup):
@@ -200,7 +203,7 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
                       and reaches(other.ellipse, cup.ellipse)
                       and not any(other is taken for taken in out)]
             cup = min(better, key=lambda other: other.doubt, default=cup)
-            if any(repeats(cup, kept) for kept in settled):
+            if any(repeats(cup, kept) for kept in first_believed):
                 continue
         out.append(cup)
     for other in sorted(believed, key=lambda other: other.doubt) if up_to else []:
@@ -230,11 +233,3 @@ def same_place(one: np.ndarray, other: np.ndarray) -> bool:
     """Whether ellipses ``(5,)`` px ``one`` and ``other`` mark one place: each
     :func:`reaches` the other (False where either is NaN)."""
     return reaches(one, other) and reaches(other, one)
-
-
-def _same_ellipse(one: np.ndarray, other: np.ndarray, tolerance: float) -> bool:
-    """Whether ``(cx, cy, a, b)`` px ``one`` and ``other`` agree within ``tolerance`` of the
-    larger ``a`` (False where either is NaN)."""
-    scale = tolerance * max(one[2], other[2])
-    return bool(np.hypot(*(one[:2] - other[:2])) <= scale
-                and (np.abs(one[2:] - other[2:]) <= scale).all())
