@@ -546,8 +546,9 @@ def oblong_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
             "short side (`cupnet.crops.square_windows`); it was trained on square images "
             "only. Its blobs centred outside an intensifier's round field are dropped "
             "(`cupnet.field.round_field`). Gross: cups whose theta or phi is off by more "
-            f"than {GROSS_DEG:g} deg (of them flagged `check`): over a shape's few dozen cups, one "
-            "such cup moves its MAE by up to a degree or more.\n\n"
+            f"than {GROSS_DEG:g} deg (of them flagged `check`): with "
+            f"{args.oblong_images // max(len(args.oblong), 1)} images a shape, one such cup "
+            "can move a shape's MAE by a degree.\n\n"
             + markdown_table(["runtime", "shape (W x H px)", "images",
                               *[f"MAE {n}" for n in NAMES], "detected", "false positives",
                               "gross failures"], rows))
