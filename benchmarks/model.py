@@ -237,11 +237,17 @@ def false_detections(model: CupNet, data: list[dict]) -> tuple[int, int]:
     return len(dets), sum(bool(det.check) for det in dets)
 
 
+def with_flagged(count: int, flagged: int) -> str:
+    """A table cell of ``count`` detections or failures and how many of them are flagged
+    ``check``: ``"3 (1 flagged)"``."""
+    return f"{count} ({flagged} flagged)"
+
+
 def scored(res: dict[str, float]) -> list:
     """A table row's scores from :func:`accuracy`'s ``res``: the MAEs, cups found, false
     positives."""
     return [*[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} % of {res['cups']}",
-            f"{res['false_positives']} ({res['false_positives_flagged']} flagged)"]
+            with_flagged(res["false_positives"], res["false_positives_flagged"])]
 
 
 def resized_rows(model: CupNet, sizes: list[int], seed: int, count: int,
@@ -531,12 +537,11 @@ def oblong_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
             false.append((res["false_positives"], res["false_positives_flagged"]))
             gross.append((res["gross"], res["gross_flagged"]))
             rows.append([runtime, f"{size[0]}x{size[1]}", count, *scored(res),
-                         "{} ({} flagged)".format(*gross[-1])])
+                         with_flagged(*gross[-1])])
         pooled = np.average(maes, axis=0, weights=found)  # each shape's MAE: its found cups
         rows.append([runtime, "all", args.oblong_images, *pooled,
                      f"{100 * sum(found) / sum(cups):.1f} % of {sum(cups)}",
-                     "{} ({} flagged)".format(*np.sum(false, 0)),
-                     "{} ({} flagged)".format(*np.sum(gross, 0))])
+                     with_flagged(*np.sum(false, 0)), with_flagged(*np.sum(gross, 0))])
     return ("## CupNet on oblong images\n\n"
             f"`python benchmarks/model.py --parts oblong --runtimes {' '.join(models)}`: "
             f"{args.oblong_images} fresh DRRs from `{args.eval_config}` (seeds "
@@ -639,7 +644,7 @@ def fresh_seed_section(models: dict[str, CupNet], args: argparse.Namespace,
             print("fresh seed", seed, name, res)
             rows.append([name, seed, *[f"{res[f'mae_{n}']:.3g}" for n in NAMES],
                          f"{100 * res['detected']:.1f} % of {res['cups']}",
-                         f"{res['false_positives']} ({res['false_positives_flagged']} flagged)"])
+                         with_flagged(res["false_positives"], res["false_positives_flagged"])])
         errors = np.array([err for err in per_cup if err is not None])
         found = np.array([err is not None for err in per_cup], dtype=np.float64)
         low, high = interval(errors)
@@ -790,8 +795,8 @@ def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> Non
                        f"{flag_summary(res, round(res['detected'] * res['cups']), net)}.")
         no_cup, no_cup_flagged = false_detections(net, no_cup_set)
         table.append([name, *[res[f"mae_{n}"] for n in NAMES], f"{100 * res['detected']:.1f} %",
-                      f"{res['false_positives']} ({res['false_positives_flagged']} flagged)",
-                      f"{no_cup} ({no_cup_flagged} flagged)"])
+                      with_flagged(res["false_positives"], res["false_positives_flagged"]),
+                      with_flagged(no_cup, no_cup_flagged)])
         print(name, res)
     text = markdown_table(header, table)
     text += ("\n\nAbsolute errors of the shipped model's detected cups: a few gross failures "
