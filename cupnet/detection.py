@@ -165,6 +165,20 @@ def repeats(one: CupDetection, other: CupDetection, tolerance: float = 0.1) -> b
                 and (np.abs(first[2:] - second[2:]) <= scale).all())
 
 
+def without_failed_pieces(detections: list[CupDetection]) -> list[CupDetection]:
+    """One image's ``detections`` less each failed one (an ``error`` status) that a cup
+    with a pose :func:`reaches`, in their order.
+
+    A failed detection within a posed cup's major semi-axis of its centre is a piece of
+    that cup's rim, or of the anatomy beside it, that gave no pose; reported, it counts as
+    a second cup where there is one (docs/training.md, item 73). A failed detection at a
+    place of its own (a bilateral pair's other cup) is kept: it tells the user a cup is
+    there."""
+    posed = [det for det in detections if np.isfinite(det.pose).all()]
+    return [det for det in detections if not det.status.startswith("error")
+            or not any(reaches(cup.ellipse, det.ellipse) for cup in posed)]
+
+
 def wants_another_look(cup: CupDetection) -> bool:
     """Whether ``cup`` is flagged ``check`` or failed (an ``error`` status): the cups the
     model's later looks may replace."""

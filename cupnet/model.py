@@ -65,6 +65,7 @@ from cupnet.detection import (
     same_place,
     unresized,
     wants_another_look,
+    without_failed_pieces,
 )
 from cupnet.ellipse import fit_ellipse
 from cupnet.field import content_crop, crop_of_field, outside_field, round_field
@@ -748,6 +749,8 @@ class CupNet(nn.Module):
                 for look in self.later_looks():
                     self._looked_again(found, image_list, geometry, diameter, return_masks,
                                        look, fields)
+            # After every look: a later look may have posed the cup a failed piece is of.
+            found = [without_failed_pieces(cups) for cups in found]
             found = self.with_image_displays(found, image_list)
             found = [[self._as_reported(cup, noise, cleaned, float(size) / 2) for cup in cups]
                      for cups, (noise, cleaned), size in zip(found, noises, diameter.tolist(),
