@@ -1,5 +1,6 @@
-"""cupnet.detection: one image's detections less the repeats of one cup, its flagged cups
-replaced by a later look's, and a cup found in an enlarged image in the image's pixels."""
+"""cupnet.detection: one image's detections less the repeats of one cup and the failed
+pieces of a posed one, its flagged cups replaced by a later look's, and a cup found in an
+enlarged image in the image's pixels."""
 
 from dataclasses import replace
 
