@@ -135,6 +135,12 @@ def found_cup_status(status: str) -> str:
     return f"error: no pose from the rim found: {status.removeprefix('error: ')}"
 
 
+def failed(cup: CupDetection) -> bool:
+    """Whether ``cup`` gave no pose: an ``error`` status, its pose NaN (the solver sets
+    both together)."""
+    return cup.status.startswith("error")
+
+
 def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1
                   ) -> list[CupDetection]:
     """One image's ``detections`` less the repeats, in their order.
@@ -145,7 +151,7 @@ def distinct_cups(detections: list[CupDetection], tolerance: float = 0.1
     has a pose rather than an error, then the lower doubt (None counting as the highest).
     """
     def rank(det: CupDetection) -> tuple[bool, float]:
-        return det.status.startswith("error"), math.inf if det.doubt is None else det.doubt
+        return failed(det), math.inf if det.doubt is None else det.doubt
 
     kept: list[CupDetection] = []
     for det in sorted(detections, key=rank):
@@ -174,15 +180,15 @@ def without_failed_pieces(detections: list[CupDetection]) -> list[CupDetection]:
     a second cup where there is one (docs/training.md, item 73). A failed detection at a
     place of its own (a bilateral pair's other cup) is kept: it tells the user a cup is
     there."""
-    posed = [det for det in detections if np.isfinite(det.pose).all()]
-    return [det for det in detections if not det.status.startswith("error")
-            or not any(reaches(cup.ellipse, det.ellipse) for cup in posed)]
+    posed = [det for det in detections if not failed(det)]
+    return [det for det in detections
+            if not failed(det) or not any(reaches(cup.ellipse, det.ellipse) for cup in posed)]
 
 
 def wants_another_look(cup: CupDetection) -> bool:
     """Whether ``cup`` is flagged ``check`` or failed (an ``error`` status): the cups the
     model's later looks may replace."""
-    return cup.check or cup.status.startswith("error")
+    return cup.check or failed(cup)
 
 
 def later_look_cups(first: list[CupDetection], second: list[CupDetection],
@@ -225,10 +231,10 @@ def later_look_cups(first: list[CupDetection], second: list[CupDetection],
             break  # sorted: the rest are doubted more
         if any(same_place(other.ellipse, cup.ellipse) for cup in out):
             continue
-        failed = [k for k, cup in enumerate(out)
-                  if cup.status.startswith("error") and reaches(other.ellipse, cup.ellipse)]
-        if failed:
-            out[failed[0]] = other
+        reached = [k for k, cup in enumerate(out)
+                   if failed(cup) and reaches(other.ellipse, cup.ellipse)]
+        if reached:
+            out[reached[0]] = other
         elif len(out) < up_to:
             out.append(other)
     return out
