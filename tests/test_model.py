@@ -525,7 +525,6 @@ def test_a_found_cup_whose_rim_gives_no_pose_says_so():
         assert np.isnan(det.pose).all()
 
 
-
 def test_a_failed_piece_beside_a_posed_cup_is_not_reported():
     """The benchmark set's image 148 (its 768 px images take seed 20,261,124; this is the
     59th of them): the shipped model poses the cup and also finds a 21 px sliver of it,
@@ -542,6 +541,7 @@ def test_a_failed_piece_beside_a_posed_cup_is_not_reported():
     error = (torch.from_numpy(cup.pose) - sample["pose"][0].double()).abs()
     assert not cup.check
     assert (error[:2] < 1.0).all() and (error[2:4] < 1.5).all() and error[4] < 10.0
+
 
 def test_detect_reports_no_cup_on_empty_image():
     model = CupNet(TINY)
