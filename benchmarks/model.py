@@ -2,11 +2,12 @@
 
 Run: ``python benchmarks/model.py [--checkpoint PATH] [--presets NAME ...] [--ablation NAME=PATH
 ...] [--images N] [--runtimes torch onnx] [--parts speed accuracy oblong fresh newer blind
-unseen against small captures degraded hardware] [--against JSON]``. Writes the ``model`` (speed),
-``model_accuracy`` (accuracy, ablation), ``model_oblong`` (oblong images), ``model_small`` (small
-images), ``model_captures`` (screenshots), ``model_degraded`` (JPEG, halved, noisier and
-blurrier images) and ``model_hardware`` (screws and the cup's inserter in the image; these
-four not by default),
+unseen against small large captures degraded hardware geometry] [--against JSON]``. Writes the
+``model`` (speed), ``model_accuracy`` (accuracy, ablation), ``model_oblong`` (oblong images),
+``model_small`` and ``model_large`` (small and large images), ``model_captures``
+(screenshots), ``model_degraded`` (JPEG, halved, noisier and blurrier images),
+``model_hardware`` (screws and the cup's inserter in the image) and ``model_geometry`` (the
+geometry given wrong; these seven not by default),
 ``model_fresh_seed`` (seeds no setting was chosen on), ``model_newer_seeds``,
 ``model_blind_seeds`` and ``model_unseen_seeds`` (seeds nobody had looked at when a rule was
 made; not by default) and
@@ -461,6 +462,57 @@ def hardware_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
             + markdown_table(ROBUSTNESS_COLUMNS, rows))
 
 
+def misgiven(sample: dict, sdd: float = 1.0, spacing: float = 1.0, centred: bool = False,
+             diameter_mm: float = 0.0) -> dict:
+    """``sample`` with its geometry given as a user unsure of it may give it: the SDD and
+    pixel spacing times ``sdd`` and ``spacing``, the principal point at the image's centre
+    where ``centred``, each cup's diameter ``diameter_mm`` larger; its image and truth
+    (pose, ellipses) as they are."""
+    geometry = sample["geometry"].clone()
+    geometry[0] *= sdd
+    geometry[1] *= spacing
+    if centred:
+        height, width = sample["image"].shape[-2:]
+        geometry[2:] = torch.tensor([(width - 1) / 2, (height - 1) / 2], dtype=geometry.dtype)
+    return dict(sample, geometry=geometry, cup_diameter=sample["cup_diameter"] + diameter_mm)
+
+
+# --parts geometry: each row's label and the geometry it gives the model (misgiven's).
+MISGIVEN: dict[str, dict[str, float | bool]] = {
+    "as drawn (the truth)": {},
+    "SDD 10 % short": {"sdd": 0.9},
+    "SDD 5 % short": {"sdd": 0.95},
+    "SDD 5 % long": {"sdd": 1.05},
+    "SDD 10 % long": {"sdd": 1.1},
+    "pixel spacing 2 % small": {"spacing": 0.98},
+    "pixel spacing 2 % large": {"spacing": 1.02},
+    "pixel spacing at the patient (the detector's / 1.25)": {"spacing": 0.8},
+    "principal point at the image's centre": {"centred": True},
+    "cup diameter 2 mm small": {"diameter_mm": -2.0},
+    "cup diameter 2 mm large": {"diameter_mm": 2.0},
+}
+
+
+def geometry_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
+    """The ``model_geometry`` section: each of ``models`` on the same fresh DRRs, told their
+    geometry rightly and each way of :data:`MISGIVEN`, scored against the truth."""
+    data = samples(args.eval_config, args.seed + 71, args.geometry_images, args.sizes)
+    rows = []
+    for label, given in MISGIVEN.items():
+        rows += robustness_rows("geometry", label, models, [misgiven(s, **given) for s in data])
+    return ("## CupNet with the geometry given wrong\n\n"
+            + robustness_intro("geometry", args.geometry_images, args.seed + 71, args)
+            + ", each row the same images with the geometry given otherwise than drawn "
+            "(`benchmarks/model.py`, `MISGIVEN`): the source-to-detector distance (SDD) or "
+            "the detector's pixel spacing off by a share, the pixel spacing given at the "
+            "patient rather than at the detector (DICOM PixelSpacing for "
+            "ImagerPixelSpacing, at a magnification of 1.25), the principal point left at "
+            "the image's centre (drawn within 2 % of the side from it), or the cup's "
+            "diameter off by 2 mm. Scored against the drawn truth, in the drawn geometry's "
+            "millimetres. Columns as in the degraded table.\n\n"
+            + markdown_table(ROBUSTNESS_COLUMNS, rows))
+
+
 def degraded_section(models: dict[str, CupNet], args: argparse.Namespace) -> str:
     """The shipped model (and ``models``' presets) on the same fresh DRRs as exported,
     compressed, shrunk, noisier and blurrier than any training image: the
@@ -848,6 +900,8 @@ def main() -> None:
                         help="images a degradation (--parts degraded)")
     parser.add_argument("--hardware-images", type=int, default=120,
                         help="images a kind of surgical hardware (--parts hardware)")
+    parser.add_argument("--geometry-images", type=int, default=90,
+                        help="images a way of giving the geometry (--parts geometry)")
     parser.add_argument("--seed", type=int, default=20_261_123)
     parser.add_argument("--fresh-seeds", type=int, nargs="+",
                         default=FRESH_SEEDS,
@@ -873,7 +927,8 @@ def main() -> None:
                              "model of the first is the shipped one of the gallery")
     parser.add_argument("--parts", nargs="+", default=["speed", "accuracy", "oblong", "fresh"],
                         choices=["speed", "accuracy", "oblong", *SEED_SECTIONS, "against",
-                                 "small", "large", "captures", "degraded", "hardware"],
+                                 "small", "large", "captures", "degraded", "hardware",
+                                 "geometry"],
                         help="the sections to measure; the others are left as they are "
                              "(speed alone: for a change that keeps every pose)")
     args = parser.parse_args()
@@ -942,6 +997,10 @@ def main() -> None:
         text = hardware_section(seed_models, args)
         print(text)
         write("model_hardware", text, args)
+    if "geometry" in args.parts and args.geometry_images:
+        text = geometry_section(seed_models, args)
+        print(text)
+        write("model_geometry", text, args)
     if "against" in args.parts:
         other = loaded(args.checkpoint, None, args.runtimes[0])
         for key, value in json.loads(args.against).items():

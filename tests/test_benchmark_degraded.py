@@ -1,5 +1,6 @@
-"""benchmarks/model.py's degraded exports (what each does to a DRR, its geometry and truth)
-and its robustness tables (degraded images, surgical hardware, small and large images)."""
+"""benchmarks/model.py's degraded exports (what each does to a DRR, its geometry and truth),
+its misgiven geometries, and its robustness tables (degraded images, surgical hardware, the
+geometry given wrong, small and large images)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import torch
 import yaml
 from markdown_tables import table_cells
@@ -16,13 +18,16 @@ from benchmarks import model as bench_model
 from benchmarks.model import (
     DEGRADATIONS,
     HARDWARE,
+    MISGIVEN,
     as_8_bit,
     blurrier,
     degraded_section,
+    geometry_section,
     halved,
     hardware_section,
     jpeg_exported,
     large_section,
+    misgiven,
     noisier,
     small_section,
 )
@@ -96,6 +101,21 @@ def test_every_degradation_gives_an_image_detect_takes():
         assert float(image.min()) >= 0 and float(image.max()) <= 1, label
 
 
+def test_a_misgiven_geometry_changes_what_it_names_and_nothing_else():
+    sample = _sample()
+    sdd, spacing, *_ = sample["geometry"].tolist()
+    given = misgiven(sample, sdd=1.1, spacing=0.8, centred=True, diameter_mm=2.0)
+    # A 512 px image's centre, pixel centres at integers.
+    assert given["geometry"].tolist() == pytest.approx([1.1 * sdd, 0.8 * spacing, 255.5, 255.5])
+    torch.testing.assert_close(given["cup_diameter"], sample["cup_diameter"] + 2.0)
+    for key in ("image", "pose", "ellipse", "cup_valid"):
+        assert given[key] is sample[key], key
+    # The truth's own geometry and sizes stay as drawn (the principal point off the centre).
+    assert sample["geometry"].tolist()[:2] == [sdd, spacing]
+    assert sample["geometry"].tolist()[2:] != [255.5, 255.5]
+    torch.testing.assert_close(misgiven(sample)["geometry"], sample["geometry"])
+
+
 # Stub scores (the same for every row) and the cells they must give, column by column.
 STUB_SCORES = {"mae_theta": 1.5, "mae_phi": 2.5, "mae_k": 3.5, "mae_l": 4.5, "mae_h": 5.5,
                "detected": 0.75, "cups": 8, "false_positives": 3, "false_positives_flagged": 2,
@@ -142,6 +162,27 @@ def test_each_hardware_row_scores_the_same_scenes_with_its_hardware(monkeypatch)
     assert [config for config, *_ in drawn] == [{**eval_fields, **fields}
                                                  for fields in HARDWARE.values()]
     assert [rest for _, *rest in drawn] == [[51, 4, [512]]] * len(HARDWARE)
+
+
+def test_each_geometry_row_gives_the_same_images_its_misgiven_geometry(monkeypatch):
+    """Every row scores the one draw of images, each told the geometry its entry of
+    :data:`MISGIVEN` gives, and puts its figures under their headers."""
+    sample = _sample()
+    told = []
+    monkeypatch.setattr(bench_model, "samples", lambda *_: [sample])
+    monkeypatch.setattr(bench_model, "accuracy", lambda _, images: told.append(
+        (images[0]["image"], images[0]["geometry"], images[0]["cup_diameter"])) or STUB_SCORES)
+    args = argparse.Namespace(eval_config="configs/synth_eval.yaml", seed=0, geometry_images=1,
+                              sizes=[512], runtimes=["onnx"], seed_presets=[])
+    header, *rows = table_cells(geometry_section({"onnx": STUB_MODEL}, args), "images")
+    assert [row[0] for row in rows] == list(MISGIVEN)
+    for row in rows:
+        assert dict(zip(header[1:], row[1:], strict=True)) == STUB_CELLS, row[0]
+    assert all(image is sample["image"] for image, _, _ in told)
+    for (_, geometry, diameter), given in zip(told, MISGIVEN.values(), strict=True):
+        expected = misgiven(sample, **given)
+        torch.testing.assert_close(geometry, expected["geometry"])
+        torch.testing.assert_close(diameter, expected["cup_diameter"])
 
 
 def test_each_size_is_scored_as_the_model_resizes_it_and_as_given(monkeypatch):

@@ -519,3 +519,29 @@ def test_newton_steps_find_the_closest_rim_point_off_a_thin_rims_tip(offset):
         found = _rim(pose, t, radius, geom)
         assert float(((found.u - u) ** 2 + (found.v - v) ** 2).sqrt()) == pytest.approx(
             float(closest), abs=1e-6)
+
+
+def test_the_pose_sees_sdd_and_spacing_through_their_ratio_and_the_cup_size_as_a_scale(
+        generator):
+    """Hand-derived: a pixel ``u`` sees the ray through ``(u - u0) * s`` at the detector, SDD
+    ``H`` from the source, so the same landmarks solved with ``H`` and ``s`` both ``c`` times
+    larger give a cup of the same angles, ``k``, ``l`` and distance from the source
+    ``H - h`` (its rim lies where it did, seen from a source ``c`` times farther from a
+    detector with ``c`` times larger pixels); solved for a cup ``c`` times larger, the same
+    angles, its centre ``c`` times farther from the source along its ray: ``k``, ``l`` and
+    ``H - h`` times ``c``. So no cup size, and no SDD and spacing of the same ratio, can
+    move an angle (docs/benchmarks.md, `CupNet with the geometry given wrong`)."""
+    truth = paper_poses(200, generator)
+    geometry = Geometry(1040.0, 0.4, 700.0, 650.0)
+    points = rim_landmarks(truth, geometry)  # a 50 mm cup
+    base = solve_pose(points, geometry, 50.0).pose
+    distance = geometry.sdd - base[:, 4]
+    for c in (1.1, 1.25):  # shorter would put the nearest cups' rims behind the detector
+        far = solve_pose(points, Geometry(c * 1040.0, c * 0.4, 700.0, 650.0), 50.0).pose
+        torch.testing.assert_close(far[:, :4], base[:, :4], atol=1e-9, rtol=0)
+        torch.testing.assert_close(c * 1040.0 - far[:, 4], distance, atol=1e-9, rtol=0)
+    for c in (0.9, 1.1):
+        larger = solve_pose(points, geometry, c * 50.0).pose
+        torch.testing.assert_close(larger[:, :2], base[:, :2], atol=1e-9, rtol=0)
+        torch.testing.assert_close(larger[:, 2:4], c * base[:, 2:4], atol=1e-9, rtol=0)
+        torch.testing.assert_close(geometry.sdd - larger[:, 4], c * distance, atol=1e-9, rtol=0)
