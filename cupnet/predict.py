@@ -838,8 +838,10 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
     if summary.get("patient_spacing"):
         lines.append(f"  {summary['patient_spacing']} image(s) with the detector's pixel spacing "
                      "taken from DICOM PixelSpacing, without a magnification factor (by the "
-                     "standard the patient's spacing: h then comes out small by it); check, "
-                     "or give --pixel-spacing")
+                     "standard the patient's spacing, smaller by the magnification: on the "
+                     "benchmark's DRRs at 1.25, h came out about 160 mm small, a sixth of the "
+                     "cups behind the detector (error rows) and the angles 1-3 deg worse; "
+                     "docs/benchmarks.md); check, or give --pixel-spacing")
     if summary["metal_bright"]:
         lines.append(f"  {summary['metal_bright']} image(s) taken to show metal bright "
                      "(metal=bright in results.csv)")
