@@ -42,6 +42,11 @@ from cupnet.detection import CupDetection  # noqa: E402
 from cupnet.evaluate import GROSS_DEG  # noqa: E402
 from cupnet.fold import fold_batchnorm  # noqa: E402
 from cupnet.geometry import Geometry  # noqa: E402
+from cupnet.io.meta import (  # noqa: E402
+    ASSUMED_CUP_DIAMETER_MM,
+    ASSUMED_DETECTOR_WIDTH_MM,
+    ASSUMED_SDD_MM,
+)
 from cupnet.model import DEFAULT_CHECKPOINT, MIN_IMAGE_SIDE, CupNet, load_model  # noqa: E402
 from cupnet.offload import PassThrough  # noqa: E402
 from cupnet.runtime import RUNTIMES, networks_in_onnx_runtime  # noqa: E402
@@ -463,18 +468,23 @@ def hardware_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
 
 
 def misgiven(sample: dict, sdd: float = 1.0, spacing: float = 1.0, centred: bool = False,
-             diameter_mm: float = 0.0) -> dict:
+             diameter_mm: float = 0.0, assumed: bool = False) -> dict:
     """``sample`` with its geometry given as a user unsure of it may give it: the SDD and
     pixel spacing times ``sdd`` and ``spacing``, the principal point at the image's centre
-    where ``centred``, each cup's diameter ``diameter_mm`` larger; its image and truth
-    (pose, ellipses) as they are."""
-    geometry = sample["geometry"].clone()
+    where ``centred``, each cup's diameter ``diameter_mm`` larger; with ``assumed`` all of
+    them as ``cupnet predict --assume-defaults`` fills them (:mod:`cupnet.io.meta`'s SDD, cup
+    diameter and detector width over the image's), the principal point at the centre. Its
+    image and truth (pose, ellipses) as they are."""
+    height, width = sample["image"].shape[-2:]
+    geometry, diameter = sample["geometry"].clone(), sample["cup_diameter"]
+    if assumed:
+        geometry[:2] = torch.tensor([ASSUMED_SDD_MM, ASSUMED_DETECTOR_WIDTH_MM / width])
+        diameter = torch.full_like(diameter, ASSUMED_CUP_DIAMETER_MM)
     geometry[0] *= sdd
     geometry[1] *= spacing
-    if centred:
-        height, width = sample["image"].shape[-2:]
+    if centred or assumed:
         geometry[2:] = torch.tensor([(width - 1) / 2, (height - 1) / 2], dtype=geometry.dtype)
-    return dict(sample, geometry=geometry, cup_diameter=sample["cup_diameter"] + diameter_mm)
+    return dict(sample, geometry=geometry, cup_diameter=diameter + diameter_mm)
 
 
 # --parts geometry: each row's label and the geometry it gives the model (misgiven's).
@@ -490,6 +500,7 @@ MISGIVEN: dict[str, dict[str, float | bool]] = {
     "principal point at the image's centre": {"centred": True},
     "cup diameter 2 mm small": {"diameter_mm": -2.0},
     "cup diameter 2 mm large": {"diameter_mm": 2.0},
+    "all as --assume-defaults fills them": {"assumed": True},
 }
 
 
@@ -497,6 +508,7 @@ def geometry_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
     """The ``model_geometry`` section: each of ``models`` on the same fresh DRRs, told their
     geometry rightly and each way of :data:`MISGIVEN`, scored against the truth."""
     data = samples(args.eval_config, args.seed + 71, args.geometry_images, args.sizes)
+    drawn = synth_config(args.eval_config)
     rows = []
     for label, given in MISGIVEN.items():
         rows += robustness_rows("geometry", label, models, [misgiven(s, **given) for s in data])
@@ -507,9 +519,16 @@ def geometry_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
             "the detector's pixel spacing off by a share, the pixel spacing given at the "
             "patient rather than at the detector (DICOM PixelSpacing for "
             "ImagerPixelSpacing, at a magnification of 1.25), the principal point left at "
-            "the image's centre (drawn within 2 % of the side from it), or the cup's "
-            "diameter off by 2 mm. Scored against the drawn truth, in the drawn geometry's "
-            "millimetres. Columns as in the degraded table.\n\n"
+            "the image's centre (drawn within 2 % of the side from it), the cup's "
+            "diameter off by 2 mm, or all of them as `cupnet predict --assume-defaults` "
+            f"fills them (SDD {ASSUMED_SDD_MM:g} mm, pixel spacing "
+            f"{ASSUMED_DETECTOR_WIDTH_MM:g} mm over the image's width, cup diameter "
+            f"{ASSUMED_CUP_DIAMETER_MM:g} mm, the principal point at the centre; drawn: SDD "
+            f"{drawn.sdd_mm[0]:g}-{drawn.sdd_mm[1]:g} mm, detector "
+            f"{drawn.detector_width_mm[0]:g}-{drawn.detector_width_mm[1]:g} mm wide, cups "
+            f"{drawn.cup_diameter_mm[0]:g}-{drawn.cup_diameter_mm[1]:g} mm). Scored against "
+            "the drawn truth, in the drawn geometry's millimetres. Columns as in the "
+            "degraded table.\n\n"
             + markdown_table(ROBUSTNESS_COLUMNS, rows))
 
 

@@ -114,6 +114,11 @@ def test_a_misgiven_geometry_changes_what_it_names_and_nothing_else():
     assert sample["geometry"].tolist()[:2] == [sdd, spacing]
     assert sample["geometry"].tolist()[2:] != [255.5, 255.5]
     torch.testing.assert_close(misgiven(sample)["geometry"], sample["geometry"])
+    # As --assume-defaults fills them (README): SDD 1,040 mm, 300 mm over the image's width,
+    # a 52 mm cup; the principal point, unknown, at the centre.
+    assumed = misgiven(sample, assumed=True)
+    assert assumed["geometry"].tolist() == pytest.approx([1040.0, 300.0 / 512, 255.5, 255.5])
+    assert assumed["cup_diameter"].tolist() == [52.0] * len(sample["cup_diameter"])
 
 
 # Stub scores (the same for every row) and the cells they must give, column by column.
