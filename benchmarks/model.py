@@ -478,7 +478,8 @@ def misgiven(sample: dict, sdd: float = 1.0, spacing: float = 1.0, centred: bool
     height, width = sample["image"].shape[-2:]
     geometry, diameter = sample["geometry"].clone(), sample["cup_diameter"]
     if assumed:
-        geometry[:2] = torch.tensor([ASSUMED_SDD_MM, ASSUMED_DETECTOR_WIDTH_MM / width])
+        geometry[:2] = torch.tensor([ASSUMED_SDD_MM, ASSUMED_DETECTOR_WIDTH_MM / width],
+                                    dtype=geometry.dtype)
         diameter = torch.full_like(diameter, ASSUMED_CUP_DIAMETER_MM)
     geometry[0] *= sdd
     geometry[1] *= spacing
@@ -519,7 +520,8 @@ def geometry_section(models: dict[str, CupNet], args: argparse.Namespace) -> str
             "the detector's pixel spacing off by a share, the pixel spacing given at the "
             "patient rather than at the detector (DICOM PixelSpacing for "
             "ImagerPixelSpacing, at a magnification of 1.25), the principal point left at "
-            "the image's centre (drawn within 2 % of the side from it), the cup's "
+            f"the image's centre (drawn within {100 * drawn.principal_offset_frac:g} % of "
+            "the side from it), the cup's "
             "diameter off by 2 mm, or all of them as `cupnet predict --assume-defaults` "
             f"fills them (SDD {ASSUMED_SDD_MM:g} mm, pixel spacing "
             f"{ASSUMED_DETECTOR_WIDTH_MM:g} mm over the image's width, cup diameter "
