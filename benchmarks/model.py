@@ -56,6 +56,10 @@ from train.losses import POSE_SCALE as TARGETS  # noqa: E402  (the issue's targe
 from train.losses import pose_errors  # noqa: E402
 from train.module import cup_errors  # noqa: E402
 
+# cupnet predict's --blurred (the blur-trained rim network in every rim stage), scored and
+# timed as the speed presets are, under its option's name.
+BLURRED = "blurred"
+OPTIONS = [*SPEED_PRESETS, BLURRED]
 # Seeds of fresh DRRs no inference setting was chosen on, and those that chose them (with the
 # accuracy table's --seed) since the sixth session.
 FRESH_SEEDS = [20_262_123, 20_263_123, 20_264_123, 20_265_123]
@@ -763,7 +767,8 @@ class StripCounter(PassThrough):
 def counting_strips(model: CupNet) -> Iterator[list[StripCounter]]:
     """``model`` with its rim networks counting the strips they are asked for, within the
     block, which is given their counters; put back as they were after it."""
-    names = [name for name in ("rim", "coarse_rim") if getattr(model, name) is not None]
+    names = [name for name in ("rim", "coarse_rim", "blur_rim")
+             if getattr(model, name) is not None]
     counters = {name: StripCounter(getattr(model, name)) for name in names}
     for name, counter in counters.items():
         setattr(model, name, counter)
@@ -894,8 +899,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", default=str(DEFAULT_CHECKPOINT))
     parser.add_argument("--presets", nargs="*", default=list(SPEED_PRESETS),
-                        choices=list(SPEED_PRESETS),
-                        help="the shipped model's speed presets to time and score beside it")
+                        choices=OPTIONS,
+                        help="the shipped model's speed presets (and --blurred) to time and "
+                             "score beside it")
     parser.add_argument("--ablation", nargs="*", default=[],
                         help="more checkpoints to compare on the same set, as NAME=PATH")
     parser.add_argument("--eval-config", default="configs/synth_eval.yaml")
@@ -929,9 +935,9 @@ def main() -> None:
                         help="seeds of the fresh sets (default: seeds no setting was chosen "
                              "on; the section says which given seeds chose settings)")
     parser.add_argument("--fresh-images", type=int, default=180, help="images a fresh seed")
-    parser.add_argument("--seed-presets", nargs="*", default=[], choices=list(SPEED_PRESETS),
-                        help="speed presets to score on the seed sets too, beside the "
-                             "shipped model as it is (in each runtime)")
+    parser.add_argument("--seed-presets", nargs="*", default=[], choices=OPTIONS,
+                        help="speed presets (and --blurred) to score on the seed sets too, "
+                             "beside the shipped model as it is (in each runtime)")
     parser.add_argument("--against", default='{"verify_gate": 1.0, "outline_settled": 0.05, '
                         '"search_screen": null}',
                         help="inference settings (JSON) to time the shipped model against, "
@@ -957,7 +963,10 @@ def main() -> None:
 
     def loaded(path: str, preset: str | None = None, runtime: str = "torch") -> CupNet:
         net = fold_batchnorm(load_model(path))  # as cupnet predict runs it
-        apply_speed_preset(net.config, preset)
+        if preset == BLURRED:
+            net.config.blurred = True
+        else:
+            apply_speed_preset(net.config, preset)
         # one thread a U-Net call, as predict's default (the strips take the timed threads)
         return networks_in_onnx_runtime(net, threads=1) if runtime == "onnx" else net
 

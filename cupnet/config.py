@@ -261,6 +261,11 @@ class CupNetConfig:
             so, verified but not searched, the same rule taking its detections: the rod
             cuts the opening in two, and such a cup's rim was mostly fitted to one half
             (docs/training.md, item 70).
+        blur_rim: the model holds a second fine rim network (``rim_channels`` wide, the same
+            strips), trained on blurrier images than the first (docs/training.md, item 76).
+        blurred: every rim stage runs that network in place of the first (needs
+            ``blur_rim``; ``cupnet predict --blurred``): for images blurrier than a sharp
+            DRR, where the first network's rim lies off by a bias that grows with the blur.
     """
 
     encoder: str = "timm-mobilenetv3_small_100"
@@ -334,6 +339,8 @@ class CupNetConfig:
     partner_look: bool = False
     partner_doubt: float | None = None
     rod_look: bool = False
+    blur_rim: bool = False
+    blurred: bool = False
 
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:
@@ -350,6 +357,9 @@ class CupNetConfig:
             raise ValueError(f"search_screen ({self.search_screen}) must be at least "
                              f"search_keep + search_keep_settled ({kept}), the grid poses "
                              "the search keeps")
+        if self.blurred and not self.blur_rim:
+            raise ValueError("blurred needs blur_rim: this model has no rim network trained "
+                             "on blurrier images")
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:

@@ -343,10 +343,17 @@ class CupNet(nn.Module):
         self.rim = RimNet(self.config.rim_channels) if self.config.rim_passes > 0 else None
         self.coarse_rim = (RimNet(self.config.coarse_rim_channels or self.config.rim_channels)
                            if self.config.coarse_rim_passes > 0 else None)
+        self.blur_rim = RimNet(self.config.rim_channels) if self.config.blur_rim else None
         if self.config.encoder_weights:
             state, _ = _read_checkpoint(Path(self.config.encoder_weights))
             for net in (self.locator, self.refiner):
                 net.encoder.load_state_dict(state, strict=False)
+
+    def fine_rim(self) -> nn.Module | None:
+        """The fine rim network every rim stage runs (the poses' doubts too): the
+        blur-trained one where the config says the images are ``blurred``, else the
+        model's own."""
+        return self.blur_rim if self.config.blurred else self.rim
 
     @property
     def dtype(self) -> torch.dtype:
@@ -572,7 +579,7 @@ class CupNet(nn.Module):
             the last pass's :class:`cupnet.rim.RimLandmarks`.
         """
         cfg = self.config
-        net = self.coarse_rim if coarse else self.rim
+        net = self.coarse_rim if coarse else self.fine_rim()
         if net is None:
             raise ValueError(f"this CupNet has no {'coarse ' if coarse else ''}rim stage "
                              f"({'coarse_' if coarse else ''}rim_passes = 0)")
@@ -1685,13 +1692,13 @@ class CupNet(nn.Module):
         cfg = self.config
         outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
                                                 dome_only=True)
-        found = self._strip_landmarks(self.rim, images, index, outline, normals,
+        found = self._strip_landmarks(self.fine_rim(), images, index, outline, normals,
                                       strip_offsets(cfg.rim_samples, cfg.rim_step,
                                                     device=outline.device))
         keep = (side > cfg.outline_min_side) & _inside(found.landmarks, images, index)
         # The strip is an open arc: the rim network's columns near its ends see the other
         # end through its circular padding.
-        ends = self.rim.columns_seen
+        ends = self.fine_rim().columns_seen
         keep[:, :ends] = False
         keep[:, -ends:] = False
         return found, keep

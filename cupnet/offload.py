@@ -23,7 +23,7 @@ if TYPE_CHECKING:  # the command line checks devices without loading the model's
     from cupnet.model import CupNet
 
 # The CupNet attributes that hold its networks.
-NETWORKS = ("locator", "refiner", "rim", "coarse_rim")
+NETWORKS = ("locator", "refiner", "rim", "coarse_rim", "blur_rim")
 
 
 def _moved(value: object, device: torch.device) -> object:

@@ -124,6 +124,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "bright): dark (the usual fluoroscopy display, used as given) "
                              "or bright (radiograph-style, metal white: every image turned "
                              "over); docs/training.md, item 20")
+    parser.add_argument("--blurred", action="store_true",
+                        help="the images are blurrier than a sharp DRR (a rim's edge spread "
+                             "over 2 px or more): every rim stage runs the model's rim network "
+                             "trained on blurrier images (blur_rim). On images 2 px blurrier "
+                             "than the training's it roughly halves the anteversion error at "
+                             "512 px; on sharp ones it costs about 0.1 deg (docs/training.md, "
+                             "item 76)")
     parser.add_argument("--denoise-above", type=float, metavar="SIGMA",
                         help="take an image whose noise estimate (the noise column, display "
                              "units [0, 1]) exceeds this through non-local means before the "
@@ -267,6 +274,9 @@ class NetworkDetector:
             config.look_again_doubt = self.model.look_again_doubt
         for name, value in (settings or {}).items():
             setattr(config, name, value)
+        if config.blurred and not config.blur_rim:
+            raise ValueError("--blurred needs a model with a rim network trained on blurrier "
+                             "images (blur_rim); this checkpoint has none")
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),
@@ -554,6 +564,8 @@ def _check_args(args: argparse.Namespace) -> str | None:
                 "networks' smallest training size")
     if args.rotate and args.landmarks is not None:
         return "--rotate turns the images for the network; --landmarks are solved as given"
+    if args.blurred and args.landmarks is not None:
+        return "--blurred chooses the network's rim stage; --landmarks are solved as given"
     if args.landmarks is None:
         if args.runtime == "onnx":  # asked for by name: it must run
             if args.device.split(":")[0] != "cpu":  # the device's type, as torch reads it
@@ -880,7 +892,8 @@ def _model_settings(args: argparse.Namespace) -> dict[str, object]:
     given = {"check_doubt": args.check_doubt, "metal": args.metal,
              "min_score": args.min_score, "denoise_above": args.denoise_above,
              "enlarge_below": args.enlarge_below, "reduce_above": args.reduce_above,
-             "round_field": False if args.keep_outside_field else None}
+             "round_field": False if args.keep_outside_field else None,
+             "blurred": True if args.blurred else None}
     settings = {name: value for name, value in given.items() if value is not None}
     if settings.get("reduce_above") == 0:  # 0: never, as for --enlarge-below
         settings["reduce_above"] = None
@@ -893,7 +906,7 @@ def _model_settings(args: argparse.Namespace) -> dict[str, object]:
 RESULT_OPTIONS = {"preset": "--fast / --fastest", "rotate": "--rotate", "metal": "--metal",
                   "check_doubt": "--check-doubt", "min_score": "--min-score",
                   "denoise_above": "--denoise-above", "enlarge_below": "--enlarge-below",
-                  "reduce_above": "--reduce-above",
+                  "reduce_above": "--reduce-above", "blurred": "--blurred",
                   "keep_outside_field": "--keep-outside-field", "meta": "--meta",
                   "sdd": "--sdd", "pixel_spacing": "--pixel-spacing",
                   "cup_diameter": "--cup-diameter", "principal_point": "--principal-point",

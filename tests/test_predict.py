@@ -927,7 +927,9 @@ def test_overlay_text_gives_the_standard_errors_where_there_are_any() -> None:
                           (["--denoise-above", "inf"], None, {"denoise_above": None}),
                           (["--enlarge-below", "0"], None, {"enlarge_below": 0}),
                           (["--reduce-above", "1500"], None, {"reduce_above": 1500}),
-                          (["--reduce-above", "0"], None, {"reduce_above": None})])
+                          (["--reduce-above", "0"], None, {"reduce_above": None}),
+                          (["--blurred", "--fast"], "fast",
+                           {"blurred": True, "verify_gate": None})])
 def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
         tmp_path: Path, flags: list[str], preset: str | None, changed: dict) -> None:
     """``--fast`` turns the model's verification off, ``--fastest`` also its outline
@@ -937,10 +939,11 @@ def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
     show metal, ``--keep-outside-field`` keeps cups outside a round field, ``--min-score``
     sets the weakest locator blob kept, ``--denoise-above`` the noise from which images are
     denoised, ``--enlarge-below`` the side under which they are enlarged, ``--reduce-above``
-    that over which they are reduced (0: never); every other setting is the checkpoint's."""
+    that over which they are reduced (0: never), ``--blurred`` runs the blur-trained rim
+    network (with a speed preset too); every other setting is the checkpoint's."""
     stored = {"detect_threshold": 2.0, "verify_gate": 1.0, "check_doubt": 1.8,
               "outline_passes": 3, "thin_rim_gate": 0.3, "ambiguous_by_doubt": True,
-              "round_field": True, "min_score": 0.8}
+              "round_field": True, "min_score": 0.8, "blur_rim": True}
     torch.manual_seed(0)  # the same weights each case: their networks are exported once
     model = CupNet(CupNetConfig(**stored))
     weights = save_model(model, tmp_path / "gated.safetensors")
@@ -955,6 +958,23 @@ def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
     assert model_info["speed_preset"] == preset
     expected = json.loads(json.dumps(vars(CupNetConfig(**stored)) | changed))  # as JSON has it
     assert model_info["config"] == expected
+
+
+def test_blurred_images_need_a_model_with_the_blur_trained_rim_network(
+        tmp_path: Path, blind_checkpoint: Path, capsys: pytest.CaptureFixture) -> None:
+    """A checkpoint without it stops the run before any image, naming the option; with
+    --landmarks there is no network to choose."""
+    noise_png(tmp_path / "a.png")
+    args = ["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "out"), "--blurred",
+            "--assume-defaults", "--quiet"]
+    assert main([*args, "--checkpoint", str(blind_checkpoint)]) == 2
+    assert ("cannot load the model: --blurred needs a model with a rim network trained on "
+            "blurrier images (blur_rim); this checkpoint has none") in capsys.readouterr().err
+    assert not (tmp_path / "out" / "results.csv").exists()
+    landmarks = tmp_path / "landmarks.csv"
+    landmarks.write_text("image,cup,u,v\n")
+    assert main([*args, "--landmarks", str(landmarks)]) == 2
+    assert "--blurred chooses the network's rim stage" in capsys.readouterr().err
 
 
 def test_fast_and_fastest_exclude_each_other(tmp_path: Path,

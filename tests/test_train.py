@@ -876,3 +876,26 @@ def test_the_hardware_recipes_starting_weights_load_as_shipped_before_it(tmp_pat
     assert target.read_bytes() == shipped
     model = load_model(target)
     assert model.rim is not None and model.coarse_rim is not None
+
+
+def test_merge_gives_a_base_the_donors_fine_rim_network_as_its_blur_trained_one(tmp_path):
+    """``--take blur_rim=``: the donor's fine rim network (fine-tuned on blurrier images)
+    becomes the base's ``blur_rim``, the base's own networks kept; a base given one it
+    cannot take (another width) is left without one."""
+    torch.manual_seed(0)
+    base, blurry = (CupNetModule(model=RIM_MODEL).model for _ in range(2))
+    paths = {name: save_model(net, tmp_path / f"{name}.safetensors")
+             for name, net in (("base", base), ("blurry", blurry))}
+    out = merge_main([str(paths["base"]), "--take", f"blur_rim={paths['blurry']}",
+                      "--out", str(tmp_path / "merged.safetensors")])
+    merged_model = load_model(out)
+    assert merged_model.config.blur_rim and not merged_model.config.blurred
+    for key, value in merged_model.state_dict().items():
+        network, rest = key.split(".", 1)
+        expected = (blurry.rim.state_dict()[rest] if network == "blur_rim"
+                    else base.state_dict()[key])
+        assert torch.equal(value, expected), key
+    wider = CupNetModule(model={**RIM_MODEL, "rim_channels": 12}).model
+    with pytest.raises(ValueError, match="'blur_rim': its weights do not fit"):
+        merged(base, {"blur_rim": wider})
+    assert base.blur_rim is None and not base.config.blur_rim

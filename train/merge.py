@@ -8,6 +8,12 @@ networks into the locator chain's export:
         --take rim=runs/hour_rim/cupnet.safetensors \\
         --take coarse_rim=runs/hour_coarse/cupnet.safetensors \\
         --out runs/hour_merged/cupnet.safetensors
+
+and the shipped model's blur-trained fine rim network (``blur_rim``) is the fine rim network
+of a run that fine-tuned it on blurrier images (``configs/blur_rim.yaml``):
+
+    python -m train.merge cupnet/assets/cupnet_default.safetensors \\
+        --take blur_rim=runs/blur_rim/cupnet.safetensors --out runs/blurred/cupnet.safetensors
 """
 
 from __future__ import annotations
@@ -18,25 +24,35 @@ from pathlib import Path
 from torch import Tensor, nn
 
 from cupnet.model import CupNet, load_model, save_model
+from cupnet.rim import RimNet
 
 # The settings that give each network's input its meaning (its view's size, the crop's
 # framing, the strips' sampling): a network taken into a model that sets them otherwise
 # would see inputs it never learnt, with weights of the same shapes.
 INPUT_SETTINGS = {"locator": ("locator_size",), "refiner": ("crop_size", "crop_fill"),
                   "rim": ("rim_samples", "rim_step"),
-                  "coarse_rim": ("rim_samples", "rim_step", "coarse_rim_reach")}
+                  "coarse_rim": ("rim_samples", "rim_step", "coarse_rim_reach"),
+                  "blur_rim": ("rim_samples", "rim_step")}
+# The donor's network each network is taken from where not its namesake: the blur-trained
+# network is a run's fine rim network, trained on blurrier images.
+DONOR_NETWORK = {"blur_rim": "rim"}
 
 
 def merged(base: CupNet, parts: dict[str, CupNet]) -> CupNet:
     """``base`` with each named network (``"rim"``, ``"coarse_rim"``, ``"locator"``,
-    ``"refiner"``) replaced by the same network of ``parts[name]``, in place.
+    ``"refiner"``) replaced by the same network of ``parts[name]``, in place; ``"blur_rim"``
+    (given to a base without one, ``CupNetConfig.blur_rim``) is the donor's fine rim network.
 
     Raises ValueError naming a network that ``base`` or its donor lacks, whose weights do
     not fit (another width), or whose donor sets one of its :data:`INPUT_SETTINGS`
     otherwise. Every part is checked before any is loaded, so a merge never half-loads.
     """
+    # A base with a fine rim network but no blur-trained one gets one, once all is checked.
+    added = (RimNet(base.config.rim_channels) if "blur_rim" in parts and base.blur_rim is None
+             and base.rim is not None else None)
     for name, donor in parts.items():
-        mine, theirs = getattr(base, name, None), getattr(donor, name, None)
+        mine = added if name == "blur_rim" and added is not None else getattr(base, name, None)
+        theirs = getattr(donor, DONOR_NETWORK.get(name, name), None)
         if not (isinstance(mine, nn.Module) and isinstance(theirs, nn.Module)):
             owner = "the donor" if isinstance(mine, nn.Module) else "the base model"
             raise ValueError(f"cannot take {name!r}: {owner} has no such network")
@@ -49,8 +65,11 @@ def merged(base: CupNet, parts: dict[str, CupNet]) -> CupNet:
             if ours != donors:
                 raise ValueError(f"cannot take {name!r}: it learnt {setting} = {donors}, the "
                                  f"base model runs it at {ours}")
+    if added is not None:
+        base.config.blur_rim, base.blur_rim = True, added
     for name, donor in parts.items():
-        getattr(base, name).load_state_dict(getattr(donor, name).state_dict())
+        getattr(base, name).load_state_dict(
+            getattr(donor, DONOR_NETWORK.get(name, name)).state_dict())
     return base
 
 
