@@ -428,6 +428,12 @@ def robustness_rows(part: str, label: str, models: dict[str, CupNet], images: li
     return rows
 
 
+def preset_flags(args: argparse.Namespace) -> str:
+    """``--presets`` as the command line gave them where not the default (the speed
+    presets), for a section's command; else nothing."""
+    return "" if args.presets == list(SPEED_PRESETS) else f" --presets {' '.join(args.presets)}"
+
+
 def robustness_intro(part: str, count: int, seed: int, args: argparse.Namespace) -> str:
     """A robustness section's command (``--parts part``) and the ``count`` fresh DRRs it
     scores, from seed ``seed`` on."""
@@ -833,7 +839,7 @@ def speed_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
                             "images / s", "CPU ms / image"], rows)
     print(speed)
     write("model", "## CupNet speed\n\n"
-          f"`python benchmarks/model.py` on {machine()}; checkpoint "
+          f"`python benchmarks/model.py{preset_flags(args)}` on {machine()}; checkpoint "
           f"`{Path(args.checkpoint).name}`, as it is and with its speed presets "
           f"({', '.join(f'`--{p}`' for p in args.presets) or 'none'}, as `cupnet "
           "predict` takes them); 20 synthetic 512x512 images, "
@@ -881,7 +887,7 @@ def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> Non
              "dominate the means.\n\n" + spread)
     print(text)
     write("model_accuracy", "## CupNet accuracy\n\n"
-          f"`python benchmarks/model.py`: {args.images} fresh DRRs from "
+          f"`python benchmarks/model.py{preset_flags(args)}`: {args.images} fresh DRRs from "
           f"`{args.eval_config}` (CT background on every image) at "
           f"{', '.join(map(str, args.sizes))} px (seed {args.seed}), MAE over detected "
           "true cups "
