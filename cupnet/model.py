@@ -353,6 +353,9 @@ class CupNet(nn.Module):
         """The fine rim network every rim stage runs (the poses' doubts too): the
         blur-trained one where the config says the images are ``blurred``, else the
         model's own."""
+        if self.config.blurred and self.blur_rim is None:  # set after the config was checked
+            raise ValueError("blurred needs blur_rim: this model has no rim network trained "
+                             "on blurrier images")
         return self.blur_rim if self.config.blurred else self.rim
 
     @property

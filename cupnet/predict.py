@@ -128,9 +128,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the images are blurrier than a sharp DRR (a rim's edge spread "
                              "over 2 px or more): every rim stage runs the model's rim network "
                              "trained on blurrier images (blur_rim). On images 2 px blurrier "
-                             "than the training's it roughly halves the anteversion error at "
-                             "512 px; on sharp ones it costs about 0.1 deg (docs/training.md, "
-                             "item 76)")
+                             "than the training's it takes the anteversion error at 512 px "
+                             "from 4.0 to 1.2 deg; on sharp ones it costs about 0.1 deg "
+                             "(docs/training.md, items 75 and 76)")
     parser.add_argument("--denoise-above", type=float, metavar="SIGMA",
                         help="take an image whose noise estimate (the noise column, display "
                              "units [0, 1]) exceeds this through non-local means before the "

@@ -61,7 +61,12 @@ def test_blurred_runs_every_rim_stage_with_the_blur_trained_network(monkeypatch)
 def test_blurred_needs_the_blur_trained_network() -> None:
     with pytest.raises(ValueError, match="blurred needs blur_rim"):
         CupNetConfig(blurred=True)
-    assert CupNet().blur_rim is None
+    model = CupNet(CupNetConfig(rim_passes=2))
+    assert model.blur_rim is None and model.fine_rim() is model.rim
+    model.config.blurred = True  # as a caller may set it on a loaded model
+    with pytest.raises(ValueError, match="blurred needs blur_rim"):
+        model.rim_landmarks(torch.rand(1, 1, 64, 64), torch.zeros(1, dtype=torch.long),
+                            torch.tensor([[32.0, 32.0, 20.0, 12.0, 0.0]]))
     assert not any(key.startswith("blur_rim.") for key in CupNet().state_dict())
 
 
