@@ -438,7 +438,7 @@ def robustness_intro(part: str, count: int, seed: int, args: argparse.Namespace)
     """A robustness section's command (``--parts part``) and the ``count`` fresh DRRs it
     scores, from seed ``seed`` on."""
     return (f"`python benchmarks/model.py --parts {part} --runtimes {' '.join(args.runtimes)}"
-            + "".join(f" --seed-presets {p}" for p in args.seed_presets)
+            + (f" --seed-presets {' '.join(args.seed_presets)}" if args.seed_presets else "")
             + f"`: {count} fresh DRRs from `{args.eval_config}` at "
             f"{', '.join(map(str, args.sizes))} px in equal shares (seeds {seed} on)")
 
