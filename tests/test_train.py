@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import csv
 import itertools
+import json
 import math
 import subprocess
 import warnings
@@ -18,7 +19,7 @@ from torch.utils.data import DataLoader
 
 from cupnet.cli import main as cupnet_main
 from cupnet.crops import resample_batch, square_windows
-from cupnet.model import DEFAULT_CHECKPOINT, load_model, save_model
+from cupnet.model import DEFAULT_CHECKPOINT, config_path, load_model, save_model
 from data_synth.dataset import stream_share
 from train.cli import add_arguments, lightning_args, main
 from train.data import CupDataModule, RoundRobinBatches
@@ -899,3 +900,18 @@ def test_merge_gives_a_base_the_donors_fine_rim_network_as_its_blur_trained_one(
     with pytest.raises(ValueError, match="'blur_rim': its weights do not fit"):
         merged(base, {"blur_rim": wider})
     assert base.blur_rim is None and not base.config.blur_rim
+
+
+def test_a_stage_fine_tuned_from_the_shipped_weights_starts_without_its_blur_trained_network():
+    """The recipes that start from the shipped checkpoint (configs/blur_rim.yaml,
+    cpu_locator3-5, cpu_rim_narrow) train a model without ``blur_rim``: its weights load,
+    every network tensor for tensor, the blur-trained one left out with a warning."""
+    stored = json.loads(config_path(DEFAULT_CHECKPOINT).read_text())
+    config = {k: v for k, v in stored.items() if k not in ("blur_rim", "blurred")}
+    with pytest.warns(UserWarning, match=r"blur-trained rim network \(blur_rim\) is not in"):
+        module = CupNetModule(model=config, init_weights=str(DEFAULT_CHECKPOINT))
+    shipped = load_model().state_dict()
+    state = module.model.state_dict()
+    assert module.model.blur_rim is None and state.keys() == {
+        k for k in shipped if not k.startswith("blur_rim.")}
+    assert all(torch.equal(value, shipped[key]) for key, value in state.items())

@@ -350,9 +350,16 @@ class CupNetModule(L.LightningModule):
             # A model gaining a rim stage starts from weights without one; a rim network of
             # another width starts afresh.
             own = self.model.state_dict()
-            state = {k: v for k, v in load_model(init_weights).state_dict().items()
+            start = load_model(init_weights)
+            state = {k: v for k, v in start.state_dict().items()
                      if not (k.startswith(("rim.", "coarse_rim.")) and k in own
                              and own[k].shape != v.shape)}
+            if start.blur_rim is not None and self.model.blur_rim is None:
+                # An inference option (--blurred) no stage trains: left out, and said so.
+                state = {k: v for k, v in state.items() if not k.startswith("blur_rim.")}
+                rank_zero_warn(f"{init_weights}'s blur-trained rim network (blur_rim) is not "
+                               "in this model: this run's export holds none (train.merge "
+                               "--take blur_rim= puts one back)")
             missing, unexpected = self.model.load_state_dict(state, strict=False)
             if unexpected or any(not k.startswith(("rim.", "coarse_rim.")) for k in missing):
                 raise ValueError(
