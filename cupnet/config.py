@@ -51,7 +51,8 @@ class CupNetConfig:
         rim_points: rim landmarks (strip columns) per cup.
         rim_samples: samples along each normal (strip rows) ...
         rim_step: ... this many image pixels apart.
-        rim_channels: width of :class:`cupnet.rim.RimNet` (both rim stages).
+        rim_channels: width of :class:`cupnet.rim.RimNet` (the rim networks: fine, coarse,
+            blur-trained).
         coarse_rim_channels: the coarse stage's width where it differs (None: the same).
         coarse_rim_passes: coarse rim-stage passes before the fine ones (0: none) ...
         coarse_rim_reach: ... their strips reaching this many semi-major axes either side of
