@@ -434,11 +434,17 @@ def preset_flags(args: argparse.Namespace) -> str:
     return "" if args.presets == list(SPEED_PRESETS) else f" --presets {' '.join(args.presets)}"
 
 
+def seed_preset_flags(args: argparse.Namespace) -> str:
+    """``--seed-presets`` as the command line gave them, one flag (argparse keeps the last of
+    several), for a section's command; nothing where none were given."""
+    return f" --seed-presets {' '.join(args.seed_presets)}" if args.seed_presets else ""
+
+
 def robustness_intro(part: str, count: int, seed: int, args: argparse.Namespace) -> str:
     """A robustness section's command (``--parts part``) and the ``count`` fresh DRRs it
     scores, from seed ``seed`` on."""
     return (f"`python benchmarks/model.py --parts {part} --runtimes {' '.join(args.runtimes)}"
-            + (f" --seed-presets {' '.join(args.seed_presets)}" if args.seed_presets else "")
+            + seed_preset_flags(args)
             + f"`: {count} fresh DRRs from `{args.eval_config}` at "
             f"{', '.join(map(str, args.sizes))} px in equal shares (seeds {seed} on)")
 
@@ -681,8 +687,7 @@ def fresh_seed_intro(args: argparse.Namespace, runtimes: list[str], part: str = 
         command += f" --checkpoint {args.checkpoint}"
     if part == "fresh" and seeds != FRESH_SEEDS:
         command += f" --fresh-seeds {' '.join(map(str, seeds))}"
-    if args.seed_presets:
-        command += f" --seed-presets {' '.join(args.seed_presets)}"
+    command += seed_preset_flags(args)
     chosen_on = sorted(set(seeds) & {args.seed, *SELECTION_SEEDS})
     honesty = (f"of these seeds {', '.join(map(str, chosen_on))} chose inference settings, "
                "so these figures flatter the model" if chosen_on else
