@@ -18,6 +18,11 @@ from cupnet.polarity import METAL_DISPLAYS
 # ``outline_settled`` and of the training's normalised pose loss.
 TARGET_ACCURACY = (1.0, 1.0, 1.0, 1.0, 8.0)
 
+# A model told its images are blurred that has no blur-trained rim network: refused when the
+# config is made and, set afterwards, where a rim stage would run (CupNet.fine_rim).
+BLURRED_WITHOUT_BLUR_RIM = ("blurred needs blur_rim: this model has no rim network trained "
+                            "on blurrier images")
+
 
 @dataclass
 class CupNetConfig:
@@ -359,8 +364,7 @@ class CupNetConfig:
                              f"search_keep + search_keep_settled ({kept}), the grid poses "
                              "the search keeps")
         if self.blurred and not self.blur_rim:
-            raise ValueError("blurred needs blur_rim: this model has no rim network trained "
-                             "on blurrier images")
+            raise ValueError(BLURRED_WITHOUT_BLUR_RIM)
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:

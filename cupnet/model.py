@@ -42,7 +42,7 @@ from torch import Tensor, nn
 from torch.nn.utils.rnn import pad_sequence
 
 from cupnet.batchwise import atan2
-from cupnet.config import TARGET_ACCURACY, CupNetConfig
+from cupnet.config import BLURRED_WITHOUT_BLUR_RIM, TARGET_ACCURACY, CupNetConfig
 from cupnet.crops import (
     ellipse_crop_affine,
     enlargement,
@@ -354,8 +354,7 @@ class CupNet(nn.Module):
         blur-trained one where the config says the images are ``blurred``, else the
         model's own."""
         if self.config.blurred and self.blur_rim is None:  # set after the config was checked
-            raise ValueError("blurred needs blur_rim: this model has no rim network trained "
-                             "on blurrier images")
+            raise ValueError(BLURRED_WITHOUT_BLUR_RIM)
         return self.blur_rim if self.config.blurred else self.rim
 
     @property
@@ -1695,13 +1694,14 @@ class CupNet(nn.Module):
         cfg = self.config
         outline, normals, side = sphere_outline(pose, radius, frame, cfg.rim_points,
                                                 dome_only=True)
-        found = self._strip_landmarks(self.fine_rim(), images, index, outline, normals,
+        net = self.fine_rim()
+        found = self._strip_landmarks(net, images, index, outline, normals,
                                       strip_offsets(cfg.rim_samples, cfg.rim_step,
                                                     device=outline.device))
         keep = (side > cfg.outline_min_side) & _inside(found.landmarks, images, index)
         # The strip is an open arc: the rim network's columns near its ends see the other
         # end through its circular padding.
-        ends = self.fine_rim().columns_seen
+        ends = net.columns_seen
         keep[:, :ends] = False
         keep[:, -ends:] = False
         return found, keep
