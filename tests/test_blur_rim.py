@@ -3,7 +3,6 @@ in every rim stage (``cupnet predict --blurred``)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +10,7 @@ import pytest
 import torch
 import yaml
 
-from benchmarks.model import blurrier
+from benchmarks.model import blurrier, counting_strips
 from cupnet.config import CupNetConfig
 from cupnet.geometry import Geometry
 from cupnet.model import CupNet, load_model, save_model
@@ -19,15 +18,7 @@ from data_synth import SynthDataset
 from train.data import synth_config
 
 
-def counted(forward: Callable, strips: list[int]) -> Callable:
-    """``forward`` that adds the strips it is given to ``strips[0]``."""
-    def run(batch: torch.Tensor) -> object:
-        strips[0] += batch.shape[0]
-        return forward(batch)
-    return run
-
-
-def test_blurred_runs_every_rim_stage_with_the_blur_trained_network(monkeypatch) -> None:
+def test_blurred_runs_every_rim_stage_with_the_blur_trained_network() -> None:
     """A DRR blurred 2 px more than the training's (seed 20,261,164 at 512 px, image 19, as
     the degraded table's row): the shipped model's rim network gives a pose 36 deg off,
     flagged; with ``blurred`` only the blur-trained network runs and the pose is within
@@ -36,21 +27,16 @@ def test_blurred_runs_every_rim_stage_with_the_blur_trained_network(monkeypatch)
     sample = blurrier(SynthDataset(synth_config(fields, 512), seed=20_261_164,
                                    length=20)[19], 2.0)
     model = load_model()
-    strips = {"rim": [0], "blur_rim": [0]}
-    for name, count in strips.items():
-        net = getattr(model, name)
-        monkeypatch.setattr(net, "forward", counted(net.forward, count))
     geometry = Geometry(*(float(v) for v in sample["geometry"]))
     truth = sample["pose"][0].double().numpy()
     errors = {}
     for blurred in (False, True):
         model.config.blurred = blurred
-        before = {name: count[0] for name, count in strips.items()}
-        (cup,) = model.detect(sample["image"][None], geometry,
-                              float(sample["cup_diameter"][0]), return_masks=False)[0]
-        ran = {name: count[0] - before[name] for name, count in strips.items()}
-        assert ran["blur_rim" if blurred else "rim"] > 0
-        assert ran["rim" if blurred else "blur_rim"] == 0
+        with counting_strips(model) as (fine, _, blur):
+            (cup,) = model.detect(sample["image"][None], geometry,
+                                  float(sample["cup_diameter"][0]), return_masks=False)[0]
+        ran, idle = (blur, fine) if blurred else (fine, blur)
+        assert ran.count > 0 and idle.count == 0
         errors[blurred] = (np.abs(cup.pose - truth), cup.check)
     assert errors[False][0][0] > 20.0 and errors[False][1]
     error, check = errors[True]
