@@ -18,8 +18,9 @@ from cupnet.polarity import METAL_DISPLAYS
 # ``outline_settled`` and of the training's normalised pose loss.
 TARGET_ACCURACY = (1.0, 1.0, 1.0, 1.0, 8.0)
 
-# A model told its images are blurred that has no blur-trained rim network: refused when the
-# config is made and, set afterwards, where a rim stage would run (CupNet.fine_rim).
+# A model told its images are blurred that has no blur-trained rim network: refused by the
+# config and, where the config's blur_rim was set after the model was made without the
+# network, where a rim stage would run (CupNet.fine_rim).
 BLURRED_WITHOUT_BLUR_RIM = ("blurred needs blur_rim: this model has no rim network trained "
                             "on blurrier images")
 
@@ -348,6 +349,33 @@ class CupNetConfig:
     blur_rim: bool = False
     blurred: bool = False
 
+    def __setattr__(self, name: str, value: Any) -> None:
+        """A field set on a made config gets the checks the constructor's values get (a
+        refused value leaves the config as it was); a name that is no field is refused, where
+        Python would have added a new attribute the model never reads."""
+        if name in self.__dict__:
+            self.update(**{name: value})
+        elif name in self.__dataclass_fields__:  # the constructor's own assignments
+            object.__setattr__(self, name, value)
+        else:
+            raise AttributeError(f"unknown CupNet config key {name!r}")
+
+    def update(self, **values: Any) -> CupNetConfig:
+        """Set several fields, then check them together (so ``enlarge_below`` and
+        ``reduce_above`` can move past each other), in place; a refused set leaves every
+        field as it was. Returns the config."""
+        unknown = set(values) - set(self.__dataclass_fields__)
+        if unknown:
+            raise AttributeError(f"unknown CupNet config keys: {sorted(unknown)}")
+        before = {name: self.__dict__[name] for name in values}
+        self.__dict__.update(values)
+        try:
+            self.__post_init__()
+        except ValueError:
+            self.__dict__.update(before)
+            raise
+        return self
+
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:
             raise ValueError(f"unknown metal display {self.metal!r}; choose from "
@@ -436,6 +464,4 @@ def apply_speed_preset(config: CupNetConfig, preset: str | None) -> CupNetConfig
     if preset not in SPEED_PRESETS:
         raise ValueError(f"unknown speed preset {preset!r}; choose from "
                          f"{', '.join(SPEED_PRESETS)}")
-    for key, value in SPEED_PRESETS[preset].items():
-        setattr(config, key, value)
-    return config
+    return config.update(**SPEED_PRESETS[preset])

@@ -353,7 +353,7 @@ class CupNet(nn.Module):
         """The fine rim network every rim stage runs (the poses' doubts too): the
         blur-trained one where the config says the images are ``blurred``, else the
         model's own."""
-        if self.config.blurred and self.blur_rim is None:  # set after the config was checked
+        if self.config.blurred and self.blur_rim is None:  # blur_rim set after the model was made
             raise ValueError(BLURRED_WITHOUT_BLUR_RIM)
         return self.blur_rim if self.config.blurred else self.rim
 

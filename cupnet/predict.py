@@ -268,15 +268,14 @@ class NetworkDetector:
         elif runtime != "torch":
             self.model, runtime = _in_onnx_runtime(self.model, strict=runtime == "onnx")
         apply_speed_preset(self.model.config, preset)
-        config = self.model.config
-        if "check_doubt" in (settings or {}):
+        config, settings = self.model.config, settings or {}
+        if "check_doubt" in settings:
             # A flag set for the eye alone: the later looks keep the checkpoint's threshold.
             config.look_again_doubt = self.model.look_again_doubt
-        for name, value in (settings or {}).items():
-            setattr(config, name, value)
-        if config.blurred and not config.blur_rim:
+        if settings.get("blurred") and not config.blur_rim:
             raise ValueError("--blurred needs a model with a rim network trained on blurrier "
                              "images (blur_rim); this checkpoint has none")
+        config.update(**settings)  # checked together: --enlarge-below may pass reduce_above
         self.save_masks = save_masks
         path = Path(checkpoint) if checkpoint is not None else DEFAULT_CHECKPOINT
         self.info = {"checkpoint": str(path), "sha256": _sha256(path),

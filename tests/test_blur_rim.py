@@ -49,7 +49,12 @@ def test_blurred_needs_the_blur_trained_network() -> None:
         CupNetConfig(blurred=True)
     model = CupNet(CupNetConfig(rim_passes=2))
     assert model.blur_rim is None and model.fine_rim() is model.rim
-    model.config.blurred = True  # as a caller may set it on a loaded model
+    with pytest.raises(ValueError, match="blurred needs blur_rim"):
+        model.config.blurred = True  # as a caller may set it on a loaded model
+    assert not model.config.blurred
+    # A config told it has the network after the model was made without it: the rim stage
+    # names the cause (it would have failed on a missing network).
+    model.config.update(blur_rim=True, blurred=True)
     with pytest.raises(ValueError, match="blurred needs blur_rim"):
         model.rim_landmarks(torch.rand(1, 1, 64, 64), torch.zeros(1, dtype=torch.long),
                             torch.tensor([[32.0, 32.0, 20.0, 12.0, 0.0]]))

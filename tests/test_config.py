@@ -63,3 +63,35 @@ def test_a_side_both_enlarged_and_reduced_is_refused() -> None:
     with pytest.raises(ValueError, match=r"reduce_above \(400\) must be at least enlarge_below"):
         CupNetConfig(enlarge_below=496, reduce_above=400)
     assert CupNetConfig(enlarge_below=496, reduce_above=496).reduce_above == 496
+
+
+def test_a_field_set_on_a_made_config_is_checked_as_the_constructor_checks_it() -> None:
+    """Presets, ``cupnet predict``'s options and a user's own settings set fields on a made
+    config; each is refused as the constructor refuses it, the config left as it was."""
+    config = CupNetConfig(enlarge_below=496, reduce_above=1024)
+    refusals = {"reduce_above": (400, r"reduce_above \(400\) must be at least enlarge_below"),
+                "enlarge_below": (1500, r"reduce_above \(1024\) must be at least "
+                                        r"enlarge_below \(1500\)"),
+                "metal": ("shiny", "unknown metal display 'shiny'"),
+                "blurred": (True, "blurred needs blur_rim"),
+                "search_screen": (2, r"search_screen \(2\) must be at least search_keep")}
+    for name, (value, message) in refusals.items():
+        with pytest.raises(ValueError, match=message):
+            setattr(config, name, value)
+    assert config == CupNetConfig(enlarge_below=496, reduce_above=1024)
+    # Bars moved past each other together are one consistent change.
+    assert config.update(enlarge_below=1500, reduce_above=2000) is config
+    assert (config.enlarge_below, config.reduce_above) == (1500, 2000)
+    with pytest.raises(ValueError, match=r"reduce_above \(50\) must be at least"):
+        config.update(enlarge_below=100, reduce_above=50)
+    assert (config.enlarge_below, config.reduce_above) == (1500, 2000)
+
+
+def test_a_misspelt_field_is_refused_not_added() -> None:
+    """Python would add the misspelt attribute and leave the field the model reads as it was."""
+    config = CupNetConfig()
+    with pytest.raises(AttributeError, match="unknown CupNet config key 'blured'"):
+        config.blured = True
+    with pytest.raises(AttributeError, match=r"unknown CupNet config keys: \['verify_gat'\]"):
+        config.update(verify_gat=1.0, rim_channels=8)
+    assert config == CupNetConfig() and "blured" not in vars(config)

@@ -960,6 +960,25 @@ def test_speed_presets_and_check_doubt_set_the_model_and_are_recorded(
     assert model_info["config"] == expected
 
 
+def test_an_enlarge_bar_over_the_models_reduce_bar_is_refused_before_any_image(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """``--enlarge-below`` over the checkpoint's ``reduce_above`` would enlarge and reduce
+    the same sides (it had been set without the config's check); moved past it together
+    with ``--reduce-above`` it runs."""
+    weights = save_model(CupNet(CupNetConfig(detect_threshold=2.0, reduce_above=1024)),
+                         tmp_path / "model.safetensors")
+    noise_png(tmp_path / "a.png")
+    args = ["predict", str(tmp_path / "a.png"), "--checkpoint", str(weights),
+            "--assume-defaults", "--quiet", "--enlarge-below", "1500"]
+    assert main([*args, "--out", str(tmp_path / "refused")]) == 2
+    assert ("cannot load the model: reduce_above (1024) must be at least enlarge_below "
+            "(1500)") in capsys.readouterr().err
+    assert not (tmp_path / "refused" / "results.csv").exists()
+    assert main([*args, "--reduce-above", "2000", "--out", str(tmp_path / "out")]) == 0
+    config = json.loads((tmp_path / "out" / "results.json").read_text())["model"]["config"]
+    assert (config["enlarge_below"], config["reduce_above"]) == (1500, 2000)
+
+
 def test_blurred_images_need_a_model_with_the_blur_trained_rim_network(
         tmp_path: Path, blind_checkpoint: Path, capsys: pytest.CaptureFixture) -> None:
     """A checkpoint without it stops the run before any image, naming the option; with
