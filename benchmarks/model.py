@@ -137,7 +137,7 @@ def shape(text: str) -> tuple[int, int]:
 
 
 def geometry_of(sample: dict) -> Geometry:
-    return Geometry(*(float(v) for v in sample["geometry"]))
+    return Geometry.from_row(sample["geometry"])
 
 
 def detect_sample(model: CupNet, sample: dict) -> list[CupDetection]:

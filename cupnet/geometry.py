@@ -55,6 +55,12 @@ class Geometry:
         )
 
     @classmethod
+    def from_row(cls, row: Tensor) -> Geometry:
+        """Geometry of one image, its fields Python floats, from a row ``(4,)`` (sdd, spacing,
+        u0, v0), as a synthetic sample's ``"geometry"`` holds it."""
+        return cls(*(float(v) for v in row))
+
+    @classmethod
     def from_rows(cls, rows: Tensor) -> Geometry:
         """Geometry of rows ``(..., 4)`` (sdd, spacing, u0, v0), one per image (also for one
         row under ``vmap``)."""

@@ -48,7 +48,7 @@ def test_a_halved_export_keeps_its_rims_where_the_halved_geometry_projects_them(
     pose = pose_to_radians(sample["pose"].double())
     radius = sample["cup_diameter"].double() / 2
     t = torch.linspace(0, 2 * np.pi, 37, dtype=torch.float64)
-    full_geometry, half_geometry = (Geometry(*(float(v) for v in s["geometry"]))
+    full_geometry, half_geometry = (Geometry.from_row(s["geometry"])
                                     for s in (sample, half))
     # A rim point's pixel in the halved image, from pixel centres at integers: the
     # projection under the halved geometry (spacing doubled, principal point moved).

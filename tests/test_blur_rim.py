@@ -27,7 +27,7 @@ def test_blurred_runs_every_rim_stage_with_the_blur_trained_network() -> None:
     sample = blurrier(SynthDataset(synth_config(fields, 512), seed=20_261_164,
                                    length=20)[19], 2.0)
     model = load_model()
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     truth = sample["pose"][0].double().numpy()
     errors = {}
     for blurred in (False, True):

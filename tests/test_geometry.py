@@ -93,6 +93,17 @@ def test_default_principal_point_is_image_centre():
     assert (g.principal_u, g.principal_v) == (511.5, 383.5)
 
 
+def test_one_row_gives_the_fields_of_its_batch_as_floats() -> None:
+    """A synthetic sample's row (sdd, spacing, u0, v0): one image's geometry, as its batch's
+    row gives it."""
+    rows = torch.tensor([[1000.0, 0.2, 255.5, 250.0], [980.0, 0.15, 300.25, 260.0]],
+                        dtype=torch.float64)
+    one, batch = Geometry.from_row(rows[1]), Geometry.from_rows(rows)
+    assert all(type(value) is float for value in vars(one).values())
+    assert vars(one) == {name: float(value[1]) for name, value in vars(batch).items()}
+    assert one == Geometry(sdd=980.0, pixel_spacing=0.15, principal_u=300.25, principal_v=260.0)
+
+
 @pytest.mark.parametrize("field, value, word", [("sdd", -1.0, "source-to-detector"),
                                                 ("sdd", 0.0, "source-to-detector"),
                                                 ("pixel_spacing", 0.0, "pixel spacing"),

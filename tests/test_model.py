@@ -533,7 +533,7 @@ def test_a_failed_piece_beside_a_posed_cup_is_not_reported():
     (docs/training.md, item 73). Fails with the rule left out of detect (checked)."""
     sample = SynthDataset(synth_config("configs/synth_eval.yaml", 768), seed=20_261_124,
                           length=90)[58]
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     found = load_model().detect(sample["image"][None], geometry, sample["cup_diameter"][:1],
                                 return_masks=False)[0]
     assert [cup.status for cup in found] == ["ok"]
@@ -743,7 +743,7 @@ def test_folded_batchnorm_gives_the_same_outputs(shipped):
         # A DRR of the training distribution (no anatomy, to keep it quick): the shipped
         # model solves it, folded or not, to the same digits.
         sample = synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0), 0, 0)
-        geometry = Geometry(*(float(v) for v in sample["geometry"]))
+        geometry = Geometry.from_row(sample["geometry"])
         ours, theirs = (m.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                                  return_masks=False)[0] for m in (folded, model))
         assert len(ours) == len(theirs) == 1 and ours[0].status == theirs[0].status == "ok"

@@ -91,7 +91,7 @@ def test_networks_on_the_cpu_give_the_same_detections() -> None:
     assert all(isinstance(getattr(moved, name), OnDevice) for name in NETWORKS)
     assert not any(isinstance(getattr(model, name), OnDevice) for name in NETWORKS)
     sample = synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0), 0, 0)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     ours, theirs = (m.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                              return_masks=False)[0] for m in (moved, model))
     assert len(ours) == len(theirs) == 1 and ours[0].status == theirs[0].status == "ok"

@@ -175,7 +175,7 @@ def test_shipped_model_finds_the_dome_outline_on_a_drr(shipped_on_drr, monkeypat
     model, sample = shipped_on_drr
     monkeypatch.setattr(model.config, "outline_rim_resample", False)
     truth = sample["pose"][:1].double()
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     diameter = sample["cup_diameter"][:1].double()
     rim = rim_landmarks(truth, geometry, float(diameter), 128)
     start = truth + torch.tensor([0.0, 0.0, 0.0, 0.0, 25.0], dtype=torch.float64)
@@ -191,7 +191,7 @@ def test_shipped_model_finds_the_dome_outline_on_a_drr(shipped_on_drr, monkeypat
 def test_detect_reports_the_rim_of_its_outline_refined_pose(shipped_on_drr):
     model, sample = shipped_on_drr
     assert model.config.outline_passes > 0  # the shipped model refines with the outline
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     diameter = float(sample["cup_diameter"][0])
     found = model.detect(sample["image"][None], geometry, diameter, return_masks=False)[0]
     assert len(found) == 1 and found[0].status == "ok"
@@ -210,7 +210,7 @@ def _refined_on_the_true_rim(model, sample, start: torch.Tensor | None = None) -
     """:meth:`CupNet.outline_refined` of ``start`` ``(1, 5)`` deg / mm (the true pose where
     None) with the sample's exact rim landmarks, their residual 0.5 px."""
     truth = sample["pose"][:1].double()
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     diameter = sample["cup_diameter"][:1].double()
     with torch.no_grad():
         return model.outline_refined([sample["image"]], torch.tensor([0]),
@@ -280,7 +280,7 @@ def test_outline_refinement_stops_once_a_cup_settles(shipped_on_drr, monkeypatch
 
 def _doubt(model, sample, poses: torch.Tensor, settled: bool = False) -> torch.Tensor:
     """:meth:`CupNet.pose_doubt` of poses ``(P, 5)`` on the sample's image."""
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     count = len(poses)
     with torch.no_grad():
         return model.pose_doubt([sample["image"]], torch.zeros(count, dtype=torch.long), poses,
@@ -330,7 +330,7 @@ def test_detect_reports_its_doubt_and_flags_a_doubted_pose(shipped_on_drr, monke
         refine = model.outline_refined
         turn = torch.tensor([0.0, 20.0, 0.0, 0.0, 0.0], dtype=torch.float64)
         monkeypatch.setattr(model, "outline_refined", lambda *args: refine(*args) + turn)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
     assert len(found) == 1
@@ -365,7 +365,7 @@ def test_a_refinement_the_network_doubts_more_keeps_its_start(shipped_on_drr, mo
         return known, refused, seconds
 
     monkeypatch.setattr(model, "_outline_refine_picks", recorded)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
     assert looks == [("first", 1)] and len(found) == 1
@@ -390,7 +390,7 @@ def test_speed_presets_detect_the_cup_and_fastest_reports_no_doubt(shipped_on_dr
     model, sample = shipped_on_drr
     for key, value in SPEED_PRESETS[preset].items():
         monkeypatch.setattr(model.config, key, value)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
     assert len(found) == 1
@@ -457,7 +457,7 @@ def test_a_flagged_cup_is_looked_at_again(shipped_on_drr, monkeypatch, turned,
     model, sample = shipped_on_drr
     looks = _first_look_turned(model, monkeypatch, second_look, turned, third_look_gamma,
                                fourth_look_turned)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     image = 1 - sample["image"] if shown_bright else sample["image"]
     found = model.detect(image[None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
@@ -509,7 +509,7 @@ def test_a_declared_display_is_reported_by_every_look(shipped_on_drr, monkeypatc
     display (the turned look had reported its own, dark)."""
     model, sample = shipped_on_drr
     monkeypatch.setattr(model.config, "metal", "bright")
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     look = Look(turned=True, verified=False, searched=False) if turned else FIRST_LOOK
     with torch.inference_mode():
         found = model._detect([sample["image"]], geometry, sample["cup_diameter"][:1].double(),
@@ -527,7 +527,7 @@ def test_the_flag_and_the_later_looks_go_by_their_own_doubts(shipped_on_drr, mon
     counts) or just above it. The flag changes no pose: set below the cup's doubt alone,
     the cup comes out as without it, flagged."""
     model, sample = shipped_on_drr
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
 
     def detected():
         return model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
@@ -629,7 +629,7 @@ def test_an_image_with_no_cup_found_is_looked_at_again(shipped_on_drr, monkeypat
         return (torch.full_like(rough, math.nan) if looks[-1][0] == "first" else rough), scores
 
     monkeypatch.setattr(model, "rough_ellipses", hidden_at_first)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     images = torch.stack([torch.full_like(sample["image"], 0.5), sample["image"]])
     blank, found = model.detect(images, geometry, float(sample["cup_diameter"][0]),
                                 return_masks=False)
@@ -679,7 +679,7 @@ def test_the_mirrored_look_finds_a_pairs_other_cup(monkeypatch, partner_look, hi
 
     monkeypatch.setattr(model, "rough_ellipses", hidden_at_first)
     monkeypatch.setattr(model, "_detect", recorded)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
     first = later[0][0]
@@ -737,7 +737,7 @@ def test_later_looks_search_no_cup_and_the_turned_look_verifies_none(shipped_on_
         method = getattr(model, name)
         monkeypatch.setattr(model, name, lambda *args, name=name, method=method:
                             calls.append(name) or method(*args))
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     diameter = sample["cup_diameter"][:1].double()
     for look, expected in zip([FIRST_LOOK, *looks], [["reconsidered", "searched"],
                                                      ["reconsidered"], ["reconsidered"],
@@ -756,7 +756,7 @@ def _verify(model, sample, first: torch.Tensor, others: list[torch.Tensor],
     pose ``first`` ``(1, 5)``, the sources giving those of ``others``, its outline
     refinement turned down from ``refused`` ``(1, 5)`` where given; its pose and pick
     after."""
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     diameter = sample["cup_diameter"][:1].double()
     landmarks = [rim_landmarks(pose, geometry, float(diameter), 128) for pose in [first, *others]]
     ones = torch.ones(1, 128, dtype=torch.float64)
@@ -830,7 +830,7 @@ def test_a_pose_reported_beyond_the_anteversion_limit_is_flagged(shipped_on_drr,
     monkeypatch.setattr(model.config, "grown_rim_scale", None)
     if limit_below_truth:
         monkeypatch.setattr(model.config, "max_theta_deg", float(truth[0]) - 5.0)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     found = model.detect(sample["image"][None], geometry, float(sample["cup_diameter"][0]),
                          return_masks=False)[0]
     assert len(found) == 1
@@ -849,7 +849,7 @@ def test_a_cup_no_source_solved_is_searched_from_a_grown_start(shipped_on_drr, m
     model, sample = shipped_on_drr
     if not believed:
         monkeypatch.setattr(model.config, "verify_gate", -100.0)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     diameter = sample["cup_diameter"][:1].double()
     truth = sample["pose"][:1].double()
     rim = torch.tensor([[float(v) for v in sample["ellipse"][0]]], dtype=torch.float64)
@@ -929,7 +929,7 @@ def test_ambiguous_pair_reports_the_pose_doubted_less_first(shipped_on_drr, monk
         return doubt(images, index, poses, geometry, diameter)
 
     monkeypatch.setattr(model, "pose_doubt", asked)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     rows = geometry_rows(geometry, 1)
     diameter = sample["cup_diameter"][:1].double()
     picks = []
@@ -955,7 +955,7 @@ def test_outline_refine_picks_hands_on_the_doubts_of_both_poses_as_kept(shipped_
     model, sample = shipped_on_drr
     truth = sample["pose"][0].double()
     second = truth + torch.tensor([8.0, -3.0, 1.0, 0.5, 9.0], dtype=torch.float64)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     rows = geometry_rows(geometry, 1)
     diameter = sample["cup_diameter"][:1].double()
     solution = PoseSolution(truth[None], second[None], torch.tensor([True]), torch.zeros(1, 5),
@@ -983,7 +983,7 @@ def test_outline_refinement_resamples_the_rim(shipped_on_drr, monkeypatch):
     re-sampling the rim at each pass's pose brings the orientation back within 1 deg."""
     model, sample = shipped_on_drr
     truth = sample["pose"][:1].double()
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     diameter = sample["cup_diameter"][:1].double()
     turned = truth + torch.tensor([6.0, 6.0, 0.0, 0.0, 0.0], dtype=torch.float64)
     args = ([sample["image"]], torch.tensor([0]), turned,
@@ -1062,7 +1062,7 @@ def test_source_candidates_after_known_ones_leave_out_their_repeats(shipped_on_d
     model, sample = shipped_on_drr
     truth = sample["pose"][:1].double()
     turned = truth + torch.tensor([[8.0, 0.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     diameter = sample["cup_diameter"][:1].double()
     cup_index, todo = torch.zeros(1, 2, dtype=torch.long), torch.tensor([0])
 
@@ -1116,7 +1116,7 @@ def test_search_finds_a_rim_no_source_came_near(shipped_on_drr, monkeypatch, tur
     assert found == (rim_ceiling is None)
     if found:
         assert ((pose[2:] - truth[0, 2:]).abs() < torch.tensor([1.0, 1.0, 5.0])).all()  # mm
-        geometry = Geometry(*(float(v) for v in sample["geometry"]))
+        geometry = Geometry.from_row(sample["geometry"])
         rim = rim_landmarks(pose[None], geometry, float(sample["cup_diameter"][0]), 720)[0]
         def off_rim(points: torch.Tensor) -> float:
             return float(torch.cdist(points, rim).min(-1).values.median())
@@ -1204,7 +1204,7 @@ def test_outline_refinement_refines_poses_that_meet_once(shipped_on_drr, monkeyp
     model, sample = shipped_on_drr
     monkeypatch.setattr(model.config, "outline_rim_resample", True)
     truth = sample["pose"][:1].double()
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     diameter = sample["cup_diameter"][:1].double()
     start = (truth + torch.tensor([3.0, 2.0, 0.5, 0.5, 10.0], dtype=torch.float64)).expand(3, 5)
     rows = []

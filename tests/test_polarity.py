@@ -89,7 +89,7 @@ def drr_detections():
     starts may end apart ``(5,)``: the step under which the dome-outline passes stop."""
     model = load_model()
     sample = synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0, p_invert=0.0), 0, 0)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     images = {"dark": sample["image"], "bright": 1 - sample["image"]}
     poses, judged = {}, {}
     for metal in ("dark", "bright", "auto"):

@@ -129,7 +129,7 @@ def test_the_shipped_model_finds_a_cup_its_inserter_cut_in_two_once_the_rod_is_p
     model = load_model()
     half = detection([123.8, 84.2, 61.6, 37.0, 1.6], doubt=3.0, check=True)
     found = [[half]]
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     with torch.inference_mode():
         model._looked_again(found, [sample["image"]], geometry, sample["cup_diameter"][:1],
                             False, Look(rod_removed=True, searched=False), [None])

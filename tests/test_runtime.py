@@ -231,7 +231,7 @@ def test_the_shipped_model_detects_the_same_cup(shipped: torch.nn.Module) -> Non
     assert all(isinstance(getattr(wrapped, name), InOnnxRuntime) for name in NETWORKS)
     assert not any(isinstance(getattr(shipped, name), InOnnxRuntime) for name in NETWORKS)
     sample = synthesize(SynthConfig(image_size=(512, 512), p_anatomy=0.0), 0, 0)
-    geometry = Geometry(*(float(v) for v in sample["geometry"]))
+    geometry = Geometry.from_row(sample["geometry"])
     with memoised_strips():
         ours, theirs = (m.detect(sample["image"][None], geometry,
                                  float(sample["cup_diameter"][0]), return_masks=False)[0]
