@@ -12,6 +12,7 @@ from typing import Any
 
 import yaml
 
+from cupnet.checked import CheckedFields
 from cupnet.polarity import METAL_DISPLAYS
 
 # The issue's target MAEs (theta, phi in degrees; k, l, h in mm): the unit of
@@ -26,7 +27,7 @@ BLURRED_WITHOUT_BLUR_RIM = ("blurred needs blur_rim: this model has no rim netwo
 
 
 @dataclass
-class CupNetConfig:
+class CupNetConfig(CheckedFields):
     """Architecture and inference settings (stored as JSON beside a checkpoint).
 
     Attributes:
@@ -348,33 +349,6 @@ class CupNetConfig:
     rod_look: bool = False
     blur_rim: bool = False
     blurred: bool = False
-
-    def __setattr__(self, name: str, value: Any) -> None:
-        """A field set on a made config gets the checks the constructor's values get (a
-        refused value leaves the config as it was); a name that is no field is refused, where
-        Python would have added a new attribute the model never reads."""
-        if name in self.__dict__:
-            self.update(**{name: value})
-        elif name in self.__dataclass_fields__:  # the constructor's own assignments
-            object.__setattr__(self, name, value)
-        else:
-            raise AttributeError(f"unknown CupNet config key {name!r}")
-
-    def update(self, **values: Any) -> CupNetConfig:
-        """Set several fields, then check them together (so ``enlarge_below`` and
-        ``reduce_above`` can move past each other), in place; a refused set leaves every
-        field as it was. Returns the config."""
-        unknown = set(values) - set(self.__dataclass_fields__)
-        if unknown:
-            raise AttributeError(f"unknown CupNet config keys: {sorted(unknown)}")
-        before = {name: self.__dict__[name] for name in values}
-        self.__dict__.update(values)
-        try:
-            self.__post_init__()
-        except ValueError:
-            self.__dict__.update(before)
-            raise
-        return self
 
     def __post_init__(self) -> None:
         if self.metal not in METAL_DISPLAYS:

@@ -15,6 +15,8 @@ from typing import Any
 
 import yaml
 
+from cupnet.checked import CheckedFields
+
 Range = tuple[float, float]
 
 
@@ -28,7 +30,7 @@ def _prob(default: float) -> Any:
 
 
 @dataclass
-class SynthConfig:
+class SynthConfig(CheckedFields):
     """Everything :func:`data_synth.dataset.synthesize` samples from.
 
     Geometry: ``image_size`` is ``(W, H)`` pixels. The pixel spacing (mm/px at the detector) is

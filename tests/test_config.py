@@ -90,8 +90,8 @@ def test_a_field_set_on_a_made_config_is_checked_as_the_constructor_checks_it() 
 def test_a_misspelt_field_is_refused_not_added() -> None:
     """Python would add the misspelt attribute and leave the field the model reads as it was."""
     config = CupNetConfig()
-    with pytest.raises(AttributeError, match="unknown CupNet config key 'blured'"):
+    with pytest.raises(AttributeError, match="unknown CupNetConfig field 'blured'"):
         config.blured = True
-    with pytest.raises(AttributeError, match=r"unknown CupNet config keys: \['verify_gat'\]"):
+    with pytest.raises(AttributeError, match=r"unknown CupNetConfig fields: \['verify_gat'\]"):
         config.update(verify_gat=1.0, rim_channels=8)
     assert config == CupNetConfig() and "blured" not in vars(config)

@@ -51,3 +51,18 @@ def test_yaml_that_is_not_a_mapping(tmp_path):
     path.write_text("- 1\n- 2\n")
     with pytest.raises(ValueError, match="mapping"):
         SynthConfig.from_yaml(path)
+
+
+def test_a_field_set_on_a_made_config_is_checked_and_a_misspelt_one_refused():
+    """A script's ``config.p_bilateral = 1.5`` is refused as the constructor refuses it, the
+    config left as it was; bounds moved past each other go together."""
+    config = SynthConfig()
+    with pytest.raises(ValueError, match="p_bilateral must be a probability"):
+        config.p_bilateral = 1.5
+    with pytest.raises(ValueError, match=r"h_mm \(100.0, 520.0\) must stay below 0.9 \* sdd_mm"):
+        config.sdd_mm = (300.0, 400.0)  # the default h_mm puts cups behind the source
+    with pytest.raises(AttributeError, match="unknown SynthConfig field 'p_bilaterall'"):
+        config.p_bilaterall = 0.5
+    assert config == SynthConfig()
+    config.update(sdd_mm=(300.0, 400.0), h_mm=(50.0, 200.0))
+    assert (config.sdd_mm, config.h_mm) == ((300.0, 400.0), (50.0, 200.0))
