@@ -11,9 +11,9 @@ from typing import Any, Self
 
 
 class CheckedFields:
-    """Mixin for a ``@dataclass`` whose ``__post_init__`` checks its fields (raising
-    ``ValueError``): a field set on a made instance is checked the same way, and a refused
-    value leaves the instance as it was; a name that is no field is refused."""
+    """Mixin for a ``@dataclass`` whose ``__post_init__`` checks its fields: a field set on a
+    made instance is checked the same way, and a refused value (whatever the check raised)
+    leaves the instance as it was; a name that is no field is refused."""
 
     def __setattr__(self, name: str, value: Any) -> None:
         if name in self.__dict__:
@@ -33,7 +33,7 @@ class CheckedFields:
         self.__dict__.update(values)
         try:
             self.__post_init__()
-        except ValueError:
+        except Exception:  # a ValueError, or a TypeError from a value of the wrong type
             self.__dict__.update(before)
             raise
         return self

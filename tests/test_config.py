@@ -78,6 +78,8 @@ def test_a_field_set_on_a_made_config_is_checked_as_the_constructor_checks_it() 
     for name, (value, message) in refusals.items():
         with pytest.raises(ValueError, match=message):
             setattr(config, name, value)
+    with pytest.raises(TypeError):  # a text bar cannot be compared with the other bar
+        config.reduce_above = "2000"
     assert config == CupNetConfig(enlarge_below=496, reduce_above=1024)
     # Bars moved past each other together are one consistent change.
     assert config.update(enlarge_below=1500, reduce_above=2000) is config
