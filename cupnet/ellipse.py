@@ -271,8 +271,9 @@ def _distinct_counts(points: Tensor, active: Tensor) -> Tensor:
     return (new & torch.isfinite(u)).sum(-1)
 
 
-def _fit_problems(points: Tensor, weights: Tensor) -> list[str]:
-    """Per-item reason a fit cannot succeed ('ok' where it can). points (B,N,2), weights (B,N)."""
+def landmark_problems(points: Tensor, weights: Tensor) -> list[str]:
+    """Per-item reason the landmarks determine no ellipse, nor so a pose ('ok' where they
+    do). points (B,N,2), weights (B,N), as :func:`landmark_batch` gives them."""
     active = weights > 0
     finite = torch.isfinite(points).all(-1)
     counts = active.sum(-1)
@@ -336,7 +337,7 @@ def fit_ellipse(
         dtype (float64 for integer points).
     """
     points, weights, out_dtype = landmark_batch(points, weights, on_error)
-    status = _fit_problems(points.detach(), weights.detach())
+    status = landmark_problems(points.detach(), weights.detach())
     bad = [i for i, s in enumerate(status) if s != "ok"]
     if bad and on_error == "raise":
         raise EllipseFitError(f"ellipse fit of item {bad[0]}: {status[bad[0]]}")

@@ -33,7 +33,13 @@ from torch.autograd.function import FunctionCtx
 from torch.func import jacfwd, vmap
 
 from cupnet.batchwise import atan2, hypot, matmul
-from cupnet.ellipse import conic_to_params, fit_ellipse, landmark_batch
+from cupnet.ellipse import (
+    conic_to_params,
+    fit_ellipse,
+    is_ellipse,
+    landmark_batch,
+    landmark_problems,
+)
 from cupnet.geometry import (
     Geometry,
     camera_matrix,
@@ -99,6 +105,17 @@ def check_geometry_batch(geometry: Geometry, batch: int) -> None:
                             f"shape {tuple(t.shape)}")
 
 
+def _per_item(value: Tensor | float, name: str, batch: int, dtype: torch.dtype,
+              device: torch.device) -> Tensor:
+    """``value``, a scalar or one per item, as ``(B,)``; a PoseError naming ``name`` where it
+    is neither."""
+    value = torch.as_tensor(value, dtype=dtype, device=device)
+    if value.numel() not in (1, batch):
+        raise PoseError(f"{name} must be a scalar or one per item ({batch}), got "
+                        f"{value.numel()} values")
+    return value.reshape(-1).expand(batch)
+
+
 def geometry_problems(geometry: Geometry, radius: Tensor) -> list[str | None]:
     """Per-item reason a geometry / radius is unusable (None where fine).
 
@@ -123,6 +140,37 @@ def geometry_problems(geometry: Geometry, radius: Tensor) -> list[str | None]:
 
 
 def poses_from_conic(conic: Tensor, geometry: Geometry, radius: Tensor | float) -> Tensor:
+    """Both circle poses whose projected rim is the given image ellipse (closed form):
+    :func:`_circle_poses` on checked input.
+
+    Args:
+        conic: ``(B, 3, 3)`` conics in pixels; an item that is no real ellipse (a hyperbola,
+            an imaginary or degenerate conic, NaN) gets NaN poses, whatever else is in the
+            batch.
+        geometry: batch fields ``(B,)`` or scalars.
+        radius: cup radius, mm, scalar or ``(B,)``.
+    Returns:
+        ``(B, 2, 5)`` poses (rad, mm), as :func:`_circle_poses` gives them.
+    Raises:
+        PoseError: a conic batch of another shape, or a geometry or radius that is unusable
+        (naming the first such item).
+    """
+    if conic.ndim != 3 or conic.shape[-2:] != (3, 3):
+        raise PoseError(f"conic must have shape (B, 3, 3), got {tuple(conic.shape)}")
+    batch, dtype, device = conic.shape[0], conic.dtype, conic.device
+    radius = _per_item(radius, "radius", batch, dtype, device)
+    check_geometry_batch(geometry, batch)
+    _raise_first([f"error: {problem}" if problem else "ok"
+                  for problem in geometry_problems(geometry, radius.detach())], "raise")
+    usable = is_ellipse(conic.detach())
+    # Unusable items are solved on a stand-in (one NaN conic fails eigh for the whole batch).
+    safe_conic = torch.where(usable[:, None, None], conic,
+                             _stand_in_conic(geometry, dtype, device))
+    poses = _circle_poses(safe_conic, geometry, radius)
+    return torch.where(usable[:, None, None], poses, torch.full_like(poses, math.nan))
+
+
+def _circle_poses(conic: Tensor, geometry: Geometry, radius: Tensor | float) -> Tensor:
     """Both circle poses whose projected rim is the given image ellipse (closed form).
 
     The cone ``Q = A^T C A`` (``A`` from :func:`cupnet.geometry.camera_matrix`) has one
@@ -623,10 +671,11 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
 
     Args:
         start: ``(B, 5)`` initial poses (rad, mm), e.g. from :func:`poses_from_conic`.
-        points: ``(B, N, 2)`` pixels.
+        points: ``(B, N, 2)`` or ``(N, 2)`` pixels (refined in float64, CONVENTIONS.md).
         geometry: batch fields ``(B,)`` or scalars.
         radius: mm, scalar or ``(B,)``.
-        weights: ``(B, N)`` non-negative, default ones.
+        weights: ``(B, N)`` or ``(N,)`` non-negative, default ones (0 drops a landmark, whose
+            coordinates may then be NaN: ragged sets padded).
         max_iter: LM iterations at most.
         tol: stop when a step would lower the cost by less than ``tol`` noise variances
             (1e-4: steps below a hundredth of a standard deviation). Tighten (e.g. 1e-20)
@@ -635,13 +684,39 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
         compiled: run the solver's inner loop through ``torch.compile`` (worth it for
             batches of thousands; the first call compiles for about a minute).
     Returns:
-        ``(B, 5)`` refined poses (rad, mm) and ``(B, N)`` rim parameters of the landmarks.
+        ``(B, 5)`` refined poses (rad, mm) and ``(B, N)`` rim parameters of the landmarks, in
+        the points' floating dtype (float64 for integer points).
+    Raises:
+        PoseError: naming the first item whose landmarks determine no pose (too few,
+        collinear, NaN with a weight, a negative weight), whose geometry or radius is
+        unusable, or whose start is not finite; or shapes that do not match.
     """
-    batch = start.shape[0]
-    if weights is None:
-        weights = torch.ones(points.shape[:2], dtype=points.dtype, device=points.device)
-    geom = _batch_geometry(geometry, batch, start.dtype, start.device)
-    radius = torch.as_tensor(radius, dtype=start.dtype, device=start.device).expand(batch)
+    points, weights, out_dtype = landmark_batch(points, weights, "raise", PoseError)
+    batch = points.shape[0]
+    if start.shape != (batch, 5):
+        raise PoseError(f"start must have shape ({batch}, 5), a pose per landmark set, got "
+                        f"{tuple(start.shape)}")
+    radius = _per_item(radius, "radius", batch, torch.float64, points.device)
+    check_geometry_batch(geometry, batch)
+    reasons = zip(landmark_problems(points.detach(), weights.detach()),
+                  geometry_problems(geometry, radius.detach()),
+                  torch.isfinite(start.detach()).all(-1).tolist(), strict=True)
+    for i, (fit, problem, finite) in enumerate(reasons):
+        reason = (fit if fit != "ok" else problem if problem is not None
+                  else None if finite else "start pose is not finite")
+        if reason is not None:
+            raise PoseError(f"item {i}: {reason}")
+    pose, t = _refined(start.to(torch.float64), points, geometry, radius, weights, max_iter,
+                       tol, corrected, compiled)
+    return pose.to(out_dtype), t.to(out_dtype)
+
+
+def _refined(start: Tensor, points: Tensor, geometry: Geometry, radius: Tensor,
+             weights: Tensor, max_iter: int, tol: float, corrected: bool,
+             compiled: bool) -> tuple[Tensor, Tensor]:
+    """:func:`refine_pose` on checked input of one dtype: start ``(B, 5)``, points
+    ``(B, N, 2)``, radius ``(B,)``, weights ``(B, N)``."""
+    geom = _batch_geometry(geometry, start.shape[0], start.dtype, start.device)
     return _RefinePose.apply(start.detach(), points, weights, geom, radius.contiguous(),
                              max_iter, tol, corrected, compiled)
 
@@ -708,7 +783,7 @@ def other_circle_pose(pose: Tensor, radius: Tensor, geometry: Geometry,
         :func:`canonical_pose`); ``(B,)`` bool, in range.
     """
     rad = pose_to_radians(pose)
-    candidates = poses_from_conic(rim_conic(rad, radius, geometry), geometry, radius)
+    candidates = _circle_poses(rim_conic(rad, radius, geometry), geometry, radius)
     # The candidate whose rim normal lies farther from the pose's is the other one.
     alignment = (cup_axis(candidates) * cup_axis(rad)[:, None]).sum(-1).abs()
     other = candidates[torch.arange(len(pose), device=pose.device), alignment.argmin(-1)]
@@ -782,11 +857,7 @@ def solve_pose(
     """
     points, weights, out_dtype = landmark_batch(points, weights, on_error, PoseError)
     batch, dtype, device = points.shape[0], points.dtype, points.device
-    radius = torch.as_tensor(cup_diameter, dtype=dtype, device=device)
-    if radius.numel() not in (1, batch):
-        raise PoseError(f"cup_diameter must be a scalar or one per item ({batch}), got "
-                        f"{radius.numel()} values")
-    radius = radius.reshape(-1).expand(batch) / 2
+    radius = _per_item(cup_diameter, "cup_diameter", batch, dtype, device) / 2
     check_geometry_batch(geometry, batch)
     fit = fit_ellipse(points, weights, on_error="flag")
     status = [s if s == "ok" else f"error: {s}" for s in fit.status]
@@ -807,8 +878,8 @@ def solve_pose(
     safe_radius = torch.where(ok, radius, torch.full_like(radius, 25.0))
     safe_conic = torch.where(ok[:, None, None], fit.conic, _stand_in_conic(safe_geometry, dtype,
                                                                          device))
-    solutions = poses_from_conic(safe_conic.detach() if refine else safe_conic, safe_geometry,
-                                 safe_radius)
+    solutions = _circle_poses(safe_conic.detach() if refine else safe_conic, safe_geometry,
+                              safe_radius)
     if refine:
         solutions = _refine_candidates(solutions, points, weights, ok, safe_geometry, safe_radius,
                                        math.radians(ambiguity_tol_deg),
@@ -871,8 +942,8 @@ def _refine_candidates(solutions: Tensor, points: Tensor, weights: Tensor | None
     items = torch.cat([torch.arange(batch, device=device), maybe_both.nonzero()[:, 0]])
     which = torch.cat([chosen, 1 - chosen[maybe_both]])
     rows = _batch_geometry(geometry, batch, dtype, device)[items]
-    refined, _ = refine_pose(solutions[items, which], points[items], Geometry.from_rows(rows),
-                             radius[items], weights[items], **options)
+    refined, _ = _refined(solutions[items, which], points[items], Geometry.from_rows(rows),
+                          radius[items], weights[items], **options)
     out = solutions.detach().clone()
     out[items, which] = refined
     return out
@@ -938,13 +1009,32 @@ def cramer_rao_bound(pose: Tensor, radius: Tensor | float, geometry: Geometry, t
         radius: mm, scalar or ``(B,)``.
         geometry: batch fields ``(B,)`` or scalars.
         t: ``(N,)`` rim parameters of the landmarks (rad).
-        sigma_px: isotropic landmark noise, pixels (per coordinate).
+        sigma_px: isotropic landmark noise, pixels (per coordinate), >= 0.
     Returns:
         ``(B, 5)`` bound on the standard deviation, public units (deg, deg, mm, mm, mm).
+    Raises:
+        PoseError: fewer than 5 landmarks (the pose has 5 parameters), a negative or
+        non-finite ``sigma_px``, or an item whose geometry or radius is unusable or whose
+        rim centre does not lie between the detector and the source (0 < h < SDD).
     """
+    if pose.ndim != 2 or pose.shape[-1] != 5:
+        raise PoseError(f"pose must have shape (B, 5), got {tuple(pose.shape)}")
+    if t.ndim != 1 or t.shape[0] < 5:
+        raise PoseError(f"t must hold 5 or more rim parameters (N,), one per landmark (the "
+                        f"pose has 5 parameters), got shape {tuple(t.shape)}")
+    if not (math.isfinite(sigma_px) and sigma_px >= 0):
+        raise PoseError(f"sigma_px must be a noise level >= 0 px, got {sigma_px}")
     batch = pose.shape[0]
+    radius = _per_item(radius, "radius", batch, pose.dtype, pose.device)
+    check_geometry_batch(geometry, batch)
     geom = _batch_geometry(geometry, batch, pose.dtype, pose.device)
-    radius = torch.as_tensor(radius, dtype=pose.dtype, device=pose.device).expand(batch)
+    for i, (problem, h, sdd) in enumerate(zip(geometry_problems(geometry, radius.detach()),
+                                              pose[:, 4].detach().tolist(), geom[:, 0].tolist(),
+                                              strict=True)):
+        if problem is None and not 0 < h < sdd:
+            problem = f"h = {h} mm lies outside (0, SDD = {sdd} mm)"
+        if problem is not None:
+            raise PoseError(f"item {i}: {problem}")
 
     def landmarks(p: Tensor, tt: Tensor, g: Tensor, r: Tensor) -> Tensor:
         return project_rim(p[None], r, Geometry.from_rows(g), tt)[0]  # (N, 2)
@@ -955,8 +1045,9 @@ def cramer_rao_bound(pose: Tensor, radius: Tensor | float, geometry: Geometry, t
     normal = torch.stack([-tangent[..., 1], tangent[..., 0]], -1)
     normal = normal / torch.linalg.vector_norm(normal, dim=-1, keepdim=True)
     rows = (normal[..., None] * jac).sum(-2)
-    fisher = matmul(rows.transpose(-1, -2), rows) / sigma_px**2
-    return pose_to_degrees(torch.linalg.inv(fisher).diagonal(dim1=-2, dim2=-1).sqrt())
+    # The bound scales with sigma: computed at unit noise, so noise-free landmarks give 0.
+    fisher = matmul(rows.transpose(-1, -2), rows)
+    return sigma_px * pose_to_degrees(torch.linalg.inv(fisher).diagonal(dim1=-2, dim2=-1).sqrt())
 
 
 def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
@@ -982,24 +1073,31 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         weights: ``(B, N)`` or ``(N,)`` the solve's landmark weights (None: equal).
         iterations: Newton steps of each landmark's rim parameter to its closest rim point.
     Returns:
-        ``(B, 5)`` standard deviations (deg, deg, mm, mm, mm); NaN where the pose is NaN or
-        fewer than 6 landmarks have a weight. Not differentiable.
+        ``(B, 5)`` standard deviations (deg, deg, mm, mm, mm) in the points' floating dtype
+        (float64 for integer points); NaN where the pose is NaN, fewer than 6 landmarks have
+        a weight, or the geometry or diameter is unusable. Not differentiable.
+    Raises:
+        PoseError: shapes that do not match (a pose per landmark set).
     """
-    if points.ndim == 2:
-        points = points[None]
-        weights = None if weights is None else weights[None]
+    points, weights, out_dtype = landmark_batch(points, weights, "raise", PoseError)
+    batch, dtype, device = points.shape[0], points.dtype, points.device
+    if pose_deg.shape != (batch, 5):
+        raise PoseError(f"pose_deg must have shape ({batch}, 5), a pose per landmark set, "
+                        f"got {tuple(pose_deg.shape)}")
+    radius = _per_item(cup_diameter, "cup_diameter", batch, dtype, device) / 2
+    check_geometry_batch(geometry, batch)
     with torch.no_grad():
-        batch, dtype, device = points.shape[0], points.dtype, points.device
-        weights = (torch.ones(points.shape[:2], dtype=dtype, device=device) if weights is None
-                   else weights.to(dtype))
         active = weights > 0
         used = active.sum(-1, keepdim=True)
-        usable = torch.isfinite(pose_deg).all(-1) & (used[:, 0] > 5)
+        fine = torch.tensor([p is None for p in geometry_problems(geometry, radius)],
+                            dtype=torch.bool, device=device)
+        usable = torch.isfinite(pose_deg).all(-1) & (used[:, 0] > 5) & fine
         # Stand-ins keep the batch finite (a NaN pose makes a singular system); masked below.
         pose = torch.where(usable[:, None], pose_to_radians(pose_deg.to(dtype)),
                            _stand_in_pose(batch, dtype, device))
-        geom = _batch_geometry(geometry, batch, dtype, device)
-        radius = torch.as_tensor(cup_diameter, dtype=dtype, device=device).expand(batch) / 2
+        geom = _batch_geometry(_safe_geometry(geometry, fine, batch, dtype, device), batch,
+                               dtype, device)
+        radius = torch.where(fine, radius, torch.full_like(radius, 25.0))
         # A landmark without weight may be padding (NaN, as a ragged batch has it): zeroed.
         points = torch.where(usable[:, None, None] & active[..., None], points, 0.0)
         u, v = points.unbind(-1)
@@ -1013,7 +1111,7 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         variance = (weights * dist**2).sum(-1, keepdim=True) / (used - 5).clamp_min(1)
         std = pose_to_degrees((variance * inverse.diagonal(dim1=-2, dim2=-1)).sqrt())
         usable = usable & (info == 0) & torch.isfinite(std).all(-1)
-        return torch.where(usable[:, None], std, torch.full_like(std, math.nan))
+        return torch.where(usable[:, None], std, torch.full_like(std, math.nan)).to(out_dtype)
 
 
 def ellipse_of_pose(pose_deg: Tensor, cup_diameter: Tensor | float, geometry: Geometry) -> Tensor:

@@ -545,3 +545,97 @@ def test_the_pose_sees_sdd_and_spacing_through_their_ratio_and_the_cup_size_as_a
         torch.testing.assert_close(larger[:, :2], base[:, :2], atol=1e-9, rtol=0)
         torch.testing.assert_close(larger[:, 2:4], c * base[:, 2:4], atol=1e-9, rtol=0)
         torch.testing.assert_close(geometry.sdd - larger[:, 4], c * distance, atol=1e-9, rtol=0)
+
+
+# -- the lower-level functions at their boundary (a researcher's own batches) ---------------
+NOISY_CASES = torch.tensor([[30.0, 40.0, 10.0, -5.0, 300.0], [10.0, -60.0, 40.0, 20.0, 450.0]],
+                           dtype=torch.float64)
+
+
+def noisy_rims(generator: torch.Generator, n: int = 32) -> torch.Tensor:
+    """Rim landmarks ``(2, n, 2)`` px of :data:`NOISY_CASES` (52 mm cup) with 0.3 px noise."""
+    points = rim_landmarks(NOISY_CASES, GEOMETRY, 52.0, n)
+    return points + 0.3 * torch.randn(points.shape, generator=generator, dtype=torch.float64)
+
+
+def test_refine_pose_takes_nan_padding_at_zero_weight_as_solve_pose_does(generator):
+    """Padding had poisoned the cost, and the start came back as the refined pose."""
+    points = noisy_rims(generator)
+    start = pose_to_radians(NOISY_CASES) + torch.tensor([0.02, -0.02, 1.0, 1.0, 5.0],
+                                                        dtype=torch.float64)
+    alone, _ = refine_pose(start, points[:, :-4], GEOMETRY, 26.0)
+    padded = torch.cat([points[:, :-4], torch.full((2, 4, 2), math.nan, dtype=torch.float64)], 1)
+    weights = torch.cat([torch.ones(2, 28), torch.zeros(2, 4)], 1).double()
+    refined, _ = refine_pose(start, padded, GEOMETRY, 26.0, weights)
+    torch.testing.assert_close(refined, alone, rtol=0, atol=1e-9)
+    assert (refined - start).abs().max() > 1.0  # it moved: h by about 5 mm
+    # Integer landmarks are refined in float64, as solve_pose solves them.
+    rounded = points.round().long()
+    assert refine_pose(start, rounded, GEOMETRY, 26.0)[0].dtype == torch.float64
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"weights": torch.zeros(2, 32, dtype=torch.float64)}, r"item 0: too few points: 0 < 5"),
+    ({"radius": -26.0}, r"item 0: cup radius must be > 0 mm, got -26.0"),
+    ({"radius": torch.tensor([26.0, 26.0, 26.0])}, r"radius must be a scalar or one per item"),
+    ({"start": torch.zeros(1, 5, dtype=torch.float64)}, r"start must have shape \(2, 5\)"),
+    ({"start": torch.tensor([[0.5, 0.7, 0.0, 0.0, 300.0], [math.nan] * 5])},
+     r"item 1: start pose is not finite"),
+    ({"weights": torch.ones(32, dtype=torch.float64)}, r"weights must have the points' shape"),
+])
+def test_refine_pose_names_what_it_cannot_refine(generator, change, message):
+    arguments = {"start": pose_to_radians(NOISY_CASES), "points": noisy_rims(generator),
+                 "geometry": GEOMETRY, "radius": 26.0, **change}
+    with pytest.raises(PoseError, match=message):
+        refine_pose(**arguments)
+
+
+def test_poses_from_conic_gives_nan_for_a_conic_that_is_no_ellipse_and_keeps_the_others():
+    conic = rim_conic(pose_to_radians(NOISY_CASES[:1]), 26.0, GEOMETRY)
+    hyperbola = conic.clone()
+    hyperbola[0, 1, 1] *= -1
+    imaginary = torch.eye(3, dtype=torch.float64)[None]
+    alone = poses_from_conic(conic, GEOMETRY, 26.0)
+    for bad in (hyperbola, imaginary, conic * math.nan):
+        poses = poses_from_conic(torch.cat([bad, conic]), GEOMETRY, 26.0)
+        assert poses[0].isnan().all()
+        torch.testing.assert_close(poses[1:], alone, rtol=0, atol=0)
+    with pytest.raises(PoseError, match=r"conic must have shape \(B, 3, 3\), got \(3, 3\)"):
+        poses_from_conic(conic[0], GEOMETRY, 26.0)
+    with pytest.raises(PoseError, match="item 0: cup radius must be > 0 mm, got -26.0"):
+        poses_from_conic(conic, GEOMETRY, -26.0)
+
+
+def test_standard_errors_check_their_batch_and_take_integer_landmarks_in_float64(generator):
+    points = noisy_rims(generator)
+    sol = solve_pose(points, GEOMETRY, 52.0)
+    errors = pose_standard_errors(sol.pose, points, GEOMETRY, 52.0)
+    with pytest.raises(PoseError, match=r"pose_deg must have shape \(1, 5\)"):
+        pose_standard_errors(sol.pose, points[:1], GEOMETRY, 52.0)
+    rounded = points.round().long()
+    from_floats = pose_standard_errors(sol.pose, rounded.double(), GEOMETRY, 52.0)
+    from_integers = pose_standard_errors(sol.pose, rounded, GEOMETRY, 52.0)
+    assert from_integers.dtype == torch.float64 and torch.isfinite(from_integers).all()
+    torch.testing.assert_close(from_integers, from_floats, rtol=0, atol=0)
+    # An item whose cup size is unusable gets NaN; the other keeps its errors.
+    diameters = torch.tensor([-52.0, 52.0], dtype=torch.float64)
+    mixed = pose_standard_errors(sol.pose, points, GEOMETRY, diameters)
+    assert mixed[0].isnan().all()
+    torch.testing.assert_close(mixed[1], errors[1], rtol=0, atol=0)
+
+
+def test_cramer_rao_bound_scales_with_the_noise_and_refuses_what_bounds_nothing():
+    t = torch.arange(16, dtype=torch.float64) * (2 * math.pi / 16)
+    pose = pose_to_radians(NOISY_CASES)
+    unit = cramer_rao_bound(pose, 26.0, GEOMETRY, t, 1.0)
+    torch.testing.assert_close(cramer_rao_bound(pose, 26.0, GEOMETRY, t, 0.5), unit / 2)
+    assert (cramer_rao_bound(pose, 26.0, GEOMETRY, t, 0.0) == 0).all()  # noise-free
+    beyond_source = pose.clone()
+    beyond_source[1, 4] = 1300.0
+    for arguments, message in (
+            ((pose, 26.0, GEOMETRY, t, -1.0), "sigma_px must be a noise level >= 0 px"),
+            ((pose, 26.0, GEOMETRY, t[:4], 1.0), r"t must hold 5 or more rim parameters"),
+            ((pose, -26.0, GEOMETRY, t, 1.0), "item 0: cup radius must be > 0 mm"),
+            ((beyond_source, 26.0, GEOMETRY, t, 1.0), r"item 1: h = 1300.0 mm lies outside")):
+        with pytest.raises(PoseError, match=message):
+            cramer_rao_bound(*arguments)
