@@ -29,8 +29,9 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from cupnet.geometry import Geometry
+from cupnet.io.csvfile import csv_text
 from cupnet.io.meta import GEOMETRY_KEYS, image_table, row_for_image
-from cupnet.io.results import ALT_COLUMNS, ELLIPSE_COLUMNS, POSE_COLUMNS
+from cupnet.io.results import ALT_COLUMNS, ELLIPSE_COLUMNS, POSE_COLUMNS, is_status
 from cupnet.pose import ellipse_of_pose, orthographic_pose
 
 # The columns results.csv and meta.csv are written with (the three required first).
@@ -66,7 +67,7 @@ def read_rows(path: Path, required: tuple[str, ...],
     """CSV rows as dicts, columns renamed by ``aliases``; a missing required column raises
     ``ValueError`` naming it."""
     aliases = aliases or {}
-    with Path(path).open(newline="", encoding="utf-8-sig") as f:  # Excel's byte-order mark
+    with csv_text(path) as f:
         reader = csv.DictReader(f)
         columns = [aliases.get(c, c) for c in reader.fieldnames or []]
         missing = [c for c in required if c not in columns]
@@ -342,10 +343,10 @@ def evaluate_results(pred_csv: str | Path, truth_csv: str | Path,
 def _load(pred_csv: Path, truth_csv: Path, meta_csv: Path | None) -> Matched:
     pred_rows = read_rows(pred_csv, ("image", "status", *POSE, *ELLIPSE[:2]))
     # Any other status had read as a missed cup without a word ('OK' from a spreadsheet).
-    unknown = sorted({r["status"] for r in pred_rows if r["status"] not in (*FOUND, "no_cup")
-                      and not r["status"].startswith("error")})
+    unknown = sorted({repr(r["status"]) for r in pred_rows if not is_status(r["status"])})
     if unknown:
-        raise ValueError(f"{pred_csv}: unknown status value(s) {unknown[:5]}: results.csv's "
+        raise ValueError(f"{pred_csv}: unknown status value(s) {', '.join(unknown[:5])}: "
+                         "results.csv's "
                          "status is ok, ambiguous, no_cup or error: <reason>")
     # A found cup without a whole pose had counted as matched and been left out of that
     # angle's MAE without a word.

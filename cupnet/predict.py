@@ -974,7 +974,11 @@ def _run(args: argparse.Namespace) -> int:
                   f"({'; '.join(changed)}): its rows would mix the two runs'; give the same "
                   "options, or --overwrite, or another --out", file=sys.stderr)
             return 2
-        outputs.load_previous()
+        try:
+            outputs.load_previous()
+        except ValueError as exc:  # a results.csv cut short mid-row: no row is added to it
+            print(f"cupnet predict: error: cannot resume: {exc}", file=sys.stderr)
+            return 2
         renamed_moved(outputs.records, sources)
     elif args.overwrite:
         outputs.remove_previous_images()

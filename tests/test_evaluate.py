@@ -314,7 +314,13 @@ def test_what_the_files_hold_that_cannot_be_scored_is_said(tmp_path: Path,
                for row in predicted_rows()]
     assert main(["evaluate", "--pred", str(write_csv(tmp_path / "shout.csv", shouted)),
                  "--truth", str(truth), *out]) == 2
-    assert "unknown status value(s) ['OK']" in capsys.readouterr().err
+    assert "unknown status value(s) 'OK'" in capsys.readouterr().err
+    # A row cut short before its status had ended the command in a traceback.
+    cut = write_csv(tmp_path / "cut.csv", predicted_rows())
+    with cut.open("a") as f:
+        f.write("b.png\n")
+    assert main(["evaluate", "--pred", str(cut), "--truth", str(truth), *out]) == 2
+    assert "unknown status value(s) None" in capsys.readouterr().err
     # A found cup without a whole pose had been left out of that angle's MAE silently.
     partial = [{**row, POSE[0]: ""} if row["image"] == "a.png" else row
                for row in predicted_rows()]

@@ -308,6 +308,33 @@ def test_resume_refuses_other_settings_than_the_run_it_resumes(
     assert len(rows_by_image(read_csv(out / "results.csv"))) == 5
 
 
+@pytest.mark.parametrize("cut", [",1", ",1,n"])
+def test_resume_refuses_a_results_csv_cut_short_mid_row(
+        tmp_path: Path, blind_checkpoint: Path, capsys: pytest.CaptureFixture,
+        cut: str) -> None:
+    """A copy cut short mid-row (results.json not copied) had been resumed from: a status
+    cut to 'n' was kept and written back, and a row without one ended the run in a
+    traceback with the new images' rows lost. It is refused before any image, naming the
+    line, and the file is left as it was."""
+    (tmp_path / "in").mkdir()
+    for name in ("a.png", "b.png"):
+        noise_png(tmp_path / "in" / name)
+    out = tmp_path / "out"
+    args = ["predict", str(tmp_path / "in"), "--out", str(out), "--checkpoint",
+            str(blind_checkpoint), "--assume-defaults", "--quiet", "--no-overlays"]
+    assert main(args) == 0
+    text = (out / "results.csv").read_text()
+    cut_short = text[:text.index("b.png") + len("b.png")] + cut
+    (out / "results.csv").write_text(cut_short)
+    (out / "results.json").unlink()
+    noise_png(tmp_path / "in" / "c.png")
+    assert main([*args, "--resume"]) == 2
+    assert (f"cannot resume: {out / 'results.csv'}, line 3: status "
+            f"{'n' if cut.endswith('n') else None!r} is none of ok, ambiguous, no_cup or "
+            "error: <reason> (a row cut short?)") in capsys.readouterr().err
+    assert (out / "results.csv").read_text() == cut_short
+
+
 def test_resume_takes_a_renamed_file_as_done(tmp_path: Path, blind_checkpoint: Path) -> None:
     """A second folder with a file of the first's name, added on --resume: both are then
     named by their paths, and the first's earlier record takes its new name (found by its

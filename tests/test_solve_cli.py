@@ -343,6 +343,49 @@ def test_csv_files_saved_by_excel_with_a_byte_order_mark_are_read(tmp_path):
     assert read_meta(tmp_path / "meta.csv") == {"a.png": {"sdd_mm": 1000.0}}
 
 
+def test_csv_files_in_another_encoding_are_named_with_the_fix(tmp_path):
+    """Excel's plain "CSV" writes the system's code page: the decoder's message had named
+    neither the file nor what to do."""
+    for name, text in (("meta.csv", "image,sdd_mm\nJosé.png,1000\n"),
+                       ("lm.csv", "image,u,v\nJosé.png,1,2\n")):
+        (tmp_path / name).write_text(text, encoding="latin-1")
+    # The byte of the e acute: after the header and "Jos".
+    for read, name, byte in ((read_meta, "meta.csv", 16), (read_landmarks, "lm.csv", 13)):
+        with pytest.raises(ValueError, match=rf"{name}: not UTF-8 text \(byte {byte}: invalid "
+                                             r"continuation byte\); save it as UTF-8"):
+            read(tmp_path / name)
+
+
+def test_a_trailing_comma_in_meta_csv_is_read_and_an_extra_value_refused(tmp_path):
+    """A spreadsheet's trailing comma gives a row a cell past the header: it had stopped
+    predict and solve with a TypeError."""
+    (tmp_path / "comma.csv").write_text("image,sdd_mm\na.png,1000,\nb.png,990, \n")
+    assert read_meta(tmp_path / "comma.csv") == {"a.png": {"sdd_mm": 1000.0},
+                                                 "b.png": {"sdd_mm": 990.0}}
+    (tmp_path / "extra.csv").write_text("image,sdd_mm\na.png,1000\nb.png,990,0.3\n")
+    with pytest.raises(ValueError, match=r"extra.csv, line 3: 1 cell\(s\) more than the "
+                                         r"header's columns \(image, sdd_mm\)"):
+        read_meta(tmp_path / "extra.csv")
+
+
+def test_a_paper_row_whose_image_size_is_no_count_is_its_images_error(tmp_path):
+    """inf had stopped the run (OverflowError), 0 or a negative width given a principal
+    point off the image and a pose without a word."""
+    write_paper(tmp_path / "label.csv")
+    lines = (tmp_path / "label.csv").read_text().splitlines()
+    bad = [lines[2].replace("p2.png,512,", f"{name},{width},", 1)
+           for name, width in (("inf.png", "inf"), ("zero.png", "0"), ("minus.png", "-512"),
+                               ("half.png", "511.5"))]
+    (tmp_path / "label.csv").write_text("\n".join([*lines, *bad]) + "\n")
+    assert main(["solve", str(tmp_path / "label.csv"), "--out", str(tmp_path / "r.csv")]) == 0
+    rows = {row["image"]: row for row in results(tmp_path / "r.csv")}
+    assert_poses([rows["p1.png"], rows["p2.png"]])
+    for name, width, line in (("inf.png", "inf", 4), ("zero.png", "0", 5),
+                              ("minus.png", "-512", 6), ("half.png", "511.5", 7)):
+        assert rows[name]["status"] == (f"error: landmark file line {line}: image_width must "
+                                        f"be a whole number >= 1, got '{width}'")
+
+
 def test_a_meta_row_given_twice_with_other_values_is_refused(tmp_path):
     """The later of two rows for one image had silently won; the same row twice is fine."""
     (tmp_path / "same.csv").write_text("image,sdd_mm\na.png,1000\na.png,1000.0\n")

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cupnet.io.csvfile import csv_text
+
 LONG_COLUMNS = ("image", "u", "v")
 PAPER_COLUMNS = ("image_name", "image_width", "image_height", "source_to_detection_distance",
                  "radius", "n_landmarks")
@@ -64,10 +66,11 @@ def read_landmarks(path: str | Path) -> dict[str, list[LandmarkSet]]:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: the header matches neither format, or the file holds no rows.
+        ValueError: the file is not UTF-8, the header matches neither format, or the file
+            holds no rows.
     """
     path = Path(path)
-    with path.open(newline="", encoding="utf-8-sig") as f:
+    with csv_text(path) as f:
         rows = list(csv.reader(f))
     rows = [r for r in rows if any(cell.strip() for cell in r)]
     if not rows:
@@ -121,6 +124,16 @@ def _read_long(header: list[str], rows: list[list[str]]) -> dict[str, list[Landm
     return out
 
 
+def _count(name: str, cell: str) -> int:
+    """A label.csv cell that counts (pixels, landmarks): a whole number >= 1, or a
+    ValueError naming its column (inf had stopped the run, 0 given a principal point off
+    the image)."""
+    value = float(cell)
+    if not (math.isfinite(value) and value >= 1 and value.is_integer()):
+        raise ValueError(f"{name} must be a whole number >= 1, got {cell.strip()!r}")
+    return int(value)
+
+
 def _read_paper(rows: list[list[str]]) -> dict[str, list[LandmarkSet]]:
     out: dict[str, list[LandmarkSet]] = {}
     for line, row in enumerate(rows, 2):
@@ -128,8 +141,8 @@ def _read_paper(rows: list[list[str]]) -> dict[str, list[LandmarkSet]]:
         if not image:
             continue
         try:
-            width, height = int(float(row[1])), int(float(row[2]))
-            sdd, radius, n = float(row[3]), float(row[4]), int(float(row[5]))
+            width, height, n = (_count(PAPER_COLUMNS[i], row[i]) for i in (1, 2, 5))
+            sdd, radius = float(row[3]), float(row[4])
             values = [float(x) for x in row[6:6 + 2 * n]]
             if len(values) != 2 * n:
                 raise ValueError(f"n_landmarks = {n} but {len(values) // 2} landmarks given")

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import TypeVar
 
 from cupnet.geometry import Geometry
+from cupnet.io.csvfile import csv_text
 
 T = TypeVar("T")
 
@@ -253,10 +254,12 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
     """meta.csv rows by image name: ``{image: {column: value}}`` (blank cells left out).
 
     Raises:
-        ValueError: no ``image`` column, an unknown column, a non-numeric cell, or an image
-            given twice with other values (with its line: the later row had silently won).
+        ValueError: a file that is not UTF-8, no ``image`` column, an unknown column, a
+            non-numeric cell, a row with more cells than the header (blank ones, a trailing
+            comma, are left out), or an image given twice with other values (with its line:
+            the later row had silently won).
     """
-    with path.open(newline="", encoding="utf-8-sig") as f:
+    with csv_text(path) as f:
         reader = csv.DictReader(f)
         if reader.fieldnames is None or "image" not in reader.fieldnames:
             raise ValueError(f"{path}: meta.csv needs an 'image' column")
@@ -265,6 +268,10 @@ def read_meta(path: Path) -> dict[str, dict[str, float]]:
             raise ValueError(f"{path}: unknown meta.csv column(s) {sorted(unknown)}")
         rows: dict[str, dict[str, float]] = {}
         for line, row in enumerate(reader, 2):
+            extra = row.pop(None, [])  # cells past the header's columns
+            if any(cell.strip() for cell in extra):
+                raise ValueError(f"{path}, line {line}: {len(extra)} cell(s) more than the "
+                                 f"header's columns ({', '.join(reader.fieldnames)})")
             try:
                 values = {k: float(v) for k, v in row.items()
                           if k != "image" and v not in (None, "")}

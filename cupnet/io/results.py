@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from cupnet.io.csvfile import csv_text
 from cupnet.orientation import anatomic_angles, operative_angles
 
 POSE_COLUMNS = ("anteversion_deg", "inclination_deg", "k_mm", "l_mm", "h_mm")
@@ -43,6 +44,15 @@ NOISE_COLUMNS = ("noise", "denoised")
 RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "residual_px",
                   "seconds", *ALT_COLUMNS, *CHECK_COLUMNS, "metal", *MURRAY_COLUMNS,
                   *SD_COLUMNS, *NOISE_COLUMNS, "enlarged", "reduced")
+
+
+# A row's status: one of these, or "error: <reason>".
+STATUSES = ("ok", "ambiguous", "no_cup")
+
+
+def is_status(status: str | None) -> bool:
+    """Whether ``status`` (a results.csv cell; None where blank) is one a row takes."""
+    return status in STATUSES or (status or "").startswith("error")
 
 
 def _finite(values: Iterable[Any]) -> list[float | None]:
@@ -132,10 +142,20 @@ def write_results_csv(path: Path, records: Iterable[dict]) -> None:
 
 
 def read_results_csv(path: Path) -> dict[str, list[dict]]:
-    """Rows of an existing results.csv by image (values as strings; blank cells None)."""
+    """Rows of an existing results.csv by image (values as strings; blank cells None).
+
+    Raises:
+        ValueError: a row whose status is none a row takes (:func:`is_status`), with its
+            line: a file cut short mid-row had been resumed from, its half row kept.
+    """
     by_image: dict[str, list[dict]] = {}
-    with path.open(newline="") as f:
-        for row in csv.DictReader(f):
+    with csv_text(path) as f:
+        reader = csv.DictReader(f)
+        for row in reader:
+            if not is_status(row.get("status")):
+                raise ValueError(f"{path}, line {reader.line_num}: status "
+                                 f"{row.get('status')!r} is none of {', '.join(STATUSES)} or "
+                                 "error: <reason> (a row cut short?)")
             by_image.setdefault(row["image"], []).append(
                 {k: (v if v != "" else None) for k, v in row.items()})
     return by_image
