@@ -558,6 +558,14 @@ def _check_args(args: argparse.Namespace) -> str | None:
         return "--batch-size must be >= 1"
     if args.threads < 1:
         return "--threads must be >= 1"
+    if args.min_score is not None and not 0 <= args.min_score <= 1:  # NaN fails too
+        return f"--min-score must be a probability in [0, 1], got {args.min_score}"
+    for flag, value in (("--check-doubt", args.check_doubt),
+                        ("--denoise-above", args.denoise_above),
+                        ("--enlarge-below", args.enlarge_below),
+                        ("--reduce-above", args.reduce_above)):
+        if value is not None and not value >= 0:
+            return f"{flag} must be a number >= 0, got {value}"
     if args.reduce_above is not None and 0 < args.reduce_above < MIN_REDUCED_SIDE:
         return (f"--reduce-above must be 0 (never) or at least {MIN_REDUCED_SIDE} px, the "
                 "networks' smallest training size")
@@ -833,6 +841,10 @@ def _software() -> dict:
             "cpu": processor()}
 
 
+# The commonest error reasons the summary prints, each with its count.
+SUMMARY_REASONS = 5
+
+
 def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
                    interrupted: bool, warnings: dict[str, str]) -> None:
     lines = [
@@ -840,8 +852,12 @@ def _print_summary(summary: dict, out: Path, overlays: bool, elapsed: float,
         f"{summary['cups']} cups found ({summary['ok']} ok, {summary['ambiguous']} ambiguous), "
         f"{summary['no_cup']} without a cup, {summary['errors']} error rows",
     ]
-    lines += [f"  {n} x {reason}" for reason, n in sorted(summary["error_reasons"].items(),
-                                                          key=lambda kv: -kv[1])[:5]]
+    reasons = sorted(summary["error_reasons"].items(), key=lambda kv: -kv[1])
+    lines += [f"  {n} x {reason}" for reason, n in reasons[:SUMMARY_REASONS]]
+    if len(reasons) > SUMMARY_REASONS:
+        rest = reasons[SUMMARY_REASONS:]
+        lines.append(f"  {sum(n for _, n in rest)} error row(s) more, for {len(rest)} other "
+                     "reason(s): the status column of results.csv")
     if summary["check"]:
         lines.append(f"  {summary['check']} cup(s) flagged (the model doubts them, or their given "
                      "landmarks lie off the rim): check=1 in results.csv, drawn in magenta on "

@@ -19,6 +19,10 @@ from cupnet.checked import CheckedFields
 
 Range = tuple[float, float]
 
+# The largest side drawn: cupnet predict reads no larger image (cupnet.io.images.MAX_SIDE),
+# and 100,000 px had failed on a 40 GB allocation after the outputs were begun.
+MAX_IMAGE_SIDE = 4096
+
 
 def _range(default: Range, low: float = -math.inf, high: float = math.inf) -> Any:
     """A ``(low, high)`` range field whose ends must lie within ``[low, high]``."""
@@ -159,9 +163,10 @@ class SynthConfig(CheckedFields):
                     raise ValueError(f"{f.name} must be a probability in [0, 1], got {value!r}")
         size = self.image_size
         if (not isinstance(size, tuple) or len(size) != 2
-                or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 16
-                           for s in size)):
-            raise ValueError(f"image_size must be (width, height), integers >= 16, got {size!r}")
+                or not all(isinstance(s, int) and not isinstance(s, bool)
+                           and 16 <= s <= MAX_IMAGE_SIDE for s in size)):
+            raise ValueError(f"image_size must be (width, height), integers from 16 to "
+                             f"{MAX_IMAGE_SIDE}, got {size!r}")
         for name, low, high in (("principal_offset_frac", 0.0, 0.25), ("field_margin", 0.0, 0.4)):
             value = getattr(self, name)
             _check_number(name, value)

@@ -145,6 +145,20 @@ def test_the_summary_counts_rows_and_the_flags_read_back_on_resume() -> None:
     assert summary["images"] == 4 and summary["seconds_per_image"] == pytest.approx(0.5)
 
 
+def test_the_printed_summary_counts_the_error_rows_past_its_commonest_reasons(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Reasons past the fifth had been left out without a word (8 error rows, 5 listed)."""
+    records = [{"image": f"e{i}.png", "rows": [{"status": f"error: reason {i}"}]}
+               for i in range(8)]
+    records.append({"image": "e8.png", "rows": [{"status": "error: reason 0"}]})
+    predict._print_summary(predict.summarise(records), tmp_path, False, 1.0, False, {})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[1] == "  2 x error: reason 0"
+    assert len([line for line in lines if " x error: " in line]) == predict.SUMMARY_REASONS
+    assert ("  3 error row(s) more, for 3 other reason(s): the status column of results.csv"
+            in lines)
+
+
 def test_geometry_precedence_and_assumptions() -> None:
     tags = {"sdd_mm": 1200.0, "pixel_spacing_mm": 0.15}
     tags_only = resolve_geometry((100, 200), {}, {}, tags=tags)
@@ -543,6 +557,22 @@ def test_folder_without_images_and_bad_checkpoint(tmp_path: Path, capsys: pytest
     assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o5"),
                  "--reduce-above", "300"]) == 2
     assert "--reduce-above must be 0 (never) or at least 512 px" in capsys.readouterr().err
+    # Settings outside their ranges, NaN among them, had run (every image no_cup at a
+    # --min-score of 2, a --check-doubt of nan never flagging).
+    for flags, message in ((["--min-score", "2"], "--min-score must be a probability in "
+                            "[0, 1], got 2.0"),
+                           (["--min-score", "nan"], "--min-score must be a probability"),
+                           (["--check-doubt", "nan"], "--check-doubt must be a number >= 0, "
+                            "got nan"),
+                           (["--denoise-above", "-0.01"], "--denoise-above must be a number"),
+                           (["--enlarge-below", "-5"], "--enlarge-below must be a number"),
+                           (["--reduce-above", "-5"], "--reduce-above must be a number"),
+                           (["--principal-point", "inf", "250"],
+                            "--principal-point must be two finite pixel positions")):
+        assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o6"),
+                     *flags]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "o6").exists()
     assert not (tmp_path / "o3" / "results.csv").exists()
     # A --meta that cannot be read (here a folder) is named, not a traceback.
     assert main(["predict", str(tmp_path / "a.png"), "--out", str(tmp_path / "o4"),

@@ -164,6 +164,11 @@ def test_a_flag_that_is_no_positive_size_stops_the_command(tmp_path, capsys, fla
     assert f"{flag} must be a positive number of mm, got {float(value)}" in \
         capsys.readouterr().err
     assert not out.exists()
+    # A principal point that is not finite likewise (it had given every row an error).
+    assert main(["solve", str(tmp_path / "lm.csv"), "--sdd", "1000", "--principal-point", "nan",
+                 "300", "--out", str(out)]) == 2
+    assert "--principal-point must be two finite pixel positions, got nan 300.0" in \
+        capsys.readouterr().err
 
 
 def test_unknown_format_and_empty_file_are_clear_errors(tmp_path):

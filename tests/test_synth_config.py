@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from cupnet.io.images import MAX_SIDE
 from data_synth import SynthConfig
+from data_synth.config import MAX_IMAGE_SIDE
 
 
 def test_defaults_follow_the_paper_protocol():
@@ -36,6 +38,8 @@ def test_from_yaml_reads_lists_and_ints(tmp_path):
         ({"phi_deg": [0, 120]}, "phi_deg"),
         ({"mu_shell": "titanium"}, "mu_shell"),
         ({"image_size": [256]}, "image_size"),
+        ({"image_size": [100_000, 512]}, r"image_size must be \(width, height\), integers "
+                                         r"from 16 to 4096"),
         ({"supersample": 0}, "supersample"),
         ({"h_mm": [100, 1000]}, "h_mm"),
         ({"anatomy_ct": "/no/such/ct.nii.gz"}, "anatomy_ct"),
@@ -66,3 +70,7 @@ def test_a_field_set_on_a_made_config_is_checked_and_a_misspelt_one_refused():
     assert config == SynthConfig()
     config.update(sdd_mm=(300.0, 400.0), h_mm=(50.0, 200.0))
     assert (config.sdd_mm, config.h_mm) == ((300.0, 400.0), (50.0, 200.0))
+
+
+def test_the_largest_side_drawn_is_the_largest_predict_reads():
+    assert MAX_IMAGE_SIDE == MAX_SIDE

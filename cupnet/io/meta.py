@@ -237,8 +237,9 @@ def geometry_flags(args: argparse.Namespace) -> dict[str, float]:
     """The geometry values given on the command line, by meta.csv key (absent ones left out).
 
     Raises:
-        ValueError: a distance or size that is not a positive number (naming its flag): it
-            would hold for every image, so the command stops before the first.
+        ValueError: a distance or size that is not a positive number, or a principal point
+            that is not finite (naming its flag): it would hold for every image, so the
+            command stops before the first.
     """
     flags = {"sdd_mm": args.sdd, "pixel_spacing_mm": args.pixel_spacing,
              "cup_diameter_mm": args.cup_diameter}
@@ -246,6 +247,9 @@ def geometry_flags(args: argparse.Namespace) -> dict[str, float]:
         if value is not None and not (math.isfinite(value) and value > 0):
             raise ValueError(f"{REQUIRED[key][1]} must be a positive number of mm, got {value}")
     if args.principal_point is not None:
+        if not all(map(math.isfinite, args.principal_point)):
+            raise ValueError("--principal-point must be two finite pixel positions, got "
+                             f"{' '.join(map(str, args.principal_point))}")
         flags["principal_u_px"], flags["principal_v_px"] = args.principal_point
     return {k: v for k, v in flags.items() if v is not None}
 
