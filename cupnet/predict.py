@@ -95,7 +95,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+",
                         help="folders, image / DICOM files or globs (several may be given)")
     parser.add_argument("--out", required=True, type=Path, help="output folder")
-    parser.add_argument("--recursive", action="store_true", help="include subfolders")
+    parser.add_argument("--recursive", action="store_true",
+                        help="include subfolders (but not earlier runs' output folders, "
+                             "those holding results.json and results.csv)")
     add_geometry_arguments(parser)
     parser.add_argument("--checkpoint", type=Path,
                         help="model weights (.safetensors or a weights-only torch file); "

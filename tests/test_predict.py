@@ -1197,6 +1197,12 @@ def test_an_out_that_is_a_file_or_holds_the_input_is_named(tmp_path: Path,
         capsys.readouterr().err)
     assert main(["predict", str(images), "--out", str(images / "cupnet"), *common]) == 0
     assert list(rows_by_image(read_csv(images / "cupnet" / "results.csv"))) == ["a.png"]
+    # A second run beside the first, over subfolders: the first's overlays are no input
+    # (they had been taken for two more images).
+    assert (images / "cupnet" / "overlays" / "a.png.png").is_file()
+    assert main(["predict", str(images), "--recursive", "--out", str(images / "cupnet2"),
+                 *common]) == 0
+    assert list(rows_by_image(read_csv(images / "cupnet2" / "results.csv"))) == ["a.png"]
 
 
 def test_side_file_rows_no_image_found_are_warned_of(tmp_path: Path, blind_checkpoint: Path,

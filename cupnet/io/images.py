@@ -165,7 +165,9 @@ def find_images(spec: str | Path, recursive: bool = False,
 
     Args:
         spec: folder, file or glob.
-        recursive: descend into subfolders.
+        recursive: descend into subfolders, leaving out the output folders of earlier runs
+            (those holding a results.json and a results.csv): their overlays had been taken
+            for input images.
         exclude: a folder whose contents are skipped (the output folder, when inside the input).
     Raises:
         FileNotFoundError: nothing by that name, or no images in it.
@@ -182,17 +184,22 @@ def find_images(spec: str | Path, recursive: bool = False,
         candidates = (Path(p) for p in glob.glob(spec, recursive=recursive))
     else:
         raise FileNotFoundError(f"no such file, folder or glob match: {spec}")
-    excluded = exclude.resolve() if exclude is not None else None
+    excluded = [] if exclude is None else [exclude.resolve()]
+    if recursive:
+        excluded += [run.parent.resolve() for run in root.rglob("results.json")
+                     if (run.parent / "results.csv").is_file() and run.parent != root]
     found, skipped = [], 0
     for p in candidates:
-        if excluded is not None and p.resolve().is_relative_to(excluded):
+        if any(p.resolve().is_relative_to(folder) for folder in excluded):
             skipped += 1
             continue
         if _wanted(p):
             found.append(ImageSource(p, display_name(p.relative_to(root).as_posix())))
     if not found and skipped:  # it had said "no images found", with the images right there
-        raise FileNotFoundError(f"everything {spec} names lies in the output folder {exclude}, "
-                                "whose contents are skipped as input: give --out elsewhere")
+        where = "" if exclude is None else f"the output folder {exclude} or "
+        raise FileNotFoundError(f"everything {spec} names lies in {where}an earlier run's "
+                                "output folder (one holding results.json and results.csv), "
+                                "whose contents are skipped as input")
     if not found:
         where = "matching" if glob.has_magic(spec) and not path.is_dir() else "in"
         hint = "" if recursive or not path.is_dir() else " (use --recursive for subfolders)"
