@@ -942,8 +942,8 @@ def _changed_since(json_path: Path, header: dict) -> list[str]:
 
 def changed_settings(earlier: dict, header: dict) -> list[str]:
     """What differs between an earlier run's results.json ``earlier`` and this run's
-    ``header`` among :data:`RESULT_OPTIONS` and the model (or landmark file) by content,
-    each as ``option: before -> now``."""
+    ``header`` among :data:`RESULT_OPTIONS`, and the model (or landmark file) and meta file
+    by content, each as ``option: before -> now``."""
     before, now = earlier.get("arguments", {}), standard_json(header["arguments"])
 
     def same(key: str) -> bool:
@@ -958,6 +958,9 @@ def changed_settings(earlier: dict, header: dict) -> list[str]:
                for key, option in RESULT_OPTIONS.items() if not same(key)]
     if earlier.get("model", {}).get("sha256") != header["model"].get("sha256"):
         changed.append("the model's weights or the landmark file: other contents")
+    # A meta file edited in place: the same path, other geometry for the images still to run.
+    if same("meta") and earlier.get("meta_sha256", header["meta_sha256"]) != header["meta_sha256"]:
+        changed.append("--meta: other contents")
     return changed
 
 
@@ -983,7 +986,8 @@ def _run(args: argparse.Namespace) -> int:
               file=sys.stderr)
         return 2
     arguments = {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}
-    header = {"software": _software(), "model": detector.info, "arguments": arguments}
+    header = {"software": _software(), "model": detector.info, "arguments": arguments,
+              "meta_sha256": _sha256(args.meta) if args.meta is not None else None}
     outputs = Outputs(args.out, header)
     if args.resume:
         changed = _changed_since(outputs.json_path, header)

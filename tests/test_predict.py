@@ -317,6 +317,11 @@ def test_resume_refuses_other_settings_than_the_run_it_resumes(
         err = capsys.readouterr().err
         assert f"--resume with other settings than the run in {out} ({named}): " in err
         assert len(rows_by_image(read_csv(out / "results.csv"))) == 2  # left as it was
+    # The meta file edited in place: the images still to run would take other geometry.
+    (tmp_path / "meta.csv").write_text("image,sdd_mm\nim0.png,1000\nim3.png,900\n")
+    assert main([*args, "--meta", str(tmp_path / "meta.csv"), "--resume"]) == 2
+    assert f"the run in {out} (--meta: other contents)" in capsys.readouterr().err
+    (tmp_path / "meta.csv").write_text("image,sdd_mm\nim0.png,1000\n")
     monkeypatch.chdir(tmp_path)
     assert main([*args, "--meta", "./meta.csv", "--resume", "--batch-size", "3"]) == 0
     assert len(rows_by_image(read_csv(out / "results.csv"))) == 5
