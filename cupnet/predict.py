@@ -287,6 +287,10 @@ class NetworkDetector:
     def file_values(self, frame: Frame) -> dict[str, float]:
         return {}
 
+    def needs_geometry(self, frame: Frame) -> bool:
+        """Whether the image's result needs its geometry: every image may hold a cup."""
+        return True
+
     def cup_numbers(self, frame: Frame, count: int) -> list[int]:
         """results.csv's ``cup`` of each of an image's ``count`` cups: left to right."""
         return list(range(count))
@@ -338,6 +342,11 @@ class LandmarkDetector:
     def file_values(self, frame: Frame) -> dict[str, float]:
         cups = [c for c in self.cups_of(frame) if c.error is None]
         return cups[0].geometry_values() if cups else {}
+
+    def needs_geometry(self, frame: Frame) -> bool:
+        """Whether the image's result needs its geometry: not where the file holds no
+        landmarks for it (no_cup, where a geometry missing had made it an error row)."""
+        return bool(self.cups_of(frame))
 
     def cup_numbers(self, frame: Frame, count: int) -> list[int]:
         """results.csv's ``cup`` of each of an image's cups: the file's own labels, as
@@ -656,10 +665,10 @@ class Predictor:
                 {"sdd_mm": frame.sdd_mm, "pixel_spacing_mm": frame.pixel_spacing_mm},
                 frame.tag_sources, self.detector.file_values(frame), batch.paths[i])
             if not geometry.complete:
+                status = (geometry.error(frame.tag_notes)
+                          if self.detector.needs_geometry(frame) else "no_cup")
                 batch.records[i] = {"image": frame.name, "geometry": geometry.to_json(),
-                                    "rows": [status_row(frame.name,
-                                                        geometry.error(frame.tag_notes),
-                                                        frame.seconds)]}
+                                    "rows": [status_row(frame.name, status, frame.seconds)]}
                 continue
             self._note_assumptions(geometry, frame.image.shape[1])
             self._note_implausible(frame.name, geometry)

@@ -640,6 +640,13 @@ def test_landmarks_bilateral_two_rows_blank_no_cup(tmp_path: Path) -> None:
                  str(tmp_path / "landmarks.csv"), *geometry_flags, "--quiet"]) == 0
     by_image = rows_by_image(read_csv(out / "results.csv"))
     assert [r["status"] for r in by_image["blank.png"]] == ["no_cup"]
+    # Without the geometry too: it had been an error row naming the geometry missing, which
+    # an image without landmarks does not need.
+    assert main(["predict", str(images), "--out", str(tmp_path / "bare"), "--landmarks",
+                 str(tmp_path / "landmarks.csv"), "--quiet"]) == 0
+    bare = rows_by_image(read_csv(tmp_path / "bare" / "results.csv"))
+    assert [r["status"] for r in bare["blank.png"]] == ["no_cup"]
+    assert bare["pelvis.png"][0]["status"].startswith("error: missing source-to-detector")
     rows = by_image["pelvis.png"]
     # The file's labels, as cupnet solve writes them (predict had numbered them 0, 1).
     assert [r["cup"] for r in rows] == ["1", "2"]
