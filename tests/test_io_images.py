@@ -280,6 +280,12 @@ def test_truncated_png_jpeg_and_dicom(tmp_path: Path, capfd: pytest.CaptureFixtu
     assert "corrupt or truncated DICOM" in read_frames(tmp_path / "cut.dcm")[0].error
     (tmp_path / "head.dcm").write_bytes(data[:300])  # cut within the header: pydicom reads on
     assert "cut short in its header" in read_frames(tmp_path / "head.dcm")[0].error
+    # Rows and Columns but no pixel data element: no image, not a corrupt one.
+    dataset = pydicom.dcmread(tmp_path / "full.dcm")
+    del dataset.PixelData
+    dataset.save_as(tmp_path / "bare.dcm")
+    assert read_frames(tmp_path / "bare.dcm")[0].error == (
+        "DICOM has no image (no Pixel Data element: a dataset without pixel data)")
 
 
 def test_a_float_tiff_with_nan_is_named_as_such_not_as_corrupt(tmp_path: Path) -> None:

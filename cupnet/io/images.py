@@ -414,6 +414,17 @@ def _dicom_header(path: Path) -> pydicom.Dataset:
     return ds
 
 
+def _holds_pixel_data(path: Path) -> bool:
+    """Whether a DICOM file that failed to decode has a pixel data element at all (one that
+    cannot be read again is taken to have one: its data is what broke)."""
+    keywords = ("PixelData", "FloatPixelData", "DoubleFloatPixelData")
+    try:
+        ds = pydicom.dcmread(path, specific_tags=list(keywords))
+    except Exception:  # noqa: BLE001 - any failure here leaves the first one to report
+        return True
+    return any(keyword in ds for keyword in keywords)
+
+
 def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarray:
     """One decoded frame with modality LUT / rescale and VOI LUT / window applied."""
     syntax = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
@@ -429,6 +440,9 @@ def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarr
         else:
             stored = pixel_array(path, index=index)
     except Exception as exc:  # pydicom raises many types on broken pixel data
+        if not _holds_pixel_data(path):  # it had been called corrupt
+            raise ImageReadError("DICOM has no image (no Pixel Data element: a dataset "
+                                 "without pixel data)") from exc
         # A decoder's message may run over lines (one a plugin): one line, all of them.
         reason = " ".join(str(exc).split()) or type(exc).__name__
         try:
