@@ -26,6 +26,12 @@ BLURRED_WITHOUT_BLUR_RIM = ("blurred needs blur_rim: this model has no rim netwo
                             "on blurrier images")
 
 
+# The fields that size a network or count what it makes (>= 1), and the stages' passes (>= 0).
+COUNTS = ("locator_size", "crop_size", "n_rays", "ray_samples", "rim_points", "rim_samples",
+          "rim_channels", "max_cups", "thin_rim_angles", "enlarge_to", "reduce_to")
+PASSES = ("refine_passes", "rim_passes", "coarse_rim_passes", "outline_passes")
+
+
 @dataclass
 class CupNetConfig(CheckedFields):
     """Architecture and inference settings (stored as JSON beside a checkpoint).
@@ -351,6 +357,12 @@ class CupNetConfig(CheckedFields):
     blurred: bool = False
 
     def __post_init__(self) -> None:
+        # Sizes and counts: 0 or less had failed only at the first forward (a negative crop
+        # in kornia's warp, a division by zero rays).
+        for names, least in ((COUNTS, 1), (PASSES, 0)):
+            for name in names:
+                if getattr(self, name) < least:
+                    raise ValueError(f"{name} must be >= {least}, got {getattr(self, name)}")
         if self.metal not in METAL_DISPLAYS:
             raise ValueError(f"unknown metal display {self.metal!r}; choose from "
                              f"{', '.join(METAL_DISPLAYS)}")

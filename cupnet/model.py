@@ -2049,16 +2049,32 @@ def _read_checkpoint(path: Path) -> tuple[dict[str, Tensor], dict | None]:
     """
     if not path.exists():
         raise FileNotFoundError(f"checkpoint not found: {path}")
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
+    try:
+        if _is_safetensors(path):  # by content: save_model writes it under any name
+            from safetensors.torch import load_file
 
-        return load_file(str(path)), None
-    state = torch.load(path, map_location="cpu", weights_only=True)
+            return load_file(str(path)), None
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - each reader fails in its own ways on a bad file
+        reason = " ".join(str(exc).split())[:300] or type(exc).__name__
+        raise ValueError(f"{path}: not a readable checkpoint (safetensors, or a weights-only "
+                         f"torch file; corrupt, cut short or another format: {reason})"
+                         ) from exc
     config = None
     if isinstance(state, dict) and "state_dict" in state:
         config = (state.get("hyper_parameters") or {}).get("model")
         state = state["state_dict"]
+    if not isinstance(state, dict) or not all(isinstance(v, Tensor) for v in state.values()):
+        raise ValueError(f"{path}: holds no state dict of tensors (a {type(state).__name__})")
     return state, config
+
+
+def _is_safetensors(path: Path) -> bool:
+    """Whether ``path`` starts as safetensors does: an 8-byte little-endian header length,
+    then the header's JSON (a torch file starts with a zip's or a pickle's magic)."""
+    with path.open("rb") as f:
+        start = f.read(9)
+    return len(start) == 9 and start[8:] == b"{"
 
 
 def config_path(checkpoint: Path) -> Path:
@@ -2071,6 +2087,9 @@ def save_model(model: CupNet, checkpoint: str | Path) -> Path:
     from safetensors.torch import save_file
 
     checkpoint = Path(checkpoint)
+    if checkpoint.is_dir():  # safetensors had failed on it in a traceback
+        raise ValueError(f"{checkpoint} is a folder; give the weights file's name, such as "
+                         f"{checkpoint / 'cupnet.safetensors'}")
     checkpoint.parent.mkdir(parents=True, exist_ok=True)
     state = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
     save_file(state, str(checkpoint))
@@ -2097,9 +2116,32 @@ def load_model(checkpoint: str | Path | None = None) -> CupNet:
         state = {k[len("model."):]: v for k, v in state.items() if k.startswith("model.")}
     cfg_file = config_path(path)
     if cfg_file.exists():
-        stored = json.loads(cfg_file.read_text())
+        try:
+            stored = json.loads(cfg_file.read_text())
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{cfg_file}: the model config beside {path.name} is no JSON "
+                             f"({exc})") from exc
     config = CupNetConfig.from_dict(stored or {})
     config.encoder_weights = None  # the checkpoint holds the trained encoders
     model = CupNet(config)
+    misfit = state_misfit(model.state_dict(), state)
+    if misfit:
+        source = (f"its config {cfg_file.name}" if cfg_file.exists() else "its own config"
+                  if stored else f"the default config (no {cfg_file.name} beside it)")
+        raise ValueError(f"{path}: the weights do not fit {source}: {misfit}")
     model.load_state_dict(state)
     return model.eval()
+
+
+def state_misfit(expected: dict[str, Tensor], given: dict[str, Tensor]) -> str | None:
+    """How the tensors ``given`` fail to fit a model whose state dict is ``expected`` (None
+    where they fit): the counts of tensors missing, unexpected and of another shape, with
+    the first of each (load_state_dict's own message lists every one, a hundred lines)."""
+    missing = [k for k in expected if k not in given]
+    unexpected = [k for k in given if k not in expected]
+    reshaped = [f"{k} {tuple(given[k].shape)} for {tuple(expected[k].shape)}" for k in expected
+                if k in given and given[k].shape != expected[k].shape]
+    parts = [f"{len(keys)} {what} (first: {keys[0]})" for keys, what in (
+        (missing, "missing"), (unexpected, "unexpected"), (reshaped, "of another shape"))
+        if keys]
+    return "; ".join(parts) or None

@@ -17,7 +17,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 from tqdm import tqdm
 
 from data_synth.anatomy import bank_path, load_bank
@@ -90,8 +89,6 @@ def _config(args: argparse.Namespace) -> SynthConfig:
     --overwrite). Raises ValueError naming the problem."""
     try:
         config = (SynthConfig.from_yaml(args.config) if args.config else SynthConfig())
-    except yaml.YAMLError as error:
-        raise ValueError(f"--config {args.config} is no YAML file: {error}") from error
     except OSError as error:
         raise ValueError(f"--config {args.config}: {error.strerror or error}") from error
     if args.size is not None:

@@ -137,7 +137,10 @@ class SynthConfig(CheckedFields):
     def from_yaml(cls, path: str | Path) -> SynthConfig:
         """A config from a YAML file of fields (an empty file gives the defaults)."""
         with open(path) as stream:
-            values = yaml.safe_load(stream)
+            try:
+                values = yaml.safe_load(stream)
+            except yaml.YAMLError as error:
+                raise ValueError(f"{path} is no YAML file: {error}") from error
         return cls.from_dict(values or {})
 
     def to_dict(self) -> dict[str, Any]:

@@ -615,6 +615,33 @@ def test_checkpoint_round_trip(tmp_path):
         assert torch.equal(model.locator(x), load_model(tmp_path / "plain.pt").locator(x))
 
 
+def test_a_checkpoint_is_read_by_what_it_holds_and_a_bad_one_named(tmp_path):
+    """An export named otherwise than .safetensors had been read as a torch file and failed
+    in the unpickler; a file cut short, a missing JSON and a folder to save to had ended in
+    the readers' own tracebacks (a hundred unexpected keys for a missing JSON)."""
+    torch.manual_seed(1)
+    model = CupNet(TINY).eval()
+    path = save_model(model, tmp_path / "export.pt")
+    assert (tmp_path / "export.json").is_file()
+    x = torch.rand(1, 1, 64, 64)
+    with torch.no_grad():
+        assert torch.equal(model.refiner(x), load_model(path).refiner(x))
+    (tmp_path / "cut.safetensors").write_bytes(path.read_bytes()[:3000])
+    with pytest.raises(ValueError, match=r"cut.safetensors: not a readable checkpoint"):
+        load_model(tmp_path / "cut.safetensors")
+    (tmp_path / "alone.safetensors").write_bytes(path.read_bytes())
+    with pytest.raises(ValueError, match=r"alone.safetensors: the weights do not fit the "
+                                         r"default config \(no alone.json beside it\): "
+                                         r"\d+ missing \(first: .*\); \d+ unexpected"):
+        load_model(tmp_path / "alone.safetensors")
+    (tmp_path / "export.json").write_text("{broken")
+    with pytest.raises(ValueError, match=r"export.json: the model config beside export.pt is "
+                                         r"no JSON"):
+        load_model(path)
+    with pytest.raises(ValueError, match=r"is a folder; give the weights file's name"):
+        save_model(model, tmp_path)
+
+
 def test_bad_image_is_rejected_with_a_clear_error():
     model = CupNet(TINY)
     geometry = Geometry(1040.0, 0.3, 32, 32)

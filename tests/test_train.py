@@ -241,6 +241,44 @@ def test_a_resume_takes_a_checkpoint_file_not_a_keyword(tmp_path, monkeypatch, c
     assert "--ckpt_path last: no such checkpoint file" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--model.lr", "-0.1"], "lr must be a learning rate > 0, got -0.1"),
+    (["--data.batch_size", "0"], "batch_size must be >= 1, got 0"),
+    (["--data.synth", "nope.yaml"], "synthesis config not found: nope.yaml"),
+    (["--model.model.crop_sise", "96"], "unknown CupNet config keys: ['crop_sise']"),
+    (["--model.model.n_rays", "0"], "n_rays must be >= 1, got 0"),
+    (["--model.init_weights", str(DEFAULT_CHECKPOINT)],
+     "does not fit this model: 64 tensors of another shape, in ['locator', 'refiner']"),
+])
+def test_a_setting_the_run_cannot_take_is_an_argument_error(tmp_path, monkeypatch, capsys,
+                                                           flags, message):
+    """Each had ended in a traceback once the model, loggers and trainer were made (a
+    negative rate at AdamW's first step, a batch of 0 in the collation)."""
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as stopped:
+        main(["fit", "-c", str(SMOKE), "--data.synth", str(ROOT / "configs/synth_smoke.yaml"),
+              *flags])
+    assert stopped.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_a_resume_from_a_file_that_is_no_training_checkpoint_is_named(tmp_path, monkeypatch,
+                                                                     capsys):
+    """A file cut short, an export, a plain state dict: Lightning had failed in a
+    traceback, one without the file's name."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "cut.ckpt").write_bytes(b"PK\x03\x04" + bytes(200))
+    torch.save(load_model(DEFAULT_CHECKPOINT).state_dict(), tmp_path / "plain.pt")
+    for path, message in ((tmp_path / "cut.ckpt", "not a readable checkpoint (corrupt"),
+                          (DEFAULT_CHECKPOINT, "not a checkpoint of cupnet train"),
+                          (tmp_path / "plain.pt", "not a checkpoint of cupnet train")):
+        with pytest.raises(SystemExit) as stopped:
+            main(["fit", "-c", str(SMOKE), "--ckpt_path", str(path)])
+        assert stopped.value.code == 2
+        err = capsys.readouterr().err
+        assert f"--ckpt_path {path}: {message}" in err and "--model.init_weights" in err
+
+
 def test_a_second_run_into_the_same_folder_leaves_its_own_last_checkpoint(tmp_path,
                                                                          monkeypatch):
     """Lightning's version counter had written the second run's as last-v1.ckpt beside the

@@ -59,6 +59,15 @@ class CupNetCLI(LightningCLI):
     keyword (``last``, ``best``) the given settings were built into the module and recorded,
     while the checkpoint's optimiser and schedule were restored beside them."""
 
+    def instantiate_classes(self) -> None:
+        """The module, data module and trainer; a setting they refuse (a misspelt network
+        setting, a missing synthesis config, weights that do not fit) is an argument error
+        naming it, as a setting of the wrong type is, where it had ended in a traceback."""
+        try:
+            super().instantiate_classes()
+        except (ValueError, FileNotFoundError) as exc:
+            self.parser.error(str(exc))
+
     @staticmethod
     def subcommands() -> dict[str, set[str]]:
         return {name: skipped for name, skipped in LightningCLI.subcommands().items()
@@ -71,6 +80,9 @@ class CupNetCLI(LightningCLI):
             self.parser.error(f"--ckpt_path {checkpoint}: no such checkpoint file; give the "
                               "file itself, such as runs/<config>/checkpoints/last.ckpt (a "
                               "resume takes its model settings from it)")
+        problem = None if checkpoint is None else training_checkpoint_problem(Path(checkpoint))
+        if problem is not None:
+            self.parser.error(f"--ckpt_path {checkpoint}: {problem}")
         given = flat_settings(self.config[command].get("model")) if command else {}
         super()._parse_ckpt_path()
         if not given:
@@ -83,6 +95,25 @@ class CupNetCLI(LightningCLI):
                            "given ones are not used: " + "; ".join(dropped) + ". To change "
                            "them, start a new stage from the run's export "
                            "(--model.init_weights) instead of resuming")
+
+
+def training_checkpoint_problem(path: Path) -> str | None:
+    """Why ``path`` cannot be resumed from (None where it can): a file torch cannot read, or
+    one that is no Lightning checkpoint (a model's exported weights, which start a run with
+    ``--model.init_weights``). Lightning had failed in a traceback, some without the file's
+    name."""
+    import torch
+
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch fails in many ways on a bad file
+        reason = " ".join(str(exc).split())[:200] or type(exc).__name__
+        return (f"not a readable checkpoint (corrupt, cut short or another format: "
+                f"{reason}); to start from a model's weights give --model.init_weights")
+    if not isinstance(checkpoint, dict) or "pytorch-lightning_version" not in checkpoint:
+        return ("not a checkpoint of cupnet train (a model's weights?); to start from them "
+                "give --model.init_weights")
+    return None
 
 
 def lightning_args(argv: list[str]) -> list[str]:

@@ -127,7 +127,19 @@ class CupDataModule(L.LightningDataModule):
         val_length: int = 32,
     ) -> None:
         super().__init__()
+        for name, value, least in (("batch_size", batch_size, 1), ("num_workers", num_workers, 0),
+                                   ("train_batches", train_batches, 1),
+                                   ("val_length", val_length, 1)):
+            if value is not None and value < least:
+                raise ValueError(f"{name} must be >= {least}, got {value}")
         self.save_hyperparameters()
+        # Read now, so that a missing or bad synthesis config stops the run before the
+        # model, loggers and trainer are made (it had failed at the first batch).
+        for source in self._synth_list():
+            for size in image_sizes or [None]:
+                synth_config(source, size)
+        synth_config(val_synth if val_synth is not None else self._synth_list()[0],
+                     val_image_size)
 
     def _synth_list(self) -> list:
         synth = self.hparams.synth

@@ -341,6 +341,8 @@ class CupNetModule(L.LightningModule):
         export_path: str | None = None,
     ) -> None:
         super().__init__()
+        if not lr > 0:  # NaN fails too; AdamW had refused it at the first step
+            raise ValueError(f"lr must be a learning rate > 0, got {lr}")
         self.save_hyperparameters()
         self.model = CupNet(CupNetConfig.from_dict(model or {}))
         # A resumed run's random state (CPU, CUDA), set at its first step (on_load_checkpoint).
@@ -360,6 +362,14 @@ class CupNetModule(L.LightningModule):
                 rank_zero_warn(f"{init_weights}'s blur-trained rim network (blur_rim) is not "
                                "in this model: this run's export holds none (train.merge "
                                "--take blur_rim= puts one back)")
+            reshaped = [k for k, v in state.items() if k in own and own[k].shape != v.shape]
+            if reshaped:  # load_state_dict's own message lists each, 64 lines for a decoder
+                first = reshaped[0]
+                raise ValueError(
+                    f"{init_weights} does not fit this model: {len(reshaped)} tensors of "
+                    f"another shape, in {_networks(reshaped)} (first: {first} "
+                    f"{tuple(state[first].shape)} for {tuple(own[first].shape)}): another "
+                    "encoder or decoder width")
             missing, unexpected = self.model.load_state_dict(state, strict=False)
             if unexpected or any(not k.startswith(("rim.", "coarse_rim.")) for k in missing):
                 raise ValueError(
