@@ -31,7 +31,13 @@ from scipy.optimize import linear_sum_assignment
 from cupnet.geometry import Geometry
 from cupnet.io.csvfile import csv_text
 from cupnet.io.meta import GEOMETRY_KEYS, image_table, row_for_image
-from cupnet.io.results import ALT_COLUMNS, ELLIPSE_COLUMNS, POSE_COLUMNS, is_status
+from cupnet.io.results import (
+    ALT_COLUMNS,
+    ELLIPSE_COLUMNS,
+    POSE_COLUMNS,
+    STATUS_RULE,
+    is_status,
+)
 from cupnet.pose import ellipse_of_pose, orthographic_pose
 
 # The columns results.csv and meta.csv are written with (the three required first).
@@ -346,8 +352,7 @@ def _load(pred_csv: Path, truth_csv: Path, meta_csv: Path | None) -> Matched:
     unknown = sorted({repr(r["status"]) for r in pred_rows if not is_status(r["status"])})
     if unknown:
         raise ValueError(f"{pred_csv}: unknown status value(s) {', '.join(unknown[:5])}: "
-                         "results.csv's "
-                         "status is ok, ambiguous, no_cup or error: <reason>")
+                         f"results.csv's status is {STATUS_RULE}")
     # A found cup without a whole pose had counted as matched and been left out of that
     # angle's MAE without a word.
     posed = [r for r in pred_rows if r["status"] in FOUND]

@@ -2124,7 +2124,7 @@ def load_model(checkpoint: str | Path | None = None) -> CupNet:
     config = CupNetConfig.from_dict(stored or {})
     config.encoder_weights = None  # the checkpoint holds the trained encoders
     model = CupNet(config)
-    misfit = state_misfit(model.state_dict(), state)
+    misfit = _state_misfit(model.state_dict(), state)
     if misfit:
         source = (f"its config {cfg_file.name}" if cfg_file.exists() else "its own config"
                   if stored else f"the default config (no {cfg_file.name} beside it)")
@@ -2133,7 +2133,7 @@ def load_model(checkpoint: str | Path | None = None) -> CupNet:
     return model.eval()
 
 
-def state_misfit(expected: dict[str, Tensor], given: dict[str, Tensor]) -> str | None:
+def _state_misfit(expected: dict[str, Tensor], given: dict[str, Tensor]) -> str | None:
     """How the tensors ``given`` fail to fit a model whose state dict is ``expected`` (None
     where they fit): the counts of tensors missing, unexpected and of another shape, with
     the first of each (load_state_dict's own message lists every one, a hundred lines)."""

@@ -190,7 +190,7 @@ def find_images(spec: str | Path, recursive: bool = False,
                      if (run.parent / "results.csv").is_file() and run.parent != root]
     found, skipped = [], 0
     for p in candidates:
-        if any(p.resolve().is_relative_to(folder) for folder in excluded):
+        if excluded and any(map(p.resolve().is_relative_to, excluded)):
             skipped += 1
             continue
         if _wanted(p):

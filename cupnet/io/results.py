@@ -46,8 +46,9 @@ RESULT_COLUMNS = ("image", "cup", "status", *POSE_COLUMNS, *ELLIPSE_COLUMNS, "re
                   *SD_COLUMNS, *NOISE_COLUMNS, "enlarged", "reduced")
 
 
-# A row's status: one of these, or "error: <reason>".
+# A row's status: one of these, or "error: <reason>" (as the files' readers say it).
 STATUSES = ("ok", "ambiguous", "no_cup")
+STATUS_RULE = f"{', '.join(STATUSES)} or error: <reason>"
 
 
 def is_status(status: str | None) -> bool:
@@ -154,8 +155,8 @@ def read_results_csv(path: Path) -> dict[str, list[dict]]:
         for row in reader:
             if not is_status(row.get("status")):
                 raise ValueError(f"{path}, line {reader.line_num}: status "
-                                 f"{row.get('status')!r} is none of {', '.join(STATUSES)} or "
-                                 "error: <reason> (a row cut short?)")
+                                 f"{row.get('status')!r} is none of {STATUS_RULE} (a row cut "
+                                 "short?)")
             by_image.setdefault(row["image"], []).append(
                 {k: (v if v != "" else None) for k, v in row.items()})
     return by_image
