@@ -134,12 +134,12 @@ class CupDataModule(L.LightningDataModule):
                 raise ValueError(f"{name} must be >= {least}, got {value}")
         self.save_hyperparameters()
         # Read now, so that a missing or bad synthesis config stops the run before the
-        # model, loggers and trainer are made (it had failed at the first batch).
-        for source in self._synth_list():
-            for size in image_sizes or [None]:
-                synth_config(source, size)
-        synth_config(val_synth if val_synth is not None else self._synth_list()[0],
-                     val_image_size)
+        # model, loggers and trainer are made (it had failed at the first batch): the
+        # training streams' configs (configs in order, sizes within each) and validation's.
+        self.train_configs = [synth_config(source, size) for source in self._synth_list()
+                              for size in image_sizes or [None]]
+        self.val_config = synth_config(val_synth if val_synth is not None
+                                       else self._synth_list()[0], val_image_size)
 
     def _synth_list(self) -> list:
         synth = self.hparams.synth
@@ -149,10 +149,8 @@ class CupDataModule(L.LightningDataModule):
         from data_synth import SynthDataset
 
         hp = self.hparams
-        sizes = hp.image_sizes or [None]
-        streams = [(source, size) for source in self._synth_list() for size in sizes]
-        datasets = [SynthDataset(synth_config(source, size), seed=hp.train_seed + i)
-                    for i, (source, size) in enumerate(streams)]
+        datasets = [SynthDataset(config, seed=hp.train_seed + i)
+                    for i, config in enumerate(self.train_configs)]
         # A run resumed from a checkpoint has its step back by now: it goes on with new
         # images rather than the first ones again.
         done = self.trainer.global_step if self.trainer is not None else 0
@@ -167,9 +165,7 @@ class CupDataModule(L.LightningDataModule):
         from data_synth import SynthDataset
 
         hp = self.hparams
-        source = hp.val_synth if hp.val_synth is not None else self._synth_list()[0]
-        dataset = SynthDataset(synth_config(source, hp.val_image_size), seed=hp.val_seed,
-                               length=hp.val_length)
+        dataset = SynthDataset(self.val_config, seed=hp.val_seed, length=hp.val_length)
         # A generator of its own: each validation's iterator draws its base seed from it,
         # not from torch's global one, whose draws the training steps make (from the
         # checkpoint's state on a resume, taken before the validation that follows it).
