@@ -46,6 +46,11 @@ class CosineToFloor(torch.optim.lr_scheduler.CosineAnnealingLR):
         return super().get_lr()
 
 
+# The state-dict prefixes of the rim networks a stage trains: one of another width, or one a
+# model gains, starts afresh under init_weights.
+TRAINED_RIMS = ("rim.", "coarse_rim.")
+
+
 def _networks(keys: list[str]) -> list[str]:
     """The networks (``rim``, ``locator``, ...) that state-dict ``keys`` belong to."""
     return sorted({key.split(".")[0] for key in keys})
@@ -353,25 +358,25 @@ class CupNetModule(L.LightningModule):
             # another width starts afresh.
             own = self.model.state_dict()
             start = load_model(init_weights)
-            state = {k: v for k, v in start.state_dict().items()
-                     if not (k.startswith(("rim.", "coarse_rim.")) and k in own
-                             and own[k].shape != v.shape)}
+            state = start.state_dict()
             if start.blur_rim is not None and self.model.blur_rim is None:
                 # An inference option (--blurred) no stage trains: left out, and said so.
                 state = {k: v for k, v in state.items() if not k.startswith("blur_rim.")}
                 rank_zero_warn(f"{init_weights}'s blur-trained rim network (blur_rim) is not "
                                "in this model: this run's export holds none (train.merge "
                                "--take blur_rim= puts one back)")
-            reshaped = [k for k, v in state.items() if k in own and own[k].shape != v.shape]
-            if reshaped:  # load_state_dict's own message lists each, 64 lines for a decoder
-                first = reshaped[0]
+            reshaped = {k for k, v in state.items() if k in own and own[k].shape != v.shape}
+            refused = [k for k in state if k in reshaped and not k.startswith(TRAINED_RIMS)]
+            if refused:  # load_state_dict's own message lists each, 64 lines for a decoder
+                first = refused[0]
                 raise ValueError(
-                    f"{init_weights} does not fit this model: {len(reshaped)} tensors of "
-                    f"another shape, in {_networks(reshaped)} (first: {first} "
+                    f"{init_weights} does not fit this model: {len(refused)} tensors of "
+                    f"another shape, in {_networks(refused)} (first: {first} "
                     f"{tuple(state[first].shape)} for {tuple(own[first].shape)}): another "
                     "encoder or decoder width")
+            state = {k: v for k, v in state.items() if k not in reshaped}
             missing, unexpected = self.model.load_state_dict(state, strict=False)
-            if unexpected or any(not k.startswith(("rim.", "coarse_rim.")) for k in missing):
+            if unexpected or any(not k.startswith(TRAINED_RIMS) for k in missing):
                 raise ValueError(
                     f"{init_weights} does not fit this model: it holds networks this model "
                     f"has not built {_networks(unexpected)} (a rim stage with 0 passes builds "
