@@ -68,6 +68,7 @@ from cupnet.detection import (
     without_failed_pieces,
 )
 from cupnet.ellipse import fit_ellipse
+from cupnet.errors import whole_reason
 from cupnet.field import content_crop, crop_of_field, outside_field, round_field
 from cupnet.geometry import Geometry, pose_to_degrees, pose_to_radians
 from cupnet.landmarks import component_moments, ray_landmarks
@@ -2056,10 +2057,9 @@ def _read_checkpoint(path: Path) -> tuple[dict[str, Tensor], dict | None]:
             return load_file(str(path)), None
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - each reader fails in its own ways on a bad file
-        reason = " ".join(str(exc).split())[:300] or type(exc).__name__
         raise ValueError(f"{path}: not a readable checkpoint (safetensors, or a weights-only "
-                         f"torch file; corrupt, cut short or another format: {reason})"
-                         ) from exc
+                         "torch file; corrupt, cut short or another format: "
+                         f"{whole_reason(exc, 300)})") from exc
     config = None
     if isinstance(state, dict) and "state_dict" in state:
         config = (state.get("hyper_parameters") or {}).get("model")

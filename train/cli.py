@@ -104,12 +104,14 @@ def training_checkpoint_problem(path: Path) -> str | None:
     name."""
     import torch
 
+    from cupnet.errors import whole_reason
+
     try:
         checkpoint = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - torch fails in many ways on a bad file
-        reason = " ".join(str(exc).split())[:200] or type(exc).__name__
         return (f"not a readable checkpoint (corrupt, cut short or another format: "
-                f"{reason}); to start from a model's weights give --model.init_weights")
+                f"{whole_reason(exc, 200)}); to start from a model's weights give "
+                "--model.init_weights")
     if not isinstance(checkpoint, dict) or "pytorch-lightning_version" not in checkpoint:
         return ("not a checkpoint of cupnet train (a model's weights?); to start from them "
                 "give --model.init_weights")

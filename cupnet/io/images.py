@@ -35,7 +35,7 @@ from pydicom.uid import (
     ImplicitVRLittleEndian,
 )
 
-from cupnet.errors import named_error
+from cupnet.errors import named_error, whole_reason
 from cupnet.io import jpeg12
 
 jpeg12.register()  # 12-bit JPEG Extended, which pydicom's own plugins refuse
@@ -444,7 +444,7 @@ def _dicom_frame(path: Path, ds: pydicom.Dataset, index: int | None) -> np.ndarr
             raise ImageReadError("DICOM has no image (no Pixel Data element: a dataset "
                                  "without pixel data)") from exc
         # A decoder's message may run over lines (one a plugin): one line, all of them.
-        reason = " ".join(str(exc).split()) or type(exc).__name__
+        reason = whole_reason(exc)
         try:
             compressed = syntax is not None and syntax.is_compressed
         except ValueError:  # a private or unknown transfer syntax: no decoder knows it
