@@ -23,7 +23,7 @@ from __future__ import annotations
 import functools
 import math
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any, Literal, NamedTuple
 
@@ -160,8 +160,7 @@ def poses_from_conic(conic: Tensor, geometry: Geometry, radius: Tensor | float) 
     batch, dtype, device = conic.shape[0], conic.dtype, conic.device
     radius = _per_item(radius, "radius", batch, dtype, device)
     check_geometry_batch(geometry, batch)
-    _raise_first([f"error: {problem}" if problem else "ok"
-                  for problem in geometry_problems(geometry, radius.detach())], "raise")
+    _raise_first_problem(geometry_problems(geometry, radius.detach()))
     usable = is_ellipse(conic.detach())
     # Unusable items are solved on a stand-in (one NaN conic fails eigh for the whole batch).
     safe_conic = torch.where(usable[:, None, None], conic,
@@ -701,11 +700,9 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
     reasons = zip(landmark_problems(points.detach(), weights.detach()),
                   geometry_problems(geometry, radius.detach()),
                   torch.isfinite(start.detach()).all(-1).tolist(), strict=True)
-    for i, (fit, problem, finite) in enumerate(reasons):
-        reason = (fit if fit != "ok" else problem if problem is not None
-                  else None if finite else "start pose is not finite")
-        if reason is not None:
-            raise PoseError(f"item {i}: {reason}")
+    _raise_first_problem(fit if fit != "ok" else problem if problem is not None
+                         else None if finite else "start pose is not finite"
+                         for fit, problem, finite in reasons)
     pose, t = _refined(start.to(torch.float64), points, geometry, radius, weights, max_iter,
                        tol, corrected, compiled)
     return pose.to(out_dtype), t.to(out_dtype)
@@ -950,10 +947,18 @@ def _refine_candidates(solutions: Tensor, points: Tensor, weights: Tensor | None
 
 
 def _raise_first(status: list[str], on_error: str) -> None:
+    """With ``on_error`` "raise", a PoseError naming the first item whose status is an
+    error."""
     if on_error == "raise":
-        for i, s in enumerate(status):
-            if s.startswith("error"):
-                raise PoseError(f"item {i}: {s[len('error: '):]}")
+        _raise_first_problem(s[len("error: "):] if s.startswith("error") else None
+                             for s in status)
+
+
+def _raise_first_problem(problems: Iterable[str | None]) -> None:
+    """A PoseError naming the first item with a problem (None: the item is fine)."""
+    for i, problem in enumerate(problems):
+        if problem is not None:
+            raise PoseError(f"item {i}: {problem}")
 
 
 def _safe_geometry(geometry: Geometry, ok: Tensor, batch: int, dtype: torch.dtype,
@@ -1028,13 +1033,11 @@ def cramer_rao_bound(pose: Tensor, radius: Tensor | float, geometry: Geometry, t
     radius = _per_item(radius, "radius", batch, pose.dtype, pose.device)
     check_geometry_batch(geometry, batch)
     geom = _batch_geometry(geometry, batch, pose.dtype, pose.device)
-    for i, (problem, h, sdd) in enumerate(zip(geometry_problems(geometry, radius.detach()),
-                                              pose[:, 4].detach().tolist(), geom[:, 0].tolist(),
-                                              strict=True)):
-        if problem is None and not 0 < h < sdd:
-            problem = f"h = {h} mm lies outside (0, SDD = {sdd} mm)"
-        if problem is not None:
-            raise PoseError(f"item {i}: {problem}")
+    reasons = zip(geometry_problems(geometry, radius.detach()), pose[:, 4].detach().tolist(),
+                  geom[:, 0].tolist(), strict=True)
+    _raise_first_problem(problem if problem is not None or 0 < h < sdd
+                         else f"h = {h} mm lies outside (0, SDD = {sdd} mm)"
+                         for problem, h, sdd in reasons)
 
     def landmarks(p: Tensor, tt: Tensor, g: Tensor, r: Tensor) -> Tensor:
         return project_rim(p[None], r, Geometry.from_rows(g), tt)[0]  # (N, 2)
