@@ -57,6 +57,9 @@ HALF_PI = math.pi / 2
 # Smallest semi-major axis (pixels) from which a pose is attempted. The semi-minor axis may
 # be far below a pixel: a rim seen almost edge-on (theta near 0) is still a valid pose.
 MIN_AXIS_PX = 2.0
+# Rim radius (mm) of the stand-in cup unusable batch items are solved on, so that the batch
+# stays finite; their results are masked.
+_STAND_IN_RADIUS_MM = 25.0
 
 
 class PoseError(ValueError):
@@ -872,7 +875,7 @@ def solve_pose(
     ok = torch.tensor([s == "ok" for s in status], dtype=torch.bool, device=device)
     # Unusable items are solved on a stand-in so the batch stays finite; masked at the end.
     safe_geometry = _safe_geometry(geometry, ok, batch, dtype, device)
-    safe_radius = torch.where(ok, radius, torch.full_like(radius, 25.0))
+    safe_radius = torch.where(ok, radius, torch.full_like(radius, _STAND_IN_RADIUS_MM))
     safe_conic = torch.where(ok[:, None, None], fit.conic, _stand_in_conic(safe_geometry, dtype,
                                                                          device))
     solutions = _circle_poses(safe_conic.detach() if refine else safe_conic, safe_geometry,
@@ -974,14 +977,14 @@ def _stand_in_pose(batch: int, dtype: torch.dtype, device: torch.device) -> Tens
 
 def _stand_in_conic(geometry: Geometry, dtype: torch.dtype, device: torch.device) -> Tensor:
     batch = _batch_geometry(geometry, 1, dtype, device).shape[0]
-    return rim_conic(_stand_in_pose(batch, dtype, device), 25.0, geometry)
+    return rim_conic(_stand_in_pose(batch, dtype, device), _STAND_IN_RADIUS_MM, geometry)
 
 
 def _stand_in_points(geometry: Geometry, n: int, dtype: torch.dtype,
                      device: torch.device) -> Tensor:
     batch = _batch_geometry(geometry, 1, dtype, device).shape[0]
     t = torch.linspace(0, 2 * math.pi, n + 1, dtype=dtype, device=device)[:-1]
-    return project_rim(_stand_in_pose(batch, dtype, device), 25.0, geometry, t)
+    return project_rim(_stand_in_pose(batch, dtype, device), _STAND_IN_RADIUS_MM, geometry, t)
 
 
 def orthographic_pose(ellipse: Tensor) -> Tensor:
@@ -1100,7 +1103,7 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
                            _stand_in_pose(batch, dtype, device))
         geom = _batch_geometry(_safe_geometry(geometry, fine, batch, dtype, device), batch,
                                dtype, device)
-        radius = torch.where(fine, radius, torch.full_like(radius, 25.0))
+        radius = torch.where(fine, radius, torch.full_like(radius, _STAND_IN_RADIUS_MM))
         # A landmark without weight may be padding (NaN, as a ragged batch has it): zeroed.
         points = torch.where(usable[:, None, None] & active[..., None], points, 0.0)
         u, v = points.unbind(-1)
