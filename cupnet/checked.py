@@ -7,6 +7,7 @@ misspelt name would become a new attribute nobody reads.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any, Self
 
 
@@ -23,12 +24,17 @@ class CheckedFields:
         else:
             raise AttributeError(f"unknown {type(self).__name__} field {name!r}")
 
+    @classmethod
+    def unknown_fields(cls, names: Iterable[str]) -> list[str]:
+        """The ``names`` that are no field of the class, sorted."""
+        return sorted(set(names) - set(cls.__dataclass_fields__))
+
     def update(self, **values: Any) -> Self:
         """Set several fields, then check them together (so two bounds can move past each
         other), in place; a refused set leaves every field as it was. Returns the instance."""
-        unknown = set(values) - set(self.__dataclass_fields__)
+        unknown = self.unknown_fields(values)
         if unknown:
-            raise AttributeError(f"unknown {type(self).__name__} fields: {sorted(unknown)}")
+            raise AttributeError(f"unknown {type(self).__name__} fields: {unknown}")
         before = {name: self.__dict__[name] for name in values}
         self.__dict__.update(values)
         try:

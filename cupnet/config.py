@@ -382,10 +382,9 @@ class CupNetConfig(CheckedFields):
 
     @classmethod
     def from_dict(cls, values: dict) -> CupNetConfig:
-        known = {f.name for f in fields(cls)}
-        unknown = set(values) - known
+        unknown = cls.unknown_fields(values)
         if unknown:
-            raise ValueError(f"unknown CupNet config keys: {sorted(unknown)}")
+            raise ValueError(f"unknown CupNet config keys: {unknown}")
         hints = {f.name: str(f.type) for f in fields(cls)}
         return cls(**{key: _field_value(key, value, hints[key]) for key, value in values.items()})
 

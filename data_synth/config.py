@@ -126,11 +126,10 @@ class SynthConfig(CheckedFields):
         """A config from ``{field: value}``; unknown fields or bad values raise ``ValueError``."""
         if not isinstance(values, dict):
             raise ValueError(f"synthesis config must be a mapping of fields, got {values!r}")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(values) - known)
+        unknown = cls.unknown_fields(values)
         if unknown:
             raise ValueError(f"unknown synthesis config key(s) {unknown}; known keys: "
-                             f"{sorted(known)}")
+                             f"{sorted(f.name for f in fields(cls))}")
         return cls(**{k: _coerce(k, v) for k, v in values.items()})
 
     @classmethod
