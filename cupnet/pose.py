@@ -76,8 +76,7 @@ class PoseSolution:
         ambiguous: ``(B,)`` bool.
         ellipse: ``(B, 5)`` fitted ellipse (cx, cy, a, b, alpha_deg) px.
         residual_px: ``(B,)`` weighted RMS distance of the landmarks to the solved rim
-            (:func:`rim_distances`, two Newton steps to each closest rim point: a few %
-            over the converged distance on thin ellipses with noise of pixels).
+            (:func:`rim_distances`, two Newton steps to each closest rim point).
         valid: ``(B,)`` bool.
         status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"`` per item.
     """
@@ -402,6 +401,43 @@ def _initial_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: 
     plane = matmul(hom, torch.linalg.inv(homography).transpose(-1, -2))  # (B, N, 3)
     sign = torch.sign(plane[..., 2])
     return atan2(sign * plane[..., 1], sign * plane[..., 0])
+
+
+# A rim is searched from more starts where its projected half-width is under this many
+# times the geometric mean of its landmarks' RMS distance and its half-length: there the
+# homography's start may sit on the far side (measured over half-lengths of 30-100 px and
+# noise of 0.3-3 px, it did up to about 5 times).
+_THIN_RIM_FACTOR = 6.0
+# Those starts: in each of _RIM_SECTORS equal arcs of the rim parameter (two: the rim's
+# sides, split at t = 0 and pi, the ends of e1, which lies in the detector plane, so near
+# the ellipse's tips), the nearest of _SECTOR_SAMPLES samples, given _SECTOR_STEPS Newton
+# steps (a start half a sample off, by a tip whose radius of curvature is far below the
+# noise, takes more than two bounded steps).
+_RIM_SECTORS, _SECTOR_SAMPLES, _SECTOR_STEPS = 2, 64, 4
+
+
+def _sector_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor
+                           ) -> Tensor:
+    """``(B, N, _RIM_SECTORS)`` rim parameters: for each landmark and each of
+    ``_RIM_SECTORS`` equal arcs of the rim, that of the arc's sample nearest the landmark.
+
+    On a nearly edge-on rim (an ellipse a few pixels wide against pixels of noise) the
+    homography sends a landmark off the rim far along it, often past a tip, and a landmark
+    between the rim's two sides may lie nearest a sample of the far side; Newton steps then
+    end on the wrong side, at up to ten times the true distance. One of these starts lies
+    on each side.
+
+    Args: pose ``(B, 5)`` rad / mm, points ``(B, N, 2)`` px, radius ``(B,)``, geom ``(B, 4)``.
+    """
+    samples = _RIM_SECTORS * _SECTOR_SAMPLES
+    grid = torch.linspace(0, 2 * math.pi, samples + 1, dtype=pose.dtype, device=pose.device)
+    grid = grid[:-1].expand(pose.shape[0], samples)
+    rim = _rim(pose, grid, radius, geom)
+    u, v = points.unbind(-1)
+    near = (u[..., None] - rim.u[:, None]) ** 2 + (v[..., None] - rim.v[:, None]) ** 2
+    nearest = near.unflatten(-1, (_RIM_SECTORS, _SECTOR_SAMPLES)).argmin(-1)
+    sector_start = torch.arange(_RIM_SECTORS, device=pose.device) * _SECTOR_SAMPLES
+    return grid[0][sector_start + nearest]
 
 
 def _noise_variance(dist: Tensor, weights: Tensor) -> Tensor:
@@ -792,12 +828,50 @@ def other_circle_pose(pose: Tensor, radius: Tensor, geometry: Geometry,
 
 
 def _newton_distances(pose: Tensor, t: Tensor, u: Tensor, v: Tensor, radius: Tensor,
-                      geom: Tensor, iterations: int) -> Tensor:
+                      geom: Tensor, iterations: int) -> tuple[Tensor, Tensor]:
     """Landmark distances ``(B, N)`` px to the rim after ``iterations`` Newton steps of
-    their rim parameters ``t``; landmarks ``u, v`` ``(B, N)``."""
+    their rim parameters ``t``, and those parameters; landmarks ``u, v`` ``(B, N)``."""
     t = _closest_rim_parameters(pose, t, (u, v), radius, geom, iterations)
     rim = _rim(pose, t, radius, geom)
-    return hypot(u - rim.u, v - rim.v)
+    return hypot(u - rim.u, v - rim.v), t
+
+
+def _closest_rim(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor, iterations: int,
+                 compiled: bool = False) -> tuple[Tensor, Tensor]:
+    """Each landmark's closest rim point: ``iterations`` Newton steps from its
+    :func:`_initial_rim_parameters`; on a thin rim (its projected half-width, about
+    ``r |sin theta|`` magnified, under ``_THIN_RIM_FACTOR`` times the geometric mean of the
+    landmarks' RMS distance and the rim's half-length) also at least ``_SECTOR_STEPS`` from
+    each of its :func:`_sector_rim_parameters`, the start that ends nearest winning, the
+    homography's unless another ends nearer by more than round-off. Other rims, and
+    landmarks the homography's start serves, get the homography's result to the bit.
+
+    Args: pose ``(B, 5)`` rad / mm, points ``(B, N, 2)`` px, radius ``(B,)``, geom
+    ``(B, 4)``; compiled: through ``torch.compile`` (see :func:`refine_pose`).
+    Returns: distances ``(B, N)`` px and rim parameters ``(B, N)`` rad.
+    """
+    u, v = points.unbind(-1)
+    t = _initial_rim_parameters(pose, points, radius, geom)
+    home, t = _run(_newton_distances, compiled, pose, t, u, v, radius, geom, iterations)
+    sdd, spacing = geom[:, 0], geom[:, 1]
+    half_length = radius * sdd / (spacing * (sdd - pose[:, 4]))  # px, at the rim's centre
+    half_width = half_length * pose[:, 0].sin().abs()
+    thin = half_width < _THIN_RIM_FACTOR * (home.pow(2).mean(-1).sqrt() * half_length).sqrt()
+    rows = thin.nonzero()[:, 0]
+    if len(rows) == 0:
+        return home, t
+    starts = _sector_rim_parameters(pose[rows], points[rows], radius[rows], geom[rows])
+    count = starts.shape[-1]
+    others, ends = (found.unflatten(-1, (-1, count)) for found in _run(
+        _newton_distances, compiled, pose[rows], starts.flatten(1),
+        u[rows].repeat_interleave(count, -1), v[rows].repeat_interleave(count, -1),
+        radius[rows], geom[rows], max(iterations, _SECTOR_STEPS)))
+    best, index = others.min(-1)
+    nearer = best < home[rows] - 1e-9
+    home, t = home.clone(), t.clone()
+    home[rows] = torch.where(nearer, best, home[rows])
+    t[rows] = torch.where(nearer, ends.gather(-1, index[..., None])[..., 0], t[rows])
+    return home, t
 
 
 def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geometry,
@@ -807,16 +881,16 @@ def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geomet
     Args:
         pose: ``(B, 5)`` rad / mm; points: ``(B, N, 2)`` px; radius: ``(B,)`` mm.
         iterations: Newton steps on each landmark's rim parameter, from its exact value for
-            a landmark on the rim (the error left falls with the cube of the distance).
+            a landmark on the rim (the error left falls with the cube of the distance); on
+            a nearly edge-on rim, whose far side can trap that start, from a sample on each
+            side too, the nearest end kept.
         compiled: through ``torch.compile`` (see :func:`refine_pose`).
     Returns:
         ``(B, N)`` px, not differentiable.
     """
     with torch.no_grad():
         geom = _batch_geometry(geometry, pose.shape[0], pose.dtype, pose.device)
-        t = _initial_rim_parameters(pose, points, radius, geom)
-        u, v = points.unbind(-1)
-        return _run(_newton_distances, compiled, pose, t, u, v, radius, geom, iterations)
+        return _closest_rim(pose, points, radius, geom, iterations, compiled)[0]
 
 
 def solve_pose(
@@ -1106,10 +1180,9 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         radius = torch.where(fine, radius, torch.full_like(radius, _STAND_IN_RADIUS_MM))
         # A landmark without weight may be padding (NaN, as a ragged batch has it): zeroed.
         points = torch.where(usable[:, None, None] & active[..., None], points, 0.0)
-        u, v = points.unbind(-1)
-        t = _initial_rim_parameters(pose, points, radius, geom)
-        t = _closest_rim_parameters(pose, t, (u, v), radius, geom, iterations)
-        dist, jac, *_ = _signed_distances(pose, t, (u, v), weights, radius, geom, False)
+        t = _closest_rim(pose, points, radius, geom, iterations)[1]
+        dist, jac, *_ = _signed_distances(pose, t, points.unbind(-1), weights, radius, geom,
+                                          False)
         information = matmul(jac.transpose(-1, -2), weights[..., None] * jac)
         inverse, info = torch.linalg.inv_ex(information)
         # The unit-weight variance (not _noise_variance's, which is per mean weight): the
