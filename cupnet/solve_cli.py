@@ -29,7 +29,7 @@ from cupnet.io.meta import (
     implausible_once,
 )
 from cupnet.io.results import cup_row, status_row, write_results_csv
-from cupnet.pose import pose_standard_errors, solve_pose
+from cupnet.pose import ellipse_of_pose, pose_standard_errors, solve_pose
 
 
 def results_file(text: str) -> Path:
@@ -77,13 +77,19 @@ def solve_cup(cup: LandmarkSet, geometry: Geometry, diameter: float, refine: boo
     points = torch.as_tensor(cup.points, dtype=torch.float64)
     sol = solve_pose(points, geometry, diameter, refine=refine, on_error="flag")
     ambiguous = bool(sol.ambiguous[0])
-    off_rim = float(sol.residual_px[0] / sol.ellipse[0, 2])  # NaN where no pose, never raises
+    # The row's ellipse is its pose's rim, as the network's rows and every overlay draw it
+    # (the landmarks' own fit differs from it where the refinement moved the pose); the
+    # fit where there is no pose.
+    ellipse = sol.ellipse
+    if sol.valid[0]:
+        ellipse = ellipse_of_pose(sol.pose, diameter, geometry)
+    off_rim = float(sol.residual_px[0] / ellipse[0, 2])  # NaN where no pose, never raises
     h = float(sol.pose[0, 4])
     # Past NEAR_SOURCE_CHECK of SDD, or so near the detector that the dome passes through it.
     implausible = h > NEAR_SOURCE_CHECK * float(geometry.sdd) or h < diameter / 2
     return CupDetection(
         pose=sol.pose[0].numpy(), alt_pose=sol.alt_pose[0].numpy() if ambiguous else None,
-        ambiguous=ambiguous, ellipse=sol.ellipse[0].numpy(), landmarks=cup.points,
+        ambiguous=ambiguous, ellipse=ellipse[0].numpy(), landmarks=cup.points,
         weights=torch.ones(len(cup.points)).numpy(), residual_px=float(sol.residual_px[0]),
         status=sol.status[0],
         check=None if math.isnan(off_rim) else off_rim > OFF_RIM_CHECK or implausible,

@@ -8,6 +8,7 @@ import random
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -517,3 +518,28 @@ def test_long_format_landmarks_take_the_image_centre_from_image_size(tmp_path, c
     assert float(results(out)[0]["h_mm"]) == pytest.approx(float(TRUTH[0, 4]), abs=1e-3)
     assert ("assuming pixel spacing = 300 mm / image width (e.g. 0.4688 mm/px at 640 px)"
             in capsys.readouterr().err)
+
+
+def test_a_rows_ellipse_is_its_poses_rim_as_opencv_fits_it(tmp_path):
+    """A thin rim's noisy landmarks (the refinement moves the pose off their own fit): the
+    row's ellipse columns are those of the reported pose's rim, as OpenCV fits its projected
+    points, the ellipse the network's rows and the overlays give; they had been the
+    landmarks' own fit, pixels off it."""
+    geometry = Geometry(1000.0, 0.4, 300.0, 250.0)
+    truth = torch.tensor([[4.0, -8.0, 20.0, 15.0, 280.0]], dtype=torch.float64)
+    generator = torch.Generator().manual_seed(5)
+    points = rim_landmarks(truth, geometry, n=24)[0]
+    points = points + 0.3 * torch.randn(points.shape, generator=generator, dtype=torch.float64)
+    row = solved_sets(tmp_path, {"thin.png": points})["thin.png"]
+    pose = torch.tensor([[float(row[c]) for c in ("anteversion_deg", "inclination_deg", "k_mm",
+                                                   "l_mm", "h_mm")]], dtype=torch.float64)
+    rim = rim_landmarks(pose, geometry, diameter=50.0, n=720)[0].numpy().astype(np.float32)
+    (cx, cy), (width, height), angle = cv2.fitEllipse(rim)
+    # OpenCV gives full axes and the angle of its first axis; CONVENTIONS a >= b, alpha of a.
+    if width < height:
+        width, height, angle = height, width, angle + 90.0
+    expected = [cx, cy, width / 2, height / 2, angle % 180.0]
+    got = [float(row[c]) for c in ("ellipse_cx_px", "ellipse_cy_px", "ellipse_a_px",
+                                   "ellipse_b_px", "ellipse_angle_deg")]
+    assert got[:4] == pytest.approx(expected[:4], abs=2e-3)
+    assert abs((got[4] - expected[4] + 90.0) % 180.0 - 90.0) < 1e-2
