@@ -418,6 +418,9 @@ def metrics_table(metrics: dict) -> str:
         lines.append(f"\n{untrue} of the {metrics['images']} predicted images have no truth "
                      "row, so count as images without a cup (their cups as false positives): "
                      "do the two files name the images alike?")
+    elif untrue:
+        lines.append(f"\n{untrue} predicted image(s) have no truth row and count as images "
+                     "without a cup (a cup found there, as a false positive).")
     if metrics["truth_rows_incomplete"]:
         lines.append(f"\n{metrics['truth_rows_incomplete']} truth row(s) without a whole pose "
                      "(or ellipse) were left out.")

@@ -236,6 +236,8 @@ def test_cli_writes_report_and_plots(tmp_path: Path, capsys: pytest.CaptureFixtu
                  str(tmp_path / "ev")]) == 0
     report = (tmp_path / "ev" / "report.md").read_text()
     assert "| anteversion (deg) | 2 | 2 | 2 |" in report
+    # d.png has no truth row: scored as an image without a cup, and the report says so
+    assert "1 predicted image(s) have no truth row and count as images without a cup" in report
     for name in ("error_vs_distance.png", "predicted_vs_true.png"):
         assert (tmp_path / "ev" / "plots" / name).stat().st_size > 1000
         assert f"(plots/{name})" in report
