@@ -662,6 +662,12 @@ class _RefinePose(torch.autograd.Function):
     @staticmethod
     def backward(ctx: FunctionCtx, grad_pose: Tensor,  # type: ignore[override]
                  _grad_t: Tensor | None) -> tuple[Tensor | None, ...]:
+        if torch.is_grad_enabled():  # create_graph: the gradient below has no graph of its own
+            raise RuntimeError(
+                "second derivatives through the refined pose are not supported (the implicit "
+                "gradient is built without a graph, and would differentiate as zero): take "
+                "them through solve_pose(..., refine=False), or detach the pose where a "
+                "graph of the gradient is made (create_graph=True)")
         pose, t, points, weights, geom, radius = ctx.saved_tensors
 
         def equations(p: Tensor, tt: Tensor, x: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
