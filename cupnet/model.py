@@ -697,7 +697,7 @@ class CupNet(nn.Module):
         if points.shape[0] == 0:
             empty = points.new_zeros(0, 5)
             none = torch.zeros(0, dtype=torch.bool, device=points.device)
-            return PoseSolution(empty, empty, none, empty, points.new_zeros(0), none, [])
+            return PoseSolution(empty, empty, none, empty, points.new_zeros(0), none, [], none)
         return solve_pose(points, Geometry.from_rows(rows), diameter, weights, refine=refine,
                           on_error="flag")
 

@@ -79,6 +79,13 @@ class PoseSolution:
             (:func:`rim_distances`, two Newton steps to each closest rim point).
         valid: ``(B,)`` bool.
         status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"`` per item.
+        converged: ``(B,)`` bool, the refinement of ``pose`` met its stopping test (True
+            without refinement, False where not valid). The gradient through ``pose`` is
+            that of the solution the refinement stops at; where it stopped short, at
+            ``max_iter``, it can be far off, even in sign: a nearly edge-on rim (theta under
+            about 10 deg) leaves ``h`` along a flat valley that ten steps may not cross.
+            Raise ``max_iter`` (and tighten ``tol``) for such items, or leave them out of
+            a loss.
     """
 
     pose: Tensor
@@ -88,6 +95,7 @@ class PoseSolution:
     residual_px: Tensor
     valid: Tensor
     status: list[str]
+    converged: Tensor
 
 
 def _batch_geometry(geometry: Geometry, batch: int, dtype: torch.dtype,
@@ -572,9 +580,12 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
     weighted squared distances to the projected sphere (:mod:`cupnet.outline`) join the cost.
 
     Items that have converged leave the working set. Every tensor has a leading batch dim.
-    Returns the pose ``(B, 5)`` and rim parameters ``(B, N)``.
+    Returns the pose ``(B, 5)``, rim parameters ``(B, N)`` and whether each item converged
+    ``(B,)``: met the stopping test (not one still moving at ``max_iter``, nor one whose
+    steps all failed).
     """
     pose, t = pose.clone(), t.clone()
+    converged = torch.zeros(pose.shape[0], dtype=torch.bool, device=pose.device)
     root_w = weights.sqrt()
     pts = points.unbind(-1)  # contiguous u and v: strided views slow every elementwise op
     outline_points, outline_weights = (None, None) if outline is None else outline
@@ -608,6 +619,7 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
         predicted = (step * rhs).sum(-1)
         done = predicted <= tol * cost / t.shape[1] + 1e-20 * t.shape[1]
         pose[active[done]] += step[done]
+        converged[active[done]] = True
         live = ~done
         jtj, rhs, cost, decrement, step, damping, active, lowest, dof = (
             a[live] for a in (jtj, rhs, cost, decrement, step, damping, active, lowest, dof))
@@ -633,7 +645,7 @@ def _levenberg_marquardt(pose: Tensor, t: Tensor, points: Tensor, weights: Tenso
             torch.where(better.view(-1, *[1] * (a.ndim - 1)), b_, a)[keep]
             for a, b_ in zip((jtj, rhs, cost, decrement), trial[:4], strict=True))
         damping, active, lowest, dof = damping[keep], active[keep], lowest[keep], dof[keep]
-    return pose, t
+    return pose, t, converged
 
 
 class _RefinePose(torch.autograd.Function):
@@ -649,19 +661,20 @@ class _RefinePose(torch.autograd.Function):
     @staticmethod
     def forward(ctx: FunctionCtx, start: Tensor, points: Tensor,  # type: ignore[override]
                 weights: Tensor, geom: Tensor, radius: Tensor, max_iter: int, tol: float,
-                corrected: bool, compiled: bool) -> tuple[Tensor, Tensor]:
+                corrected: bool, compiled: bool) -> tuple[Tensor, Tensor, Tensor]:
         with torch.no_grad():
             t0 = _initial_rim_parameters(start, points, radius, geom)
-            pose, t = _levenberg_marquardt(start, t0, points, weights, geom, radius, max_iter,
-                                           tol, corrected, compiled)
+            pose, t, converged = _levenberg_marquardt(start, t0, points, weights, geom, radius,
+                                                      max_iter, tol, corrected, compiled)
         ctx.save_for_backward(pose, t, points, weights, geom, radius)
         ctx.corrected = corrected
-        ctx.mark_non_differentiable(t)
-        return pose, t
+        ctx.mark_non_differentiable(t, converged)
+        return pose, t, converged
 
     @staticmethod
     def backward(ctx: FunctionCtx, grad_pose: Tensor,  # type: ignore[override]
-                 _grad_t: Tensor | None) -> tuple[Tensor | None, ...]:
+                 _grad_t: Tensor | None, _grad_converged: Tensor | None
+                 ) -> tuple[Tensor | None, ...]:
         if torch.is_grad_enabled():  # create_graph: the gradient below has no graph of its own
             raise RuntimeError(
                 "second derivatives through the refined pose are not supported (the implicit "
@@ -711,7 +724,8 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
     removes the second-order bias that noise gives the maximum-likelihood fit of thin
     ellipses (see :func:`_curvature_offsets`); noise-free landmarks give the same pose.
     Gradients with respect to ``points``, ``weights``, ``geometry`` and ``radius`` are exact
-    at the solution (implicit function theorem); ``start`` gets none.
+    at the solution (implicit function theorem), so only where the refinement reached it
+    (:attr:`PoseSolution.converged`); ``start`` gets none; second derivatives are refused.
 
     Args:
         start: ``(B, 5)`` initial poses (rad, mm), e.g. from :func:`poses_from_conic`.
@@ -748,16 +762,17 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
     _raise_first_problem(fit if fit != "ok" else problem if problem is not None
                          else None if finite else "start pose is not finite"
                          for fit, problem, finite in reasons)
-    pose, t = _refined(start.to(torch.float64), points, geometry, radius, weights, max_iter,
-                       tol, corrected, compiled)
+    pose, t, _ = _refined(start.to(torch.float64), points, geometry, radius, weights, max_iter,
+                          tol, corrected, compiled)
     return pose.to(out_dtype), t.to(out_dtype)
 
 
 def _refined(start: Tensor, points: Tensor, geometry: Geometry, radius: Tensor,
              weights: Tensor, max_iter: int, tol: float, corrected: bool,
-             compiled: bool) -> tuple[Tensor, Tensor]:
+             compiled: bool) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`refine_pose` on checked input of one dtype: start ``(B, 5)``, points
-    ``(B, N, 2)``, radius ``(B,)``, weights ``(B, N)``."""
+    ``(B, N, 2)``, radius ``(B,)``, weights ``(B, N)``; with whether each item converged
+    ``(B,)`` (:func:`_levenberg_marquardt`)."""
     geom = _batch_geometry(geometry, start.shape[0], start.dtype, start.device)
     return _RefinePose.apply(start.detach(), points, weights, geom, radius.contiguous(),
                              max_iter, tol, corrected, compiled)
@@ -783,7 +798,7 @@ def refine_pose_with_outline(start: Tensor, points: Tensor, weights: Tensor,
     with torch.no_grad():
         geom = _batch_geometry(geometry, start.shape[0], start.dtype, start.device)
         t = _initial_rim_parameters(start, points, radius, geom)
-        pose, _ = _levenberg_marquardt(start, t, points, weights, geom, radius, max_iter, tol,
+        pose, *_ = _levenberg_marquardt(start, t, points, weights, geom, radius, max_iter, tol,
                                        True, outline=(outline_points, outline_weights))
     return pose
 
@@ -960,12 +975,14 @@ def solve_pose(
                                                                          device))
     solutions = _circle_poses(safe_conic.detach() if refine else safe_conic, safe_geometry,
                               safe_radius)
+    converged = torch.ones(batch, 2, dtype=torch.bool, device=device)
     if refine:
-        solutions = _refine_candidates(solutions, points, weights, ok, safe_geometry, safe_radius,
-                                       math.radians(ambiguity_tol_deg),
-                                       dict(max_iter=max_iter, tol=tol, corrected=corrected,
-                                            compiled=compiled))
+        solutions, converged = _refine_candidates(
+            solutions, points, weights, ok, safe_geometry, safe_radius,
+            math.radians(ambiguity_tol_deg),
+            dict(max_iter=max_iter, tol=tol, corrected=corrected, compiled=compiled))
     pose, alt, ambiguous = _select(solutions, math.radians(ambiguity_tol_deg))
+    converged = converged.gather(1, _preferred(solutions)[:, None])[:, 0]  # _select's pick
 
     dist = rim_distances(pose.detach(), torch.where(ok[:, None, None], points.detach(), 0.0),
                          safe_radius.detach(), safe_geometry, compiled=compiled)
@@ -995,12 +1012,13 @@ def solve_pose(
                                 ).to(out_dtype),
         valid=valid,
         status=status,
+        converged=converged & valid,
     )
 
 
 def _refine_candidates(solutions: Tensor, points: Tensor, weights: Tensor | None, ok: Tensor,
                        geometry: Geometry, radius: Tensor, ambiguity_tol: float,
-                       options: dict[str, Any]) -> Tensor:
+                       options: dict[str, Any]) -> tuple[Tensor, Tensor]:
     """Refine the in-range candidate of each item, and the other one where it may be too.
 
     Args:
@@ -1008,7 +1026,8 @@ def _refine_candidates(solutions: Tensor, points: Tensor, weights: Tensor | None
         ``(B, N)`` or None; ok ``(B,)`` items with usable input (others get stand-in points);
         options: keywords of :func:`refine_pose`.
     Returns:
-        ``(B, 2, 5)`` with refined candidates (differentiable w.r.t. points and weights).
+        ``(B, 2, 5)`` with refined candidates (differentiable w.r.t. points and weights), and
+        ``(B, 2)`` whether each candidate's refinement converged (True where not refined).
     """
     batch, n = points.shape[:2]
     dtype, device = points.dtype, points.device
@@ -1022,11 +1041,14 @@ def _refine_candidates(solutions: Tensor, points: Tensor, weights: Tensor | None
     items = torch.cat([torch.arange(batch, device=device), maybe_both.nonzero()[:, 0]])
     which = torch.cat([chosen, 1 - chosen[maybe_both]])
     rows = _batch_geometry(geometry, batch, dtype, device)[items]
-    refined, _ = _refined(solutions[items, which], points[items], Geometry.from_rows(rows),
-                          radius[items], weights[items], **options)
+    refined, _, converged = _refined(solutions[items, which], points[items],
+                                     Geometry.from_rows(rows), radius[items], weights[items],
+                                     **options)
     out = solutions.detach().clone()
     out[items, which] = refined
-    return out
+    settled = torch.ones(batch, 2, dtype=torch.bool, device=device)
+    settled[items, which] = converged
+    return out, settled
 
 
 def _raise_first(status: list[str], on_error: str) -> None:

@@ -936,7 +936,7 @@ def test_ambiguous_pair_reports_the_pose_doubted_less_first(shipped_on_drr, monk
     for ambiguous in (True, False):
         solution = PoseSolution(first[None], second[None], torch.tensor([ambiguous]),
                                 torch.zeros(1, 5), torch.zeros(1), torch.tensor([True]),
-                                ["ambiguous" if ambiguous else "ok"])
+                                ["ambiguous" if ambiguous else "ok"], torch.tensor([True]))
         picks.append((torch.zeros(4, 2), torch.ones(4), solution, 0))
     poses, alt_poses = [first, first], [second, second]
     firsts = model._order_ambiguous([sample["image"]], torch.tensor([0, 0]), picks, [0, 1],
@@ -960,7 +960,7 @@ def test_outline_refine_picks_hands_on_the_doubts_of_both_poses_as_kept(shipped_
     diameter = sample["cup_diameter"][:1].double()
     solution = PoseSolution(truth[None], second[None], torch.tensor([True]), torch.zeros(1, 5),
                             torch.full((1,), 0.5, dtype=torch.float64), torch.tensor([True]),
-                            ["ambiguous"])
+                            ["ambiguous"], torch.tensor([True]))
     picks = [(rim_landmarks(truth[None], geometry, float(diameter), 128)[0],
               torch.ones(128, dtype=torch.float64), solution, 0)]
     poses, alt_poses = [truth.clone()], [second.clone()]

@@ -294,6 +294,40 @@ def test_gradcheck_refined_pose_wrt_geometry_and_cup_diameter(generator):
     assert torch.autograd.gradcheck(pose, (fields,), eps=1e-6, atol=1e-5, rtol=1e-4)
 
 
+def test_converged_says_where_the_gradient_is_that_of_the_solution(generator):
+    """Nearly edge-on rims (theta under 3 deg, 0.5 px of noise) whose refinement stops at
+    max_iter, along h's flat valley, say so (converged False), and their implicit gradient is
+    off (against central differences of the same call); the ones that converged have the
+    gradient of their solution. Noise-free landmarks of open rims, and the closed form,
+    converge."""
+    m = 100
+    truth = paper_poses(m, generator)
+    truth[:, 0] = 3.0 * torch.rand(m, generator=generator, dtype=torch.float64)
+    points = rim_landmarks(truth, GEOMETRY, n=32) + 0.5 * torch.randn(
+        m, 32, 2, generator=generator, dtype=torch.float64)
+    direction = torch.randn(points.shape, generator=generator, dtype=torch.float64)
+    scale = torch.tensor([1.0, 1.0, 0.1, 0.1, 0.02], dtype=torch.float64)
+
+    def pose(p: torch.Tensor) -> torch.Tensor:  # (m,) one weighted sum of each pose
+        return (solve_pose(p, GEOMETRY, 50.0, on_error="flag").pose * scale).sum(-1)
+
+    x = points.clone().requires_grad_()
+    pose(x).sum().backward()
+    analytic = (x.grad * direction).sum((-1, -2))
+    numeric = (pose(points + 1e-6 * direction) - pose(points - 1e-6 * direction)) / 2e-6
+    error = (analytic - numeric).abs() / numeric.abs().clamp_min(1e-3)
+    sol = solve_pose(points, GEOMETRY, 50.0, on_error="flag")
+    converged = sol.converged
+    assert converged.dtype == torch.bool and 10 <= int((~converged).sum()) <= 60
+    assert (error[converged] < 0.1).float().mean() > 0.95
+    assert (error[~converged] > 0.1).float().mean() > 0.5
+    clean = rim_landmarks(truth + torch.tensor([10.0, 0, 0, 0, 0], dtype=torch.float64),
+                          GEOMETRY, n=32)
+    assert solve_pose(clean, GEOMETRY, 50.0).converged.all()
+    closed = solve_pose(points, GEOMETRY, 50.0, refine=False, on_error="flag")
+    assert torch.equal(closed.converged, closed.valid)
+
+
 def test_second_derivatives_through_the_refined_pose_are_refused_by_name(generator):
     """A graph of the gradient (create_graph=True, as a gradient penalty makes) through the
     refinement's implicit backward: a RuntimeError naming the way round, where the
