@@ -55,11 +55,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --out")
 
 
-# Given landmarks whose RMS distance to the solved rim exceeds this fraction of the rim's
-# semi-major axis are flagged ``check``: clicked or detected rims lie within a few pixels
-# of it (2 px of noise is 0.02 of a 100 px axis), points from anywhere else (another cup's
-# rim mixed in, a mislabelled file, random clicks) lie a quarter of it off or more, and the
-# solver still returns a pose for them, far from the truth but with an ``ok`` status.
+# Given landmarks whose RMS distance to the solved rim exceeds this fraction of the
+# semi-major axis of their own ellipse fit are flagged ``check``: clicked or detected rims
+# lie within a few pixels of it (2 px of noise is 0.02 of a 100 px axis), points from
+# anywhere else (another cup's rim mixed in, a mislabelled file, random clicks) lie a
+# quarter of it off or more, and the solver still returns a pose for them, far from the
+# truth but with an ``ok`` status.
 OFF_RIM_CHECK = 0.1
 # Two cups' whole rims in one set fit one wide ellipse that passes between them (about 0.06
 # of its axis off), whose pose puts the cup near the source: a hip lies nearer the detector
@@ -77,13 +78,14 @@ def solve_cup(cup: LandmarkSet, geometry: Geometry, diameter: float, refine: boo
     points = torch.as_tensor(cup.points, dtype=torch.float64)
     sol = solve_pose(points, geometry, diameter, refine=refine, on_error="flag")
     ambiguous = bool(sol.ambiguous[0])
+    # Against the landmarks' own fit, their extent: points from elsewhere can give a pose
+    # whose rim is far larger (two cups' rims: 551 px against the points' 179).
+    off_rim = float(sol.residual_px[0] / sol.ellipse[0, 2])  # NaN where no pose, never raises
     # The row's ellipse is its pose's rim, as the network's rows and every overlay draw it
-    # (the landmarks' own fit differs from it where the refinement moved the pose); the
-    # fit where there is no pose.
+    # (the fit differs from it where the refinement moved the pose); the fit where no pose.
     ellipse = sol.ellipse
     if sol.valid[0]:
         ellipse = ellipse_of_pose(sol.pose, diameter, geometry)
-    off_rim = float(sol.residual_px[0] / ellipse[0, 2])  # NaN where no pose, never raises
     h = float(sol.pose[0, 4])
     # Past NEAR_SOURCE_CHECK of SDD, or so near the detector that the dome passes through it.
     implausible = h > NEAR_SOURCE_CHECK * float(geometry.sdd) or h < diameter / 2
