@@ -76,7 +76,7 @@ class PoseSolution:
         ambiguous: ``(B,)`` bool.
         ellipse: ``(B, 5)`` fitted ellipse (cx, cy, a, b, alpha_deg) px.
         residual_px: ``(B,)`` weighted RMS distance of the landmarks to the solved rim
-            (:func:`rim_distances`, two Newton steps to each closest rim point).
+            (:func:`rim_distances`, to each landmark's closest rim point).
         valid: ``(B,)`` bool.
         status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"`` per item.
         converged: ``(B,)`` bool, the refinement of ``pose`` met its stopping test (True
@@ -725,7 +725,8 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
     ellipses (see :func:`_curvature_offsets`); noise-free landmarks give the same pose.
     Gradients with respect to ``points``, ``weights``, ``geometry`` and ``radius`` are exact
     at the solution (implicit function theorem), so only where the refinement reached it
-    (:attr:`PoseSolution.converged`); ``start`` gets none; second derivatives are refused.
+    (:func:`solve_pose` says where: :attr:`PoseSolution.converged`); ``start`` gets none;
+    second derivatives are refused.
 
     Args:
         start: ``(B, 5)`` initial poses (rad, mm), e.g. from :func:`poses_from_conic`.
@@ -799,7 +800,7 @@ def refine_pose_with_outline(start: Tensor, points: Tensor, weights: Tensor,
         geom = _batch_geometry(geometry, start.shape[0], start.dtype, start.device)
         t = _initial_rim_parameters(start, points, radius, geom)
         pose, *_ = _levenberg_marquardt(start, t, points, weights, geom, radius, max_iter, tol,
-                                       True, outline=(outline_points, outline_weights))
+                                        True, outline=(outline_points, outline_weights))
     return pose
 
 
@@ -813,13 +814,15 @@ def _preferred(solutions: Tensor) -> Tensor:
     return torch.where(tie, theta[:, 1] > theta[:, 0], violation[:, 1] < violation[:, 0]).long()
 
 
-def _select(solutions: Tensor, ambiguity_tol: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Pick the preferred candidate of ``(B, 2, 5)`` -> (pose, alt pose, ambiguous)."""
+def _select(solutions: Tensor, converged: Tensor, ambiguity_tol: float
+            ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Pick the preferred candidate of ``(B, 2, 5)`` -> (pose, alt pose, ambiguous, whether
+    the pose's refinement converged, of the candidates' ``converged`` ``(B, 2)``)."""
     index = _preferred(solutions)
     rows = torch.arange(solutions.shape[0], device=solutions.device)
     chosen, other = solutions[rows, index], solutions[rows, 1 - index]
     ambiguous = range_violation(other) <= ambiguity_tol
-    return canonical_pose(chosen), canonical_pose(other), ambiguous
+    return canonical_pose(chosen), canonical_pose(other), ambiguous, converged[rows, index]
 
 
 def other_circle_pose(pose: Tensor, radius: Tensor, geometry: Geometry,
@@ -981,8 +984,8 @@ def solve_pose(
             solutions, points, weights, ok, safe_geometry, safe_radius,
             math.radians(ambiguity_tol_deg),
             dict(max_iter=max_iter, tol=tol, corrected=corrected, compiled=compiled))
-    pose, alt, ambiguous = _select(solutions, math.radians(ambiguity_tol_deg))
-    converged = converged.gather(1, _preferred(solutions)[:, None])[:, 0]  # _select's pick
+    pose, alt, ambiguous, converged = _select(solutions, converged,
+                                              math.radians(ambiguity_tol_deg))
 
     dist = rim_distances(pose.detach(), torch.where(ok[:, None, None], points.detach(), 0.0),
                          safe_radius.detach(), safe_geometry, compiled=compiled)
