@@ -23,7 +23,8 @@ class CupDetection:
         ambiguous: both circle poses of the ellipse lie in range: of the landmarks' fit, or
             (from the network) of ``pose``'s rim (:func:`cupnet.model.with_second_poses`).
         ellipse: ``(5,)`` (cx, cy, a, b, alpha_deg) original-image pixels: the rim ellipse
-            of ``pose`` where the model refined it with the dome's outline, else the
+            of ``pose`` where the model refined it with the dome's outline or the pose was
+            solved from given landmarks (:func:`cupnet.solve_cli.solve_cup`), else the
             landmarks' weighted fit.
         landmarks: ``(N, 2)`` original-image pixels (u, v).
         weights: ``(N,)`` landmark weights in [0, 1].

@@ -81,11 +81,13 @@ class PoseSolution:
         status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"`` per item.
         converged: ``(B,)`` bool, the refinement of ``pose`` met its stopping test (True
             without refinement, False where not valid). The gradient through ``pose`` is
-            that of the solution the refinement stops at; where it stopped short, at
-            ``max_iter``, it can be far off, even in sign: a nearly edge-on rim (theta under
-            about 10 deg) leaves ``h`` along a flat valley that ten steps may not cross.
-            Raise ``max_iter`` (and tighten ``tol``) for such items, or leave them out of
-            a loss.
+            that of the solution the refinement stops at: close where it converged (a
+            long last step along a flat valley can still leave it some way off), and where
+            it stopped short, at ``max_iter``, it can be far off, even in sign: a nearly
+            edge-on rim (theta under about 10 deg) leaves ``h`` along a flat valley that ten
+            steps may not cross. Leave such items out of a loss: more steps reach the
+            maximum-likelihood ``h``, which on such rims lies far along the valley, farther
+            from the truth on average (docs/training.md, item 78).
     """
 
     pose: Tensor
@@ -678,7 +680,8 @@ class _RefinePose(torch.autograd.Function):
         if torch.is_grad_enabled():  # create_graph: the gradient below has no graph of its own
             raise RuntimeError(
                 "second derivatives through the refined pose are not supported (the implicit "
-                "gradient is built without a graph, and would differentiate as zero): take "
+                "gradient is built outside autograd's graph, and its derivative would be "
+                "wrong): take "
                 "them through solve_pose(..., refine=False), or detach the pose where a "
                 "graph of the gradient is made (create_graph=True)")
         pose, t, points, weights, geom, radius = ctx.saved_tensors
@@ -725,8 +728,8 @@ def refine_pose(start: Tensor, points: Tensor, geometry: Geometry, radius: Tenso
     ellipses (see :func:`_curvature_offsets`); noise-free landmarks give the same pose.
     Gradients with respect to ``points``, ``weights``, ``geometry`` and ``radius`` are exact
     at the solution (implicit function theorem), so only where the refinement reached it
-    (:func:`solve_pose` says where: :attr:`PoseSolution.converged`); ``start`` gets none;
-    second derivatives are refused.
+    (:func:`solve_pose` says where it met its stopping test: :attr:`PoseSolution.converged`);
+    ``start`` gets none; second derivatives are refused.
 
     Args:
         start: ``(B, 5)`` initial poses (rad, mm), e.g. from :func:`poses_from_conic`.
@@ -867,8 +870,8 @@ def _closest_rim(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor, ite
     ``r |sin theta|`` magnified, under ``_THIN_RIM_FACTOR`` times the geometric mean of the
     landmarks' RMS distance and the rim's half-length) also at least ``_SECTOR_STEPS`` from
     each of its :func:`_sector_rim_parameters`, the start that ends nearest winning, the
-    homography's unless another ends nearer by more than round-off. Other rims, and
-    landmarks the homography's start serves, get the homography's result to the bit.
+    homography's unless another ends nearer by more than round-off. Rims that are not thin
+    get the homography's result to the bit.
 
     Args: pose ``(B, 5)`` rad / mm, points ``(B, N, 2)`` px, radius ``(B,)``, geom
     ``(B, 4)``; compiled: through ``torch.compile`` (see :func:`refine_pose`).
@@ -892,7 +895,6 @@ def _closest_rim(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor, ite
         radius[rows], geom[rows], max(iterations, _SECTOR_STEPS)))
     best, index = others.min(-1)
     nearer = best < home[rows] - 1e-9
-    home, t = home.clone(), t.clone()
     home[rows] = torch.where(nearer, best, home[rows])
     t[rows] = torch.where(nearer, ends.gather(-1, index[..., None])[..., 0], t[rows])
     return home, t

@@ -71,10 +71,11 @@ NEAR_SOURCE_CHECK = 0.75
 
 def solve_cup(cup: LandmarkSet, geometry: Geometry, diameter: float, refine: bool
               ) -> CupDetection:
-    """The pose of one cup's given landmarks, flagged ``check`` where they lie off the solved
-    rim by more than :data:`OFF_RIM_CHECK` of its semi-major axis or the pose lies past
-    :data:`NEAR_SOURCE_CHECK` of SDD or within the cup's radius of the detector, with its
-    standard errors from their scatter about that rim."""
+    """The pose of one cup's given landmarks and its rim's ellipse, flagged ``check`` where
+    they lie off the solved rim by more than :data:`OFF_RIM_CHECK` of their own fit's
+    semi-major axis or the pose lies past :data:`NEAR_SOURCE_CHECK` of SDD or within the
+    cup's radius of the detector, with its standard errors from their scatter about that
+    rim."""
     points = torch.as_tensor(cup.points, dtype=torch.float64)
     sol = solve_pose(points, geometry, diameter, refine=refine, on_error="flag")
     ambiguous = bool(sol.ambiguous[0])
