@@ -864,7 +864,8 @@ def _newton_distances(pose: Tensor, t: Tensor, u: Tensor, v: Tensor, radius: Ten
 
 
 def _closest_rim(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor, iterations: int,
-                 compiled: bool = False) -> tuple[Tensor, Tensor]:
+                 compiled: bool = False, active: Tensor | None = None
+                 ) -> tuple[Tensor, Tensor]:
     """Each landmark's closest rim point: ``iterations`` Newton steps from its
     :func:`_initial_rim_parameters`; on a thin rim (its projected half-width, about
     ``r |sin theta|`` magnified, under ``_THIN_RIM_FACTOR`` times the geometric mean of the
@@ -874,7 +875,9 @@ def _closest_rim(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor, ite
     get the homography's result to the bit.
 
     Args: pose ``(B, 5)`` rad / mm, points ``(B, N, 2)`` px, radius ``(B,)``, geom
-    ``(B, 4)``; compiled: through ``torch.compile`` (see :func:`refine_pose`).
+    ``(B, 4)``; compiled: through ``torch.compile`` (see :func:`refine_pose`); active
+    ``(B, N)`` bool, the landmarks the RMS is taken over (None: all; padding, at weight 0,
+    lies anywhere and would call every padded rim thin).
     Returns: distances ``(B, N)`` px and rim parameters ``(B, N)`` rad.
     """
     u, v = points.unbind(-1)
@@ -883,7 +886,10 @@ def _closest_rim(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor, ite
     sdd, spacing = geom[:, 0], geom[:, 1]
     half_length = radius * sdd / (spacing * (sdd - pose[:, 4]))  # px, at the rim's centre
     half_width = half_length * pose[:, 0].sin().abs()
-    thin = half_width < _THIN_RIM_FACTOR * (home.pow(2).mean(-1).sqrt() * half_length).sqrt()
+    active = torch.ones_like(home, dtype=torch.bool) if active is None else active
+    rms = (home.pow(2) * active).sum(-1).div(active.sum(-1).clamp_min(1)).sqrt()
+    # NaN distances count as thin: the search may find what the homography's start did not
+    thin = ~(half_width >= _THIN_RIM_FACTOR * (rms * half_length).sqrt())
     rows = thin.nonzero()[:, 0]
     if len(rows) == 0:
         return home, t
@@ -901,7 +907,8 @@ def _closest_rim(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor, ite
 
 
 def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geometry,
-                  iterations: int = 2, compiled: bool = False) -> Tensor:
+                  iterations: int = 2, compiled: bool = False,
+                  weights: Tensor | None = None) -> Tensor:
     """Distance of each landmark to the projected rim (its closest rim point), pixels.
 
     Args:
@@ -911,12 +918,15 @@ def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geomet
             a nearly edge-on rim, whose far side can trap that start, from a sample on each
             side too, the nearest end kept.
         compiled: through ``torch.compile`` (see :func:`refine_pose`).
+        weights: ``(B, N)``, where given, landmarks of weight 0 (padding) do not decide
+            whether a rim is thin.
     Returns:
         ``(B, N)`` px, not differentiable.
     """
     with torch.no_grad():
         geom = _batch_geometry(geometry, pose.shape[0], pose.dtype, pose.device)
-        return _closest_rim(pose, points, radius, geom, iterations, compiled)[0]
+        active = None if weights is None else weights > 0
+        return _closest_rim(pose, points, radius, geom, iterations, compiled, active)[0]
 
 
 def solve_pose(
@@ -989,9 +999,9 @@ def solve_pose(
     pose, alt, ambiguous, converged = _select(solutions, converged,
                                               math.radians(ambiguity_tol_deg))
 
-    dist = rim_distances(pose.detach(), torch.where(ok[:, None, None], points.detach(), 0.0),
-                         safe_radius.detach(), safe_geometry, compiled=compiled)
     w_res = weights.detach()
+    dist = rim_distances(pose.detach(), torch.where(ok[:, None, None], points.detach(), 0.0),
+                         safe_radius.detach(), safe_geometry, compiled=compiled, weights=w_res)
     residual = torch.sqrt((w_res * dist**2).sum(-1) / w_res.sum(-1).clamp_min(1e-300))
 
     h = pose[:, 4].detach()
@@ -1213,7 +1223,7 @@ def pose_standard_errors(pose_deg: Tensor, points: Tensor, geometry: Geometry,
         radius = torch.where(fine, radius, torch.full_like(radius, _STAND_IN_RADIUS_MM))
         # A landmark without weight may be padding (NaN, as a ragged batch has it): zeroed.
         points = torch.where(usable[:, None, None] & active[..., None], points, 0.0)
-        t = _closest_rim(pose, points, radius, geom, iterations)[1]
+        t = _closest_rim(pose, points, radius, geom, iterations, active=active)[1]
         dist, jac, *_ = _signed_distances(pose, t, points.unbind(-1), weights, radius, geom,
                                           False)
         information = matmul(jac.transpose(-1, -2), weights[..., None] * jac)
