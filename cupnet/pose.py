@@ -415,15 +415,15 @@ def _initial_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: 
 
 # A rim is searched from more starts where its projected half-width is under this many
 # times the geometric mean of its landmarks' RMS distance and its half-length: there the
-# homography's start may sit on the far side (measured over half-lengths of 30-100 px and
-# noise of 0.3-3 px, it did up to about 5 times).
-_THIN_RIM_FACTOR = 6.0
+# homography's start may sit on the far side (over half-lengths of 30-100 px and noise of
+# 0.3-3 px it did up to about 5 times, but by more than 1 % of the RMS only below 3).
+_THIN_RIM_FACTOR = 3.0
 # Those starts: in each of _RIM_SECTORS equal arcs of the rim parameter (two: the rim's
 # sides, split at t = 0 and pi, the ends of e1, which lies in the detector plane, so near
 # the ellipse's tips), the nearest of _SECTOR_SAMPLES samples, given _SECTOR_STEPS Newton
 # steps (a start half a sample off, by a tip whose radius of curvature is far below the
 # noise, takes more than two bounded steps).
-_RIM_SECTORS, _SECTOR_SAMPLES, _SECTOR_STEPS = 2, 64, 4
+_RIM_SECTORS, _SECTOR_SAMPLES, _SECTOR_STEPS = 2, 32, 6
 
 
 def _sector_rim_parameters(pose: Tensor, points: Tensor, radius: Tensor, geom: Tensor
