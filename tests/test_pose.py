@@ -135,9 +135,14 @@ def test_rim_distances_on_nearly_edge_on_rims_match_a_dense_search(generator):
     pose, radius = pose_to_radians(truth), torch.full((200,), 25.0, dtype=torch.float64)
     found = rim_distances(pose, points, radius, GEOMETRY)
     t = torch.linspace(0, 2 * math.pi, 20_001, dtype=torch.float64)[:-1]
-    dense = torch.cat([torch.cdist(p, project_rim(q, r, GEOMETRY, t)).min(-1).values
-                       for p, q, r in zip(points.split(20), pose.split(20), radius.split(20),
+
+    def dense_distances(landmarks: torch.Tensor, rim_pose: torch.Tensor) -> torch.Tensor:
+        """Each landmark's least distance to 20,000 points of its rim (25 mm), px."""
+        return torch.cat([torch.cdist(p, project_rim(q, 25.0, GEOMETRY, t)).min(-1).values
+                          for p, q in zip(landmarks.split(20), rim_pose.split(20),
                                           strict=True)])
+
+    dense = dense_distances(points, pose)
     assert (found >= dense - 0.01).all()  # half the dense rim's spacing: under 0.01 px
     assert (found - dense).quantile(0.999) < 0.02
     rms = found.pow(2).mean(-1).sqrt() / dense.pow(2).mean(-1).sqrt()
@@ -145,9 +150,7 @@ def test_rim_distances_on_nearly_edge_on_rims_match_a_dense_search(generator):
     # and so the solver's residual: the reported pose's RMS distance, as a dense search finds
     sol = solve_pose(points, GEOMETRY, 50.0, on_error="flag")
     ok = sol.valid
-    solved = pose_to_radians(sol.pose[ok])
-    nearest = torch.cat([torch.cdist(p, project_rim(q, 25.0, GEOMETRY, t)).min(-1).values
-                         for p, q in zip(points[ok].split(20), solved.split(20), strict=True)])
+    nearest = dense_distances(points[ok], pose_to_radians(sol.pose[ok]))
     torch.testing.assert_close(sol.residual_px[ok], nearest.pow(2).mean(-1).sqrt(),
                                atol=0.01, rtol=0.01)
 
