@@ -38,6 +38,7 @@ from train.losses import pose_errors
 
 SDD, SPACING, DIAMETER, LANDMARKS = 1040.0, 1.0, 50.0, 100
 GEOMETRY = Geometry(SDD, SPACING, 0.0, 0.0)
+TIMED_SOLVES = 5  # throughput: the fastest of this many solves of a condition's set
 
 
 def sample_poses(n: int, generator: torch.Generator) -> torch.Tensor:
@@ -113,10 +114,14 @@ def run(cases: int, paper_cases: int, seed: int) -> str:
                 t = rim_parameters(cases, arc, gen)
                 points = landmarks(truth, t, noise, rounding, gen)
                 solve_pose(points[:8], GEOMETRY, DIAMETER, on_error="flag")  # warm-up
-                start, cpu_start = time.perf_counter(), time.process_time()
-                sol = solve_pose(points, GEOMETRY, DIAMETER, on_error="flag")
-                seconds = time.perf_counter() - start
-                cpu_seconds = time.process_time() - cpu_start
+                # The fastest of a few timed solves (as timeit does): one solve of the set
+                # takes a fraction of a second, where one stall of a shared machine shows.
+                seconds = cpu_seconds = float("inf")
+                for _ in range(TIMED_SOLVES):
+                    start, cpu_start = time.perf_counter(), time.process_time()
+                    sol = solve_pose(points, GEOMETRY, DIAMETER, on_error="flag")
+                    seconds = min(seconds, time.perf_counter() - start)
+                    cpu_seconds = min(cpu_seconds, time.process_time() - cpu_start)
                 valid = sol.valid
                 err = errors(sol.pose[valid], truth[valid])
                 resolved = errors(resolve_ambiguity(sol.pose, sol.alt_pose, truth)[valid],
@@ -186,8 +191,9 @@ def run(cases: int, paper_cases: int, seed: int) -> str:
         "them apart, and the solver returns both). `resolved` columns score the returned pose "
         "whose orientation is nearer the truth's. `fail %`: resolved |d theta| or |d phi| > "
         "5 deg. `err %`: solver errors. `poses/s`: fit + closed form + ML refinement, "
-        "batched, one process, wall clock; `poses/CPU-s`: the same per second of CPU time "
-        "of all its threads (the fairer figure where other work shares the machine).",
+        f"batched, one process, wall clock, the fastest of {TIMED_SOLVES} solves of the set; "
+        "`poses/CPU-s`: the same per second of CPU time of all its threads (the fairer "
+        "figure where other work shares the machine).",
         "",
         markdown_table(["condition", "theta MAE", "phi MAE", "k/l MAE", "h MAE", "amb %",
                         "resolved theta MAE", "theta P95", "phi MAE", "k/l MAE", "h MAE",
