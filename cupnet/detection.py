@@ -27,8 +27,10 @@ class CupDetection:
             solved from given landmarks (:func:`cupnet.solve_cli.solve_cup`), else the
             landmarks' weighted fit.
         landmarks: ``(N, 2)`` original-image pixels (u, v).
-        weights: ``(N,)`` landmark weights in [0, 1].
-        residual_px: RMS distance of the landmarks to the solved rim.
+        weights: ``(N,)`` relative landmark weights (only their ratios count in the fit
+            and pose): from the rim network each landmark's precision (inverse variance)
+            scaled to a mean of 1, from the refiner's mask in [0, 1], given landmarks 1.
+        residual_px: weighted RMS distance of the landmarks to the rim of ``pose`` (px).
         mask: ``(H, W)`` opening probability in original-image pixels, or None.
         status: ``"ok"``, ``"ambiguous"`` or ``"error: <reason>"``.
         score: mean locator probability of the cup's component.

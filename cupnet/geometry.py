@@ -70,20 +70,15 @@ class Geometry:
         self, dtype: torch.dtype = torch.float64, device: torch.device | str | None = None
     ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``(sdd, spacing, u0, v0)`` as tensors broadcastable over a batch ``(B,)`` or ``()``."""
-        return tuple(  # type: ignore[return-value]
-            torch.as_tensor(v, dtype=dtype, device=device)
-            for v in (self.sdd, self.pixel_spacing, self.principal_u, self.principal_v)
-        )
-
-    def validate(self) -> None:
-        """Raise ``ValueError`` naming the first non-physical value."""
-        sdd, spacing, u0, v0 = self.tensors()
-        if not torch.isfinite(sdd).all() or (sdd <= 0).any():
-            raise ValueError(f"source-to-detector distance must be finite and > 0 mm, got {sdd}")
-        if not torch.isfinite(spacing).all() or (spacing <= 0).any():
-            raise ValueError(f"pixel spacing must be finite and > 0 mm/px, got {spacing}")
-        if not (torch.isfinite(u0).all() and torch.isfinite(v0).all()):
-            raise ValueError("principal point must be finite")
+        out = []
+        for name in ("sdd", "pixel_spacing", "principal_u", "principal_v"):
+            value = getattr(self, name)
+            try:
+                out.append(torch.as_tensor(value, dtype=dtype, device=device))
+            except (TypeError, ValueError, RuntimeError) as err:  # torch's own names no field
+                raise TypeError(f"geometry {name} must be a number or a tensor of numbers, "
+                                f"got {value!r}") from err
+        return tuple(out)  # type: ignore[return-value]
 
 
 def rotation(theta: Tensor, phi: Tensor) -> Tensor:

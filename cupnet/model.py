@@ -80,8 +80,10 @@ from cupnet.pose import (
     canonical_pose,
     check_geometry_batch,
     ellipse_of_pose,
+    geometry_problems,
     other_circle_pose,
     refine_pose_with_outline,
+    rim_residual,
     solve_pose,
 )
 from cupnet.rim import (
@@ -710,10 +712,18 @@ class CupNet(nn.Module):
         Args:
             images: ``(B, 1, H, W)`` float32 in [0, 1], or a list of ``(H, W)`` / ``(1, H, W)``
                 arrays of any sizes (:data:`MIN_IMAGE_SIDE` to 4096 px; smaller ones run,
-                with far worse poses).
+                with far worse poses). Values a little outside [0, 1] are taken (noise
+                added, a filter's ring), up to :data:`PIXEL_RANGE`.
             geometry: fields ``(B,)`` or scalars, principal point in original-image pixels.
             cup_diameter: mm, scalar or ``(B,)``.
             return_masks: fill :attr:`CupDetection.mask` (an ``(H, W)`` array per cup).
+
+        Raises:
+            ValueError: naming the first image that cannot be used, before any network runs:
+                pixels of an integer dtype, NaN, infinite or past :data:`PIXEL_RANGE`; a
+                source-to-detector distance, pixel spacing or cup diameter that is not a
+                positive number, or a principal point that is not finite; or a geometry
+                field or diameter of other than one value or one per image.
 
         With ``round_field``, an image whose round field is much narrower than its frame (a
         screenshot or secondary capture with wide margins) is cut to the field's square
@@ -725,6 +735,12 @@ class CupNet(nn.Module):
             diameter = cup_diameters(cup_diameter, len(image_list))
             # A field of other than one value or one per image had failed deep, in a reshape.
             check_geometry_batch(geometry, len(image_list))
+            # An unusable value had run every network and then failed each cup found, under
+            # another name ("no pose from the rim found"), and an image without one said
+            # nothing: refused first, naming the image.
+            for i, problem in enumerate(geometry_problems(geometry, diameter / 2)):
+                if problem is not None:
+                    raise ValueError(f"image {i}: {problem}")
             # An image over reduce_above is checked for noise as the networks see it (cut to
             # its round field and resized): the averaging lowers its noise, and non-local
             # means at full size tripled a noisy 2048 px DRR's time (docs/training.md,
@@ -1028,6 +1044,7 @@ class CupNet(nn.Module):
         ellipses = [solution.ellipse[row] for _, _, solution, row in picks]
         outlines: list[Tensor | None] = [None] * len(picks)
         doubts: dict[int, float] = {}
+        residuals: dict[int, float] = {}
         solved = [k for k, (_, _, solution, row) in enumerate(picks) if solution.valid[row]]
         if self.config.outline_passes and self.rim is not None:
             rows = geometry_rows(geometry, batch)
@@ -1060,8 +1077,16 @@ class CupNet(nn.Module):
                 rims = ellipse_of_pose(refined, diameter[index[solved]], cup_geometry)
                 domes = sphere_outline(pose_to_radians(refined), diameter[index[solved]] / 2,
                                        cup_geometry, 64, dome_only=True)[0]
-                for k, rim, dome in zip(solved, rims, domes, strict=True):
-                    ellipses[k], outlines[k] = rim, dome
+                # The landmarks' residual to that rim too: their solution's had been reported
+                # with the refined pose (1.8 px from one such rim, reported 0.9).
+                residual = rim_residual(
+                    pose_to_radians(refined),
+                    pad_sequence([picks[k][0] for k in solved], batch_first=True),
+                    pad_sequence([picks[k][1] for k in solved], batch_first=True),
+                    diameter[index[solved]] / 2, cup_geometry)
+                for k, rim, dome, distance in zip(solved, rims, domes, residual.tolist(),
+                                                  strict=True):
+                    ellipses[k], outlines[k], residuals[k] = rim, dome, distance
         for k, (i, c) in enumerate(cup_index.tolist()):
             points, weights, solution, row = picks[k]
             mask = None
@@ -1078,7 +1103,7 @@ class CupNet(nn.Module):
                 ellipse=ellipses[k].numpy(),
                 landmarks=points.numpy(),
                 weights=weights.numpy(),
-                residual_px=float(solution.residual_px[row]),
+                residual_px=residuals.get(k, float(solution.residual_px[row])),
                 mask=mask,
                 status=found_cup_status(solution.status[row]),
                 score=float(scores[i, c]),

@@ -929,6 +929,24 @@ def rim_distances(pose: Tensor, points: Tensor, radius: Tensor, geometry: Geomet
         return _closest_rim(pose, points, radius, geom, iterations, compiled, active)[0]
 
 
+def rim_residual(pose: Tensor, points: Tensor, weights: Tensor, radius: Tensor,
+                 geometry: Geometry, compiled: bool = False) -> Tensor:
+    """Weighted RMS distance of landmarks to the projected rim of ``pose``, pixels: the
+    :attr:`PoseSolution.residual_px` of a solved pose, and of any other (a refined one).
+
+    Args:
+        pose: ``(B, 5)`` rad / mm; points: ``(B, N, 2)`` px; weights: ``(B, N)``
+            non-negative (0: padding, whose coordinates must be finite); radius: ``(B,)`` mm.
+        compiled: through ``torch.compile`` (see :func:`refine_pose`).
+    Returns:
+        ``(B,)`` px, not differentiable.
+    """
+    weights = weights.detach()
+    dist = rim_distances(pose.detach(), points.detach(), radius.detach(), geometry,
+                         compiled=compiled, weights=weights)
+    return torch.sqrt((weights * dist**2).sum(-1) / weights.sum(-1).clamp_min(1e-300))
+
+
 def solve_pose(
     points: Tensor,
     geometry: Geometry,
@@ -999,10 +1017,8 @@ def solve_pose(
     pose, alt, ambiguous, converged = _select(solutions, converged,
                                               math.radians(ambiguity_tol_deg))
 
-    w_res = weights.detach()
-    dist = rim_distances(pose.detach(), torch.where(ok[:, None, None], points.detach(), 0.0),
-                         safe_radius.detach(), safe_geometry, compiled=compiled, weights=w_res)
-    residual = torch.sqrt((w_res * dist**2).sum(-1) / w_res.sum(-1).clamp_min(1e-300))
+    residual = rim_residual(pose, torch.where(ok[:, None, None], points, 0.0), weights,
+                            safe_radius, safe_geometry, compiled)
 
     h = pose[:, 4].detach()
     sdd = _batch_geometry(safe_geometry, batch, dtype, device)[:, 0]

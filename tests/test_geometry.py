@@ -21,6 +21,7 @@ from cupnet.geometry import (
     rim_conic,
     rotation,
 )
+from cupnet.pose import geometry_problems
 
 
 def numpy_rim_pixels(theta_deg, phi_deg, k, l_, h, r, sdd, spacing, u0, v0, t):
@@ -107,13 +108,22 @@ def test_one_row_gives_the_fields_of_its_batch_as_floats() -> None:
 @pytest.mark.parametrize("field, value, word", [("sdd", -1.0, "source-to-detector"),
                                                 ("sdd", 0.0, "source-to-detector"),
                                                 ("pixel_spacing", 0.0, "pixel spacing"),
+                                                ("pixel_spacing", math.inf, "pixel spacing"),
                                                 ("principal_u", math.nan, "principal point"),
                                                 ("principal_v", math.nan, "principal point")])
-def test_geometry_validation_names_the_bad_value(field, value, word):
-    kwargs = dict(sdd=1000.0, pixel_spacing=0.2, principal_u=0.0, principal_v=0.0)
-    kwargs[field] = value
-    with pytest.raises(ValueError, match=word):
-        Geometry(**kwargs).validate()
+def test_geometry_problems_name_the_bad_value_of_its_item(field, value, word):
+    """Each item's reason, None where it is usable, whatever shares its batch."""
+    fields = dict(sdd=[1000.0] * 3, pixel_spacing=[0.2] * 3, principal_u=[0.0] * 3,
+                  principal_v=[0.0] * 3)
+    fields[field][1] = value
+    problems = geometry_problems(Geometry(**{k: torch.tensor(v) for k, v in fields.items()}),
+                                 torch.full((3,), 25.0, dtype=torch.float64))
+    assert problems[0] is None and problems[2] is None and word in problems[1]
+
+
+def test_a_geometry_field_that_is_no_number_is_named():
+    with pytest.raises(TypeError, match="geometry sdd must be a number"):
+        Geometry("1040", 0.2, 0.0, 0.0).tensors()
 
 
 def test_rim_conic_of_a_float32_pose_is_the_float64_ellipse() -> None:

@@ -861,6 +861,28 @@ def test_detect_names_a_cup_diameter_of_the_wrong_shape():
                             torch.full((3,), 50.0))
 
 
+
+@pytest.mark.parametrize("geometry, diameter, message", [
+    (Geometry(torch.tensor([1000.0, 0.0]), 0.3, 128.0, 128.0), 50.0,
+     r"image 1: source-to-detector distance must be > 0 mm, got 0\.0"),
+    (Geometry(1000.0, torch.tensor([0.3, -0.3]), 128.0, 128.0), 50.0,
+     r"image 1: pixel spacing must be > 0 mm/px, got -0\.3"),
+    (Geometry(1000.0, 0.3, math.nan, 128.0), 50.0, r"image 0: principal point is not finite"),
+    (Geometry(1000.0, 0.3, 128.0, 128.0), torch.tensor([50.0, 0.0]),
+     r"image 1: cup radius must be > 0 mm, got 0\.0"),
+])
+def test_detect_refuses_an_unusable_geometry_before_its_networks(geometry, diameter, message):
+    """Named by its image before any network runs: it had run them all and then failed
+    each cup found under another name, and an image without a cup had said nothing."""
+    model = CupNet(TINY)
+
+    def locator_not_reached(*args, **kwargs):
+        raise AssertionError("the networks ran")
+
+    model.rough_ellipses = locator_not_reached
+    with pytest.raises(ValueError, match=message):
+        model.detect(torch.rand(2, 1, 256, 256), geometry, diameter)
+
 def test_a_reported_rim_with_a_second_pose_in_range_makes_its_cup_ambiguous() -> None:
     """with_second_poses: an ``ok`` cup whose pose's rim has a second pose in range becomes
     ``ambiguous`` with that pose (as solve_pose finds it from the rim's exact landmarks); its
