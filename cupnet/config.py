@@ -26,10 +26,15 @@ BLURRED_WITHOUT_BLUR_RIM = ("blurred needs blur_rim: this model has no rim netwo
                             "on blurrier images")
 
 
-# The fields that size a network or count what it makes (>= 1), and the stages' passes (>= 0).
+# The fields that size a network or count what it makes (>= 1), and the stages' passes (>= 0);
+# but the refiner always runs once (0 passes had run one), and a cup's landmarks are
+# fitted with an ellipse, which takes 5 (4 had trained without an ellipse or pose loss,
+# and every cup of the model exported was an error).
 COUNTS = ("locator_size", "crop_size", "n_rays", "ray_samples", "rim_points", "rim_samples",
           "rim_channels", "max_cups", "thin_rim_angles", "enlarge_to", "reduce_to")
 PASSES = ("refine_passes", "rim_passes", "coarse_rim_passes", "outline_passes")
+LEAST = {**dict.fromkeys(COUNTS, 1), **dict.fromkeys(PASSES, 0), "refine_passes": 1,
+         "n_rays": 5, "rim_points": 5}
 
 
 @dataclass
@@ -47,7 +52,7 @@ class CupNetConfig(CheckedFields):
         crop_min_ratio: the minor direction of a crop is stretched so the rim's axis ratio
             in the crop is at least this ...
         crop_max_stretch: ... stretching by this factor at most.
-        n_rays: soft landmarks per cup.
+        n_rays: soft landmarks per cup (at least 5, an ellipse's).
         ray_samples: samples per ray.
         max_cups: cups per image at most.
         detect_threshold: probability threshold of the locator's components.
@@ -56,12 +61,13 @@ class CupNetConfig(CheckedFields):
             (:attr:`CupDetection.score`) is below this is dropped before the cup stages (None:
             none is): weak blobs make most false cups, many of them with confident poses
             (item 24 of docs/training.md).
-        refine_passes: stage-2 passes at inference (each re-frames on the last ellipse).
+        refine_passes: stage-2 passes at inference, at least 1 (each re-frames on the last
+            ellipse).
         locator_scale: the first pass frames the locator's blob enlarged by this factor and
             made round (axis ratio >= 0.8, no stretch), as in training's coarse frames.
         rim_passes: rim-stage passes (0: no rim stage; the landmarks are the refiner's); each
             pass after the first is framed on the weighted fit of the pass before.
-        rim_points: rim landmarks (strip columns) per cup.
+        rim_points: rim landmarks (strip columns) per cup (at least 5).
         rim_samples: samples along each normal (strip rows) ...
         rim_step: ... this many image pixels apart.
         rim_channels: width of :class:`cupnet.rim.RimNet` (the rim networks: fine, coarse,
@@ -359,10 +365,13 @@ class CupNetConfig(CheckedFields):
     def __post_init__(self) -> None:
         # Sizes and counts: 0 or less had failed only at the first forward (a negative crop
         # in kornia's warp, a division by zero rays).
-        for names, least in ((COUNTS, 1), (PASSES, 0)):
-            for name in names:
-                if getattr(self, name) < least:
-                    raise ValueError(f"{name} must be >= {least}, got {getattr(self, name)}")
+        for name, least in LEAST.items():
+            if getattr(self, name) < least:
+                raise ValueError(f"{name} must be >= {least}, got {getattr(self, name)}")
+        if not self.decoder_channels or min(self.decoder_channels) < 1:
+            # A zero width had failed in a convolution at the first forward, unnamed.
+            raise ValueError(f"decoder_channels must be one or more widths >= 1, got "
+                             f"{list(self.decoder_channels)}")
         if self.metal not in METAL_DISPLAYS:
             raise ValueError(f"unknown metal display {self.metal!r}; choose from "
                              f"{', '.join(METAL_DISPLAYS)}")

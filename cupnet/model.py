@@ -202,9 +202,15 @@ class CupNetOutput:
 
 
 def _unet(config: CupNetConfig) -> smp.Unet:
-    return smp.Unet(config.encoder, encoder_weights=None, in_channels=1, classes=1,
-                    encoder_depth=len(config.decoder_channels),
-                    decoder_channels=tuple(config.decoder_channels))
+    try:
+        return smp.Unet(config.encoder, encoder_weights=None, in_channels=1, classes=1,
+                        encoder_depth=len(config.decoder_channels),
+                        decoder_channels=tuple(config.decoder_channels))
+    except (KeyError, RuntimeError) as err:  # smp's and timm's own: a traceback in training
+        if isinstance(err, RuntimeError) and "Unknown model" not in str(err):
+            raise
+        raise ValueError(f"unknown encoder {config.encoder!r} (smp's names, or 'tu-' and a "
+                         f"timm model's): {str(err)[:300]}") from err
 
 
 def _standardise(views: Tensor) -> Tensor:

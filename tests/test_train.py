@@ -10,6 +10,7 @@ import math
 import subprocess
 import warnings
 from pathlib import Path
+from types import SimpleNamespace
 
 import lightning as L
 import pytest
@@ -37,6 +38,7 @@ from train.merge import merged
 from train.module import (
     CosineToFloor,
     CupNetModule,
+    _pose_maes,
     coarse_rim_starts,
     far_rim_starts,
     jittered_ellipses,
@@ -112,6 +114,20 @@ def test_a_cup_without_truth_is_left_out_of_the_pose_and_ellipse_losses():
                        ellipse_loss(circle[:1], rim[:1], scale[:1], valid[:1]))
     assert torch.isfinite(ellipse_loss(circle, rim, scale, valid))
 
+
+
+def test_the_log_says_what_share_of_cups_was_posed():
+    """With no cup posed the pose loss reads 0, as for a perfect fit: the share posed and
+    the NaN MAEs say which it is."""
+    truth = torch.tensor([[20.0, 10.0, 1.0, 2.0, 300.0]] * 4, dtype=torch.float64)
+    pred = truth + torch.tensor([2.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    some = SimpleNamespace(pose=pred, valid=torch.tensor([True, False, True, False]))
+    logged = _pose_maes(some, truth)
+    assert float(logged["posed"]) == 0.5 and float(logged["mae_theta"]) == pytest.approx(2.0)
+    none = SimpleNamespace(pose=pred, valid=torch.zeros(4, dtype=torch.bool))
+    logged = _pose_maes(none, truth)
+    assert float(pose_loss(pred, truth, none.valid)) == 0.0 and float(logged["posed"]) == 0.0
+    assert math.isnan(float(logged["mae_theta"]))
 
 def test_pose_loss_divides_each_error_by_its_target_mae():
     """Huber (quadratic within 1) of errors in target MAEs (1 deg, 1 deg, 1 mm, 1 mm, 8 mm),
@@ -215,13 +231,21 @@ def test_a_resume_says_which_given_settings_it_drops_and_holds_the_rate_past_its
     monkeypatch.chdir(tmp_path)
     smoke = ["fit", "-c", str(SMOKE), "--data.synth", str(ROOT / "configs/synth_smoke.yaml"),
              "--trainer.limit_val_batches", "0"]
-    main([*smoke, "--trainer.max_steps", "3"])
+    first, second = tmp_path / "first.safetensors", tmp_path / "second.safetensors"
+    main([*smoke, "--trainer.max_steps", "3", "--model.export_path", str(first)])
     (tmp_path / "runs").rename(tmp_path / "first")
+    exported = first.read_bytes()
     with pytest.warns(UserWarning) as said:
         main([*smoke, "--trainer.max_steps", "6", "--model.lr", "0.01",
               "--model.model.rim_channels", "8", "--model.model.crop_size", "96",
-              "--trainer.callbacks+=LearningRateMonitor",
+              "--trainer.callbacks+=LearningRateMonitor", "--model.export_path", str(second),
               "--ckpt_path", str(tmp_path / "first/smoke/checkpoints/last.ckpt")])
+    # The export goes where this command says (the checkpoint's path had overwritten the
+    # first run's), and is the resumed model.
+    assert first.read_bytes() == exported and second.is_file()
+    assert any(not torch.equal(a, b) for a, b in zip(load_model(first).state_dict().values(),
+                                                     load_model(second).state_dict().values(),
+                                                     strict=True))
     text = " ".join(str(w.message) for w in said)
     assert "--model.lr 0.01 (the checkpoint's: 0.003)" in text
     assert "--model.model.rim_channels '8'" in text
@@ -246,7 +270,14 @@ def test_a_resume_takes_a_checkpoint_file_not_a_keyword(tmp_path, monkeypatch, c
     (["--data.batch_size", "0"], "batch_size must be >= 1, got 0"),
     (["--data.synth", "nope.yaml"], "synthesis config not found: nope.yaml"),
     (["--model.model.crop_sise", "96"], "unknown CupNet config keys: ['crop_sise']"),
-    (["--model.model.n_rays", "0"], "n_rays must be >= 1, got 0"),
+    (["--model.model.n_rays", "4"], "n_rays must be >= 5, got 4"),
+    (["--model.model.refine_passes", "0"], "refine_passes must be >= 1, got 0"),
+    (["--model.model.encoder", "resnet19"], "unknown encoder 'resnet19'"),
+    (["--model.model.decoder_channels", "[8, 0]"], "decoder_channels must be one or more"),
+    (["--model.pose_weight", "-1"], "pose_weight must be >= 0, got -1"),
+    (["--model.weight_decay", "-1"], "weight_decay must be >= 0, got -1"),
+    (["--model.coarse_fraction", "1.5"], "coarse_fraction must be a fraction in [0, 1], got 1.5"),
+    (["--model.crops_per_cup", "0"], "crops_per_cup must be >= 1, got 0"),
     (["--model.init_weights", str(DEFAULT_CHECKPOINT)],
      "does not fit this model: 64 tensors of another shape, in ['locator', 'refiner']"),
 ])

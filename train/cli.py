@@ -87,6 +87,9 @@ class CupNetCLI(LightningCLI):
         super()._parse_ckpt_path()
         if not given:
             return
+        # Where the export goes is this command's, as its folders and loggers are: the
+        # checkpoint's had written a resume into a new folder over the first run's export.
+        self.config[command]["model"]["export_path"] = given.get("export_path")
         kept = flat_settings(self.config[command].get("model"))
         dropped = [f"--model.{key} {given[key]!r} (the checkpoint's: {kept.get(key)!r})"
                    for key in given if not same_setting(given[key], kept.get(key))]

@@ -240,13 +240,41 @@ def score_detections(detections: list[CupDetection], truth_pose: np.ndarray,
 
 
 def _pose_maes(solution: PoseSolution, truth: Tensor) -> dict[str, Tensor]:
-    """Training-log MAEs ``mae_theta`` ... ``mae_h`` of the solved poses against ``truth``."""
+    """Training-log MAEs ``mae_theta`` ... ``mae_h`` of the solved poses against ``truth``
+    (NaN where none is solved), and ``posed``, the share of cups solved: the pose loss reads
+    0 where none is, as it would for a perfect fit."""
     with torch.no_grad():
         err = pose_errors(solution.pose, truth)
         ok = solution.valid
-        return {f"mae_{name}": (err[ok, j].abs().mean() if bool(ok.any())
+        maes = {f"mae_{name}": (err[ok, j].abs().mean() if bool(ok.any())
                                 else torch.tensor(math.nan))
                 for j, name in enumerate(POSE_NAMES)}
+        return {**maes, "posed": ok.double().mean() if len(ok) else torch.tensor(math.nan)}
+
+
+# Settings out of range had run on: a negative loss weight trained its error up, no crops
+# trained no refiner, a negative weight decay ended in AdamW's traceback.
+_NON_NEGATIVE = ("weight_decay", "ellipse_weight", "pose_weight", "locator_weight",
+                 "rim_weight", "distill_weight", "ellipse_start", "pose_start", "ramp_steps",
+                 "coarse_shift", "coarse_scale", "fine_shift", "fine_scale", "fine_angle",
+                 "fine_ratio", "rim_jitter")
+_FRACTIONS = ("coarse_fraction", "rim_refiner_starts", "rim_far_starts", "locator_dark_views",
+              "locator_min_ratio")
+_AT_LEAST_ONE = ("crops_per_cup", "rim_copies")
+
+
+def _check_ranges(hparams: dict) -> None:
+    """A ValueError naming the first of the module's numeric settings out of its range
+    (NaN is out of every range)."""
+    for name in _NON_NEGATIVE:
+        if not hparams[name] >= 0:
+            raise ValueError(f"{name} must be >= 0, got {hparams[name]}")
+    for name in _FRACTIONS:
+        if not 0 <= hparams[name] <= 1:
+            raise ValueError(f"{name} must be a fraction in [0, 1], got {hparams[name]}")
+    for name in _AT_LEAST_ONE:
+        if not hparams[name] >= 1:
+            raise ValueError(f"{name} must be >= 1, got {hparams[name]}")
 
 
 class CupNetModule(L.LightningModule):
@@ -349,6 +377,7 @@ class CupNetModule(L.LightningModule):
         if not lr > 0:  # NaN fails too; AdamW had refused it at the first step
             raise ValueError(f"lr must be a learning rate > 0, got {lr}")
         self.save_hyperparameters()
+        _check_ranges(self.hparams)
         self.model = CupNet(CupNetConfig.from_dict(model or {}))
         # A resumed run's random state (CPU, CUDA), set at its first step (on_load_checkpoint).
         self._resumed_rng: tuple[Tensor | None, list[Tensor] | None] = (None, None)
