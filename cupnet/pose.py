@@ -809,12 +809,16 @@ def refine_pose_with_outline(start: Tensor, points: Tensor, weights: Tensor,
 
 def _preferred(solutions: Tensor) -> Tensor:
     """``(B,)`` index of the candidate of ``(B, 2, 5)`` to report first: the one in range (least
-    range violation); where both are, the larger theta (the mirror pose of a cup seen off the
-    central ray has the smaller one, and clinical anteversion is rarely near 0)."""
+    range violation); where both are, one inside phi's range, which is open at -90 deg, then
+    the larger theta (the mirror pose of a cup seen off the central ray has the smaller one,
+    and clinical anteversion is rarely near 0)."""
     violation = range_violation(solutions)
-    theta = _oriented_angles(solutions)[0]
+    theta, phi = _oriented_angles(solutions)
+    # Exact landmarks of a cup at phi +90 deg have their mirror pose at -90 (range_violation
+    # counts it in range, a limit of poses that are), and its larger theta had put it first.
+    rank = theta - 10.0 * (phi <= -HALF_PI + 1e-12)
     tie = (violation[:, 0] - violation[:, 1]).abs() <= 1e-12
-    return torch.where(tie, theta[:, 1] > theta[:, 0], violation[:, 1] < violation[:, 0]).long()
+    return torch.where(tie, rank[:, 1] > rank[:, 0], violation[:, 1] < violation[:, 0]).long()
 
 
 def _select(solutions: Tensor, converged: Tensor, ambiguity_tol: float

@@ -60,6 +60,17 @@ def test_solve_pose_noise_free_is_exact_and_flags_ambiguity(generator):
         assert (pose[:, 1].abs() <= 90).all()
 
 
+
+def test_a_cup_at_inclination_plus_90_is_reported_first_inside_the_range():
+    """phi's range is (-90, 90]: exact landmarks of a cup at +90 deg have their mirror pose
+    at -90, with the larger theta, and that end of the range had been reported first."""
+    truth = torch.tensor([[20.0, 90.0, 0.0, 0.0, 300.0]], dtype=torch.float64)
+    geometry = Geometry(1040.0, 0.3, 511.5, 511.5)
+    sol = solve_pose(rim_landmarks(truth, geometry, 52.0, 60), geometry, 52.0)
+    torch.testing.assert_close(sol.pose, truth, atol=1e-6, rtol=0)
+    assert bool(sol.ambiguous[0]) and float(sol.alt_pose[0, 1]) == -90.0
+    assert float(sol.alt_pose[0, 0]) > 20.0  # the mirror, preferred by its theta before
+
 def test_edge_on_and_face_on_cups():
     # On the central ray the mirror pose is (-theta, phi) = (theta, phi - 180): both in range
     # (within the 1 deg margin) near theta = 0 and near phi = 90.
