@@ -178,10 +178,19 @@ class SynthConfig(CheckedFields):
             value = getattr(self, name)
             if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= 64:
                 raise ValueError(f"{name} must be an integer in [1, 64], got {value!r}")
-        if self.h_mm[1] >= self.sdd_mm[0] * 0.9:
-            raise ValueError(f"h_mm {self.h_mm} must stay below 0.9 * sdd_mm[0] = "
-                             f"{0.9 * self.sdd_mm[0]} (the cup must lie between source and "
+        # The whole cup, not its rim centre alone: a rim reaching the source had stopped a
+        # run midway (a NaN in the mask), and a wall past the radius rendered a hollow no
+        # cup has.
+        largest_radius = self.cup_diameter_mm[1] / 2
+        if self.h_mm[1] + largest_radius >= self.sdd_mm[0] * 0.9:
+            raise ValueError(f"h_mm {self.h_mm} plus the largest cup's radius "
+                             f"({largest_radius:g} mm) must stay below 0.9 * sdd_mm[0] = "
+                             f"{0.9 * self.sdd_mm[0]:g} (the cup must lie between source and "
                              "detector)")
+        if self.shell_wall_mm[1] >= self.cup_diameter_mm[0] / 2:
+            raise ValueError(f"shell_wall_mm {self.shell_wall_mm} must stay below the "
+                             f"smallest cup's radius ({self.cup_diameter_mm[0] / 2:g} mm, "
+                             f"cup_diameter_mm {self.cup_diameter_mm})")
         for name in ("anatomy_bank", "anatomy_ct"):
             value = getattr(self, name)
             if value is not None and not Path(value).exists():

@@ -63,7 +63,7 @@ def test_a_field_set_on_a_made_config_is_checked_and_a_misspelt_one_refused():
     config = SynthConfig()
     with pytest.raises(ValueError, match="p_bilateral must be a probability"):
         config.p_bilateral = 1.5
-    with pytest.raises(ValueError, match=r"h_mm \(100.0, 520.0\) must stay below 0.9 \* sdd_mm"):
+    with pytest.raises(ValueError, match=r"h_mm \(100.0, 520.0\) plus the largest cup's"):
         config.sdd_mm = (300.0, 400.0)  # the default h_mm puts cups behind the source
     with pytest.raises(AttributeError, match="unknown SynthConfig field 'p_bilaterall'"):
         config.p_bilaterall = 0.5
@@ -71,6 +71,19 @@ def test_a_field_set_on_a_made_config_is_checked_and_a_misspelt_one_refused():
     config.update(sdd_mm=(300.0, 400.0), h_mm=(50.0, 200.0))
     assert (config.sdd_mm, config.h_mm) == ((300.0, 400.0), (50.0, 200.0))
 
+
+
+@pytest.mark.parametrize("fields, message", [
+    # The rim centre below 0.9 SDD, a rim point at the source: the run had stopped midway.
+    (dict(sdd_mm=(300.0, 300.0), h_mm=(268.0, 269.0), cup_diameter_mm=(64.0, 64.0),
+          theta_deg=(0.0, 2.0)), r"plus the largest cup's radius \(32 mm\)"),
+    # A wall past the radius: a hollow no cup has.
+    (dict(cup_diameter_mm=(12.0, 12.0), shell_wall_mm=(8.0, 8.0)),
+     r"shell_wall_mm \(8.0, 8.0\) must stay below the smallest cup's radius \(6 mm"),
+])
+def test_a_cup_that_cannot_be_drawn_is_refused_before_the_run(fields, message):
+    with pytest.raises(ValueError, match=message):
+        SynthConfig(**fields)
 
 def test_the_largest_side_drawn_is_the_largest_predict_reads():
     assert MAX_IMAGE_SIDE == MAX_SIDE
