@@ -212,7 +212,18 @@ def _coerce(name: str, value: Any) -> Any:
 
 def _check_number(name: str, value: Any) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{name} must be a finite number, got {value!r}")
+        # YAML reads 1.0e9 as text (its floats want the exponent's sign): say so.
+        hint = (" (YAML reads a number such as 1.0e9 as text: write 1.0e+9)"
+                if isinstance(value, str) and _is_float(value) else "")
+        raise ValueError(f"{name} must be a finite number, got {value!r}{hint}")
+
+
+def _is_float(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
 
 
 def _check_range(name: str, value: Any, low: float, high: float) -> None:

@@ -50,6 +50,15 @@ def test_bad_values_name_the_key(values, named):
         SynthConfig.from_dict(values)
 
 
+
+def test_a_number_yaml_reads_as_text_is_named_with_the_way_to_write_it(tmp_path):
+    path = tmp_path / "c.yaml"
+    path.write_text("photons: [1.0e9, 2.0e9]\n")  # YAML 1.1: text, for want of a sign
+    with pytest.raises(ValueError, match=r"got '1.0e9' \(YAML reads .* write 1.0e\+9\)"):
+        SynthConfig.from_yaml(path)
+    path.write_text("photons: [1.0e+9, 2.0e+9]\n")
+    assert SynthConfig.from_yaml(path).photons == (1e9, 2e9)
+
 def test_yaml_that_is_not_a_mapping(tmp_path):
     path = tmp_path / "synth.yaml"
     path.write_text("- 1\n- 2\n")
