@@ -172,7 +172,8 @@ FIRST_LOOK = Look()
 
 @dataclass
 class CupNetOutput:
-    """Differentiable outputs of :meth:`CupNet.forward` for ``K`` cups of ``B`` images.
+    """Differentiable outputs of :meth:`CupNet.forward` for ``K`` cups of ``B`` images (with
+    the crops and strips held where they were placed: see :meth:`CupNet.forward`).
 
     Attributes:
         locator_logits: ``(B, 1, S, S)`` letterboxed opening logits.
@@ -232,6 +233,8 @@ def checked_pixels(images: Tensor, first: int = 0) -> None:
     """Raise a ValueError naming the first of ``images`` ``(B, ...)`` (numbered from
     ``first``) whose pixels are not floats in [0, 1] (:data:`PIXEL_RANGE`): an integer dtype,
     NaN or infinite values, or values far outside. One reduction and one host sync a batch."""
+    if len(images) == 0:
+        return
     if not images.is_floating_point():
         raise ValueError(f"image {first}: pixels of {images.dtype}, where floats in [0, 1] are "
                          f"needed (divide by the bit depth's full scale, such as 255 or "
@@ -660,9 +663,20 @@ class CupNet(nn.Module):
                 the closed form, differentiable through ``eigh``.
         Returns:
             :class:`CupNetOutput` with ``K`` = number of crops segmented.
+
+        Gradients are those of the outputs with every crop and strip held where it was
+        placed: each crop is framed on the locator's blob (or ``crop_frames``), the rim
+        stage on the refiner's fit, and each rim pass after the first on the last pass's
+        fit, all detached. So a pose loss reaches the rim network that gives the landmarks
+        (the refiner where the model has no rim stage) and the image through it, not the
+        locator or the refiner; and with ``rim_passes`` > 1 (the shipped model's 2) the rim
+        network's gradient is not the whole derivative of the pose (against central
+        differences, ratios of 0.5-0.9 and a sign or two): set ``config.rim_passes = 1``
+        where that matters (ratios 1.000). Unlike :meth:`detect`, nothing is resized:
+        images well under the training's sizes give far worse poses.
         """
         if isinstance(images, Tensor):
-            if images.ndim != 4:
+            if images.ndim != 4 or images.shape[1] != 1:
                 raise ValueError(f"images must be (B, 1, H, W), got {tuple(images.shape)}")
             checked_pixels(images)
             # Kept a batch (one tensor for the networks), of the model's dtype: a float64
@@ -670,7 +684,14 @@ class CupNet(nn.Module):
             image_list = images.to(self.dtype)
         else:
             image_list = _as_image_list(images, self.dtype)
+        if len(image_list) == 0:
+            raise ValueError("images is an empty batch: forward takes one image at least")
         check_geometry_batch(geometry, len(image_list))
+        diameter = torch.as_tensor(cup_diameter)
+        if diameter.ndim > 2 or (diameter.ndim > 0 and diameter.shape[0] != len(image_list)):
+            # It had failed in an indexing error once every network had run.
+            raise ValueError(f"cup_diameter must be a scalar, ({len(image_list)},) or "
+                             f"({len(image_list)}, C), got {tuple(diameter.shape)}")
         locator_logits, letterbox = self.locate(list(image_list))
         if crop_frames is None:
             rough = self.ellipses_from_locator(locator_logits, letterbox)[0]
@@ -738,6 +759,8 @@ class CupNet(nn.Module):
         with evaluating(self):
             # Checked and converted once: every look takes these, or a subset of them.
             image_list = _as_image_list(images, self.dtype)
+            if not image_list:  # an empty batch has no cups (it had failed in a torch.cat)
+                return []
             diameter = cup_diameters(cup_diameter, len(image_list))
             # A field of other than one value or one per image had failed deep, in a reshape.
             check_geometry_batch(geometry, len(image_list))

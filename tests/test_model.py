@@ -883,6 +883,30 @@ def test_detect_refuses_an_unusable_geometry_before_its_networks(geometry, diame
     with pytest.raises(ValueError, match=message):
         model.detect(torch.rand(2, 1, 256, 256), geometry, diameter)
 
+
+@pytest.mark.parametrize("images, diameter, message", [
+    (torch.rand(2, 3, 64, 64), 50.0, r"images must be \(B, 1, H, W\), got \(2, 3, 64, 64\)"),
+    (torch.rand(3, 1, 64, 64), torch.full((2,), 50.0),
+     r"cup_diameter must be a scalar, \(3,\) or \(3, C\), got \(2,\)"),
+    (torch.rand(0, 1, 64, 64), 50.0, "empty batch"),
+])
+def test_forward_names_a_batch_it_cannot_take_before_its_networks(images, diameter, message):
+    """Each had failed deep: a convolution's channel error, an index error once every
+    network had run, a reshape of 0 elements."""
+    model = CupNet(TINY)
+
+    def locator_not_reached(*args, **kwargs):
+        raise AssertionError("the networks ran")
+
+    model.locate = locator_not_reached
+    with pytest.raises(ValueError, match=message):
+        model(images, Geometry(1000.0, 0.3, 32.0, 32.0), diameter)
+
+
+def test_detect_on_an_empty_batch_finds_no_cups():
+    assert CupNet(TINY).detect(torch.rand(0, 1, 64, 64), Geometry(1000.0, 0.3, 32.0, 32.0),
+                               50.0) == []
+
 def test_a_reported_rim_with_a_second_pose_in_range_makes_its_cup_ambiguous() -> None:
     """with_second_poses: an ``ok`` cup whose pose's rim has a second pose in range becomes
     ``ambiguous`` with that pose (as solve_pose finds it from the rim's exact landmarks); its
