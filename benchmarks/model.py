@@ -434,6 +434,12 @@ def preset_flags(args: argparse.Namespace) -> str:
     return "" if args.presets == list(SPEED_PRESETS) else f" --presets {' '.join(args.presets)}"
 
 
+def runtime_flags(args: argparse.Namespace) -> str:
+    """``--runtimes`` as the command line gave them, for a section's command (the default
+    runtime's alone would replace a section of both runtimes' rows with its own)."""
+    return f" --runtimes {' '.join(args.runtimes)}"
+
+
 def seed_preset_flags(args: argparse.Namespace) -> str:
     """``--seed-presets`` as the command line gave them, one flag (argparse keeps the last of
     several), for a section's command; nothing where none were given."""
@@ -844,7 +850,8 @@ def speed_section(models: dict[str, CupNet], args: argparse.Namespace) -> None:
                             "images / s", "CPU ms / image"], rows)
     print(speed)
     write("model", "## CupNet speed\n\n"
-          f"`python benchmarks/model.py{preset_flags(args)}` on {machine()}; checkpoint "
+          f"`python benchmarks/model.py --parts speed{runtime_flags(args)}{preset_flags(args)}` "
+          f"on {machine()}; checkpoint "
           f"`{Path(args.checkpoint).name}`, as it is and with its speed presets "
           f"({', '.join(f'`--{p}`' for p in args.presets) or 'none'}, as `cupnet "
           "predict` takes them); 20 synthetic 512x512 images, "
@@ -892,7 +899,8 @@ def accuracy_section(models: dict[str, CupNet], args: argparse.Namespace) -> Non
              "dominate the means.\n\n" + spread)
     print(text)
     write("model_accuracy", "## CupNet accuracy\n\n"
-          f"`python benchmarks/model.py{preset_flags(args)}`: {args.images} fresh DRRs from "
+          f"`python benchmarks/model.py --parts accuracy{runtime_flags(args)}"
+          f"{preset_flags(args)}`: {args.images} fresh DRRs from "
           f"`{args.eval_config}` (CT background on every image) at "
           f"{', '.join(map(str, args.sizes))} px (seed {args.seed}), MAE over detected "
           "true cups "

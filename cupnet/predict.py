@@ -185,10 +185,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(cupnet.offload)")
     parser.add_argument("--runtime", choices=("auto", *RUNTIMES), default="auto",
                         help="what runs the networks: onnx (ONNX Runtime, on the CPU: about "
-                             "15-35 %% faster an image than torch, the same poses to float "
-                             "rounding; each network is exported once, about 30 s in all, "
-                             "and cached; cupnet.runtime), torch, or auto (default: onnx on "
-                             "the CPU where it loads, else torch)")
+                             "5-30 %% faster an image than torch, the same poses to float "
+                             "rounding but for a few hard cups; each network is exported "
+                             "once, about 30 s in all, and cached; cupnet.runtime), torch, or "
+                             "auto (default: onnx on the CPU where it loads, else torch)")
     parser.add_argument("--batch-size", type=int, default=8, help="images per network batch")
     parser.add_argument("--threads", type=int, default=1,
                         help="PyTorch threads per network batch (default 1: two batches, "
