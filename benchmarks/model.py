@@ -449,7 +449,7 @@ def seed_preset_flags(args: argparse.Namespace) -> str:
 def robustness_intro(part: str, count: int, seed: int, args: argparse.Namespace) -> str:
     """A robustness section's command (``--parts part``) and the ``count`` fresh DRRs it
     scores, from seed ``seed`` on."""
-    return (f"`python benchmarks/model.py --parts {part} --runtimes {' '.join(args.runtimes)}"
+    return (f"`python benchmarks/model.py --parts {part}{runtime_flags(args)}"
             + seed_preset_flags(args)
             + f"`: {count} fresh DRRs from `{args.eval_config}` at "
             f"{', '.join(map(str, args.sizes))} px in equal shares (seeds {seed} on)")

@@ -75,7 +75,7 @@ class Geometry:
             value = getattr(self, name)
             try:
                 out.append(torch.as_tensor(value, dtype=dtype, device=device))
-            except (TypeError, ValueError, RuntimeError) as err:  # torch's own names no field
+            except (TypeError, ValueError) as err:  # torch's own names no field
                 raise TypeError(f"geometry {name} must be a number or a tensor of numbers, "
                                 f"got {value!r}") from err
         return tuple(out)  # type: ignore[return-value]

@@ -767,6 +767,10 @@ class CupNet(nn.Module):
             # An unusable value had run every network and then failed each cup found, under
             # another name ("no pose from the rim found"), and an image without one said
             # nothing: refused first, naming the image.
+            for i, size in enumerate(diameter.tolist()):
+                if not (math.isfinite(size) and size > 0):
+                    raise ValueError(f"image {i}: cup diameter must be a finite number > 0 "
+                                     f"mm, got {size}")
             for i, problem in enumerate(geometry_problems(geometry, diameter / 2)):
                 if problem is not None:
                     raise ValueError(f"image {i}: {problem}")

@@ -139,9 +139,9 @@ def geometry_problems(geometry: Geometry, radius: Tensor) -> list[str | None]:
     out: list[str | None] = []
     for (sdd, spacing, u0, v0), r in zip(rows.tolist(), radius.tolist(), strict=True):
         if not math.isfinite(sdd) or sdd <= 0:
-            out.append(f"source-to-detector distance must be > 0 mm, got {sdd}")
+            out.append(f"source-to-detector distance must be finite and > 0 mm, got {sdd}")
         elif not math.isfinite(spacing) or spacing <= 0:
-            out.append(f"pixel spacing must be > 0 mm/px, got {spacing}")
+            out.append(f"pixel spacing must be finite and > 0 mm/px, got {spacing}")
         elif not (math.isfinite(u0) and math.isfinite(v0)):
             out.append("principal point is not finite")
         elif not math.isfinite(r) or r <= 0:

@@ -214,16 +214,16 @@ def _check_number(name: str, value: Any) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         # YAML reads 1.0e9 as text (its floats want the exponent's sign): say so.
         hint = (" (YAML reads a number such as 1.0e9 as text: write 1.0e+9)"
-                if isinstance(value, str) and _is_float(value) else "")
+                if isinstance(value, str) and "e" in value.lower() and _is_finite(value)
+                else "")
         raise ValueError(f"{name} must be a finite number, got {value!r}{hint}")
 
 
-def _is_float(text: str) -> bool:
+def _is_finite(text: str) -> bool:
     try:
-        float(text)
+        return math.isfinite(float(text))
     except ValueError:
         return False
-    return True
 
 
 def _check_range(name: str, value: Any, low: float, high: float) -> None:

@@ -862,24 +862,25 @@ def test_detect_names_a_cup_diameter_of_the_wrong_shape():
 
 
 
+def _networks_not_reached(*args, **kwargs):
+    """Stands in for a model's first network where a check must come before any."""
+    raise AssertionError("the networks ran")
+
+
 @pytest.mark.parametrize("geometry, diameter, message", [
     (Geometry(torch.tensor([1000.0, 0.0]), 0.3, 128.0, 128.0), 50.0,
-     r"image 1: source-to-detector distance must be > 0 mm, got 0\.0"),
+     r"image 1: source-to-detector distance must be finite and > 0 mm, got 0\.0"),
     (Geometry(1000.0, torch.tensor([0.3, -0.3]), 128.0, 128.0), 50.0,
-     r"image 1: pixel spacing must be > 0 mm/px, got -0\.3"),
+     r"image 1: pixel spacing must be finite and > 0 mm/px, got -0\.3"),
     (Geometry(1000.0, 0.3, math.nan, 128.0), 50.0, r"image 0: principal point is not finite"),
     (Geometry(1000.0, 0.3, 128.0, 128.0), torch.tensor([50.0, 0.0]),
-     r"image 1: cup radius must be > 0 mm, got 0\.0"),
+     r"image 1: cup diameter must be a finite number > 0 mm, got 0\.0"),
 ])
 def test_detect_refuses_an_unusable_geometry_before_its_networks(geometry, diameter, message):
     """Named by its image before any network runs: it had run them all and then failed
     each cup found under another name, and an image without a cup had said nothing."""
     model = CupNet(TINY)
-
-    def locator_not_reached(*args, **kwargs):
-        raise AssertionError("the networks ran")
-
-    model.rough_ellipses = locator_not_reached
+    model.rough_ellipses = _networks_not_reached
     with pytest.raises(ValueError, match=message):
         model.detect(torch.rand(2, 1, 256, 256), geometry, diameter)
 
@@ -894,11 +895,7 @@ def test_forward_names_a_batch_it_cannot_take_before_its_networks(images, diamet
     """Each had failed deep: a convolution's channel error, an index error once every
     network had run, a reshape of 0 elements."""
     model = CupNet(TINY)
-
-    def locator_not_reached(*args, **kwargs):
-        raise AssertionError("the networks ran")
-
-    model.locate = locator_not_reached
+    model.locate = _networks_not_reached
     with pytest.raises(ValueError, match=message):
         model(images, Geometry(1000.0, 0.3, 32.0, 32.0), diameter)
 

@@ -58,6 +58,9 @@ def test_a_number_yaml_reads_as_text_is_named_with_the_way_to_write_it(tmp_path)
         SynthConfig.from_yaml(path)
     path.write_text("photons: [1.0e+9, 2.0e+9]\n")
     assert SynthConfig.from_yaml(path).photons == (1e9, 2e9)
+    path.write_text("photons: [nan, 2.0e+9]\n")  # text too, but no exponent to mend
+    with pytest.raises(ValueError, match=r"got 'nan'$"):
+        SynthConfig.from_yaml(path)
 
 def test_yaml_that_is_not_a_mapping(tmp_path):
     path = tmp_path / "synth.yaml"

@@ -253,6 +253,11 @@ def test_a_resume_says_which_given_settings_it_drops_and_holds_the_rate_past_its
     assert "cosine runs over 3 steps: it holds its floor" in text
     rates = [float(r["lr-AdamW"]) for r in _metrics(tmp_path) if r.get("lr-AdamW")]
     assert len(rates) == 3 and rates == pytest.approx([0.003 / 20] * 3, rel=1e-12)
+    # Where the command names none, where the checkpoint's run wrote it.
+    (tmp_path / "runs").rename(tmp_path / "second")
+    main([*smoke, "--trainer.max_steps", "4", "--model.export_path", "null",
+          "--ckpt_path", str(tmp_path / "first/smoke/checkpoints/last.ckpt")])
+    assert first.read_bytes() != exported
 
 
 def test_a_resume_takes_a_checkpoint_file_not_a_keyword(tmp_path, monkeypatch, capsys):

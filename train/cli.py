@@ -57,7 +57,10 @@ class CupNetCLI(LightningCLI):
     ``--model.*`` value or config file given; it did so silently, so a changed learning
     rate or network setting looked taken and was not. It does so for a file only: with a
     keyword (``last``, ``best``) the given settings were built into the module and recorded,
-    while the checkpoint's optimiser and schedule were restored beside them."""
+    while the checkpoint's optimiser and schedule were restored beside them. One setting is
+    the command's, where it gives one: ``export_path``, where the model is written, as the
+    run's folders and loggers are (the checkpoint's had written over the first run's
+    export)."""
 
     def instantiate_classes(self) -> None:
         """The module, data module and trainer; a setting they refuse (a misspelt network
@@ -87,9 +90,11 @@ class CupNetCLI(LightningCLI):
         super()._parse_ckpt_path()
         if not given:
             return
-        # Where the export goes is this command's, as its folders and loggers are: the
-        # checkpoint's had written a resume into a new folder over the first run's export.
-        self.config[command]["model"]["export_path"] = given.get("export_path")
+        # Where the export goes is this command's, where it names one, as its folders and
+        # loggers are: the checkpoint's had written a resume into a new folder over the
+        # first run's export. Where it names none, the checkpoint's still serves.
+        if given.get("export_path") is not None:
+            self.config[command]["model"]["export_path"] = given["export_path"]
         kept = flat_settings(self.config[command].get("model"))
         dropped = [f"--model.{key} {given[key]!r} (the checkpoint's: {kept.get(key)!r})"
                    for key in given if not same_setting(given[key], kept.get(key))]
