@@ -39,6 +39,7 @@ from torch import Tensor
 from cupnet.geometry import Geometry
 from cupnet.model import (
     CupNet,
+    check_usable_geometry,
     checked_pixels,
     cup_diameters,
     evaluating,
@@ -47,7 +48,7 @@ from cupnet.model import (
     takes_pick,
 )
 from cupnet.polarity import metals_show_bright
-from cupnet.pose import PoseSolution, check_geometry_batch, ellipse_of_pose
+from cupnet.pose import PoseSolution, ellipse_of_pose
 
 
 class BatchedCups(NamedTuple):
@@ -86,14 +87,20 @@ def batched_cups(model: CupNet, images: Tensor, geometry: Geometry, cup_diameter
     Raises:
         ValueError: images of another shape, or not in [0, 1], or NaN
             (:func:`cupnet.model.checked_pixels`: a NaN image had given no cup), geometry or
-            diameters of other than one value or one per image, as ``detect`` names them.
+            diameters of other than one value or one per image or that cannot be used
+            (:func:`cupnet.model.check_usable_geometry`), as ``detect`` names them.
+
+    With the networks in PyTorch, an image alone and the same image among others round
+    the U-Nets' float32 convolutions differently (the batch's size decides their kernels):
+    most poses move by 1e-5 to 1e-3, a nearly edge-on cup's ``h`` by a millimetre or so.
     """
-    if not isinstance(images, Tensor) or images.ndim != 4 or len(images) == 0:
+    if (not isinstance(images, Tensor) or images.ndim != 4 or images.shape[1] != 1
+            or len(images) == 0):
         raise ValueError("images must be a (B, 1, H, W) tensor with B >= 1, got "
                          f"{tuple(images.shape) if isinstance(images, Tensor) else type(images)}")
     checked_pixels(images)
     cup_diameter = cup_diameters(cup_diameter, len(images))
-    check_geometry_batch(geometry, len(images))  # here, before any network runs
+    check_usable_geometry(geometry, cup_diameter)  # here, before any network runs
     # In train mode the BatchNorms would take the batch's statistics, and keep them.
     with evaluating(model):
         return _batched_cups(model, images.to(model.dtype), geometry, cup_diameter, outline)

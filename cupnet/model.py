@@ -291,6 +291,24 @@ def cup_diameters(cup_diameter: Tensor | float, batch: int) -> Tensor:
     return diameter
 
 
+def check_usable_geometry(geometry: Geometry, diameter: Tensor) -> None:
+    """A ValueError naming the first image whose geometry field or cup ``diameter`` ``(B,)``
+    (mm) cannot be used: of other than one value or one per image, a source-to-detector
+    distance, pixel spacing or diameter that is not a finite number > 0, or a principal
+    point that is not finite. For a batch's images before any network runs: a field of the
+    wrong count had failed deep, in a reshape, and an unusable value had run every network
+    and then failed each cup found as "no pose from the rim found" (an image without a cup
+    said nothing)."""
+    check_geometry_batch(geometry, len(diameter))
+    for i, size in enumerate(diameter.tolist()):
+        if not (math.isfinite(size) and size > 0):
+            raise ValueError(f"image {i}: cup diameter must be a finite number > 0 mm, got "
+                             f"{size}")
+    for i, problem in enumerate(geometry_problems(geometry, diameter / 2)):
+        if problem is not None:
+            raise ValueError(f"image {i}: {problem}")
+
+
 def with_second_poses(found: list[list[CupDetection]], geometry: Geometry,
                       diameter: Tensor) -> list[list[CupDetection]]:
     """``found`` (per image, with its ``geometry`` and cup ``diameter`` ``(B,)`` mm), each
@@ -762,18 +780,7 @@ class CupNet(nn.Module):
             if not image_list:  # an empty batch has no cups (it had failed in a torch.cat)
                 return []
             diameter = cup_diameters(cup_diameter, len(image_list))
-            # A field of other than one value or one per image had failed deep, in a reshape.
-            check_geometry_batch(geometry, len(image_list))
-            # An unusable value had run every network and then failed each cup found, under
-            # another name ("no pose from the rim found"), and an image without one said
-            # nothing: refused first, naming the image.
-            for i, size in enumerate(diameter.tolist()):
-                if not (math.isfinite(size) and size > 0):
-                    raise ValueError(f"image {i}: cup diameter must be a finite number > 0 "
-                                     f"mm, got {size}")
-            for i, problem in enumerate(geometry_problems(geometry, diameter / 2)):
-                if problem is not None:
-                    raise ValueError(f"image {i}: {problem}")
+            check_usable_geometry(geometry, diameter)
             # An image over reduce_above is checked for noise as the networks see it (cut to
             # its round field and resized): the averaging lowers its noise, and non-local
             # means at full size tripled a noisy 2048 px DRR's time (docs/training.md,

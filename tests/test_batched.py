@@ -7,6 +7,7 @@ import copy
 import numpy as np
 import pytest
 import torch
+from cup_cases import networks_not_reached
 
 from benchmarks.model import samples
 from benchmarks.throughput import stacked
@@ -144,3 +145,22 @@ def test_the_picking_rule_by_hand():
     # The refiner's failure stands for a cup with no pose yet: its mask's ellipse.
     assert takes_pick(valid, in_range, before, refiner=True).tolist() == [
         True, True, True, False, True, False]
+
+
+@pytest.mark.parametrize("images, geometry, diameter, message", [
+    (torch.rand(2, 1, 64, 64), Geometry(torch.tensor([1000.0, -1000.0]), 0.3, 32.0, 32.0),
+     50.0, r"image 1: source-to-detector distance must be finite and > 0 mm, got -1000\.0"),
+    (torch.rand(2, 1, 64, 64), Geometry(1000.0, 0.3, 32.0, 32.0), torch.tensor([50.0, -50.0]),
+     r"image 1: cup diameter must be a finite number > 0 mm, got -50\.0"),
+    (torch.rand(2, 3, 64, 64), Geometry(1000.0, 0.3, 32.0, 32.0), 50.0,
+     r"images must be a \(B, 1, H, W\) tensor with B >= 1, got \(2, 3, 64, 64\)"),
+])
+def test_batched_cups_refuses_what_detect_refuses_before_its_networks(images, geometry,
+                                                                      diameter, message):
+    """As detect names them: an unusable value had given its cups NaN poses and an
+    unexplained valid False (an image without a cup said nothing), three channels a
+    later stage's error."""
+    model = load_model()
+    model.locate_windows = model.locate = networks_not_reached
+    with pytest.raises(ValueError, match=message):
+        batched_cups(model, images, geometry, diameter)

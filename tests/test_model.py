@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from cup_cases import detection, rim_landmarks
+from cup_cases import detection, networks_not_reached, rim_landmarks
 from torch import nn
 
 from cupnet.config import SPEED_PRESETS, CupNetConfig, apply_speed_preset
@@ -862,11 +862,6 @@ def test_detect_names_a_cup_diameter_of_the_wrong_shape():
 
 
 
-def _networks_not_reached(*args, **kwargs):
-    """Stands in for a model's first network where a check must come before any."""
-    raise AssertionError("the networks ran")
-
-
 @pytest.mark.parametrize("geometry, diameter, message", [
     (Geometry(torch.tensor([1000.0, 0.0]), 0.3, 128.0, 128.0), 50.0,
      r"image 1: source-to-detector distance must be finite and > 0 mm, got 0\.0"),
@@ -880,7 +875,7 @@ def test_detect_refuses_an_unusable_geometry_before_its_networks(geometry, diame
     """Named by its image before any network runs: it had run them all and then failed
     each cup found under another name, and an image without a cup had said nothing."""
     model = CupNet(TINY)
-    model.rough_ellipses = _networks_not_reached
+    model.rough_ellipses = networks_not_reached
     with pytest.raises(ValueError, match=message):
         model.detect(torch.rand(2, 1, 256, 256), geometry, diameter)
 
@@ -895,7 +890,7 @@ def test_forward_names_a_batch_it_cannot_take_before_its_networks(images, diamet
     """Each had failed deep: a convolution's channel error, an index error once every
     network had run, a reshape of 0 elements."""
     model = CupNet(TINY)
-    model.locate = _networks_not_reached
+    model.locate = networks_not_reached
     with pytest.raises(ValueError, match=message):
         model(images, Geometry(1000.0, 0.3, 32.0, 32.0), diameter)
 
